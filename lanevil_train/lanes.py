@@ -1,0 +1,67 @@
+"""Lane geometry shared by every layer: a lane is an (N, 2) float array of (x, y) pixels.
+
+This is the one currency of the package (see DESIGN.md, "Data flow"): points ordered by
+y descending (bottom of the image first). It depends on numpy only, so sim/, data/,
+models/ and metrics/ can all use it without importing each other.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+INVALID_X = -2.0  # TuSimple's marker for "no lane point on this row"
+
+# TuSimple's rows for a 1280x720 image: 160, 170, ..., 710.
+TUSIMPLE_H_SAMPLES = np.arange(160, 720, 10, dtype=np.float64)
+
+
+def as_lane(points, name: str = "lane") -> np.ndarray:
+    """Validate and normalise one lane to a float64 (N, 2) array sorted by y descending."""
+    arr = np.asarray(points, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 2:
+        raise ValueError(f"{name}: expected an (N, 2) array of (x, y) points, got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name}: contains non-finite coordinates")
+    order = np.argsort(-arr[:, 1], kind="stable")
+    return arr[order]
+
+
+def default_h_samples(height: int) -> np.ndarray:
+    """TuSimple-style sample rows for an image of this height (TuSimple's own rows at 720)."""
+    return np.round(TUSIMPLE_H_SAMPLES * (height / 720.0))
+
+
+def lane_x_at(lane: np.ndarray, ys: np.ndarray) -> np.ndarray:
+    """x of the lane at each row in ``ys`` by linear interpolation; INVALID_X outside its span."""
+    ys = np.asarray(ys, dtype=np.float64)
+    out = np.full(ys.shape, INVALID_X)
+    if len(lane) == 0:
+        return out
+    order = np.argsort(lane[:, 1])
+    ly, lx = lane[order, 1], lane[order, 0]
+    if len(lane) == 1:
+        out[ys == ly[0]] = lx[0]
+        return out
+    inside = (ys >= ly[0]) & (ys <= ly[-1])
+    out[inside] = np.interp(ys[inside], ly, lx)
+    return out
+
+
+def lanes_to_rows(lanes: list[np.ndarray], ys: np.ndarray) -> np.ndarray:
+    """Lanes as a (L, len(ys)) array of x per row (INVALID_X where a lane has no point)."""
+    if not lanes:
+        return np.zeros((0, len(ys)))
+    return np.stack([lane_x_at(lane, ys) for lane in lanes])
+
+
+def rows_to_lane(xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+    """Inverse of lane_x_at: keep the rows with a valid x, ordered by y descending."""
+    xs = np.asarray(xs, dtype=np.float64)
+    ys = np.asarray(ys, dtype=np.float64)
+    valid = xs >= 0
+    return as_lane(np.stack([xs[valid], ys[valid]], axis=1))
+
+
+def scale_lanes(lanes: list[np.ndarray], sx: float, sy: float) -> list[np.ndarray]:
+    """Lanes in a resized image: x scaled by sx, y by sy."""
+    return [lane * np.array([sx, sy]) for lane in lanes]
