@@ -1,0 +1,154 @@
+"""TuSimple labels: JSON lines {"lanes": [[x per h_sample]], "h_samples": [y], "raw_file": "clips/..."}.
+
+x = -2 (any x < 0) marks "no lane point on this row". Reading converts each lane to an (N, 2)
+pixel array (y descending, invalid rows removed); writing samples lanes back at the record's
+h_samples. Prediction files use the same layout plus "run_time" and no "h_samples" needed by
+the official script (we write them anyway, which it ignores).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from lanevil_train.lanes import INVALID_X, TUSIMPLE_H_SAMPLES, as_lane, lane_x_at, rows_to_lane
+
+__all__ = ["read_tusimple", "write_tusimple"]
+
+_REQUIRED = ("lanes", "h_samples", "raw_file")
+
+
+def _numbers(value, where: str, what: str) -> np.ndarray:
+    """A 1-D float array from a JSON list of numbers, or a clear error."""
+    if not isinstance(value, list) or not all(
+        isinstance(v, (int, float)) and not isinstance(v, bool) for v in value
+    ):
+        raise ValueError(f"{where}: {what} must be a list of numbers, got {str(value)[:80]}")
+    arr = np.asarray(value, dtype=np.float64)
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{where}: {what} contains non-finite values")
+    return arr
+
+
+def _parse_line(line: str, where: str) -> dict:
+    """Validate one label line and return its JSON object."""
+    try:
+        obj = json.loads(line)
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{where}: malformed JSON ({e.msg} at column {e.colno})") from e
+    if not isinstance(obj, dict):
+        raise ValueError(f"{where}: expected a JSON object with keys {list(_REQUIRED)}, got {type(obj).__name__}")
+    missing = [k for k in _REQUIRED if k not in obj]
+    if missing:
+        raise ValueError(f"{where}: missing key(s) {missing}; a TuSimple label needs {list(_REQUIRED)}")
+    if not isinstance(obj["raw_file"], str) or not obj["raw_file"]:
+        raise ValueError(f"{where}: raw_file must be a non-empty string, got {obj['raw_file']!r}")
+    if not isinstance(obj["lanes"], list):
+        raise ValueError(f"{where}: lanes must be a list of lanes, got {type(obj['lanes']).__name__}")
+    return obj
+
+
+def read_tusimple(
+    label_files: Sequence[Path | str] | Path | str,
+    root: Path | str,
+    check_images: bool = True,
+    keep_empty: bool = False,
+) -> list[dict]:
+    """Read TuSimple label files into records {"raw_file", "image_path", "lanes", "h_samples", "source"}.
+
+    Lanes keep the file's order; a lane with no valid point is dropped unless ``keep_empty``
+    (the official metric still counts such a GT lane, so keep them to score exactly).
+    """
+    if isinstance(label_files, (str, Path)):
+        label_files = [label_files]
+    root = Path(root)
+    records: list[dict] = []
+    for label_file in map(Path, label_files):
+        try:
+            text = label_file.read_text(encoding="utf-8")
+        except OSError as e:
+            raise FileNotFoundError(f"cannot read TuSimple label file {label_file}: {e}") from e
+        for lineno, line in enumerate(text.splitlines(), start=1):
+            if not line.strip():
+                continue
+            where = f"{label_file}:{lineno}"
+            obj = _parse_line(line, where)
+            ys = _numbers(obj["h_samples"], where, "h_samples")
+            lanes = []
+            for j, xs in enumerate(obj["lanes"]):
+                row = _numbers(xs, where, f"lane {j}")
+                if row.shape != ys.shape:
+                    raise ValueError(
+                        f"{where}: lane {j} has {row.size} x values but h_samples has {ys.size}"
+                    )
+                lane = rows_to_lane(row, ys)
+                if len(lane) or keep_empty:
+                    lanes.append(lane)
+            image_path = root / obj["raw_file"]
+            if check_images and not image_path.is_file():
+                raise FileNotFoundError(f"{where}: image {image_path} (raw_file {obj['raw_file']!r}) not found")
+            records.append(
+                {"raw_file": obj["raw_file"], "image_path": image_path, "lanes": lanes, "h_samples": ys,
+                 "source": where}
+            )
+    return records
+
+
+def _number_list(values: np.ndarray, as_int: bool) -> list:
+    """JSON-ready numbers: ints when asked (or when all values are integral), floats otherwise."""
+    if as_int or np.all(values == np.round(values)):
+        return [int(v) for v in np.round(values)]
+    return [float(v) for v in values]
+
+
+def _record_line(record: dict, index: int, int_x: bool) -> str:
+    """One JSON line for a record; raises naming the record index on bad content."""
+    if "raw_file" not in record:
+        raise ValueError(f"record {index}: missing 'raw_file' (needed to write a TuSimple line)")
+    ys = np.asarray(record.get("h_samples", TUSIMPLE_H_SAMPLES), dtype=np.float64).reshape(-1)
+    rows = []
+    for j, lane in enumerate(record.get("lanes", [])):
+        xs = lane_x_at(as_lane(lane, name=f"record {index} lane {j}"), ys)
+        if int_x:
+            xs = np.round(xs)
+        xs[xs < 0] = INVALID_X  # anything off the image's left edge is "no point" in TuSimple
+        rows.append(_number_list(xs, int_x))
+    obj = {"lanes": rows, "h_samples": _number_list(ys, False), "raw_file": str(record["raw_file"])}
+    if "run_time" in record:
+        obj["run_time"] = float(record["run_time"])
+    return json.dumps(obj)
+
+
+def write_tusimple(
+    records: Iterable[dict], path: Path | str, int_x: bool = True, append: bool = False
+) -> Path:
+    """Write records as TuSimple JSON lines (lanes resampled at each record's h_samples).
+
+    x is rounded to int as in TuSimple GT unless ``int_x=False`` (predictions may be floats);
+    missing h_samples default to TuSimple's 160..710. A record's "run_time" is written if present.
+    The file is replaced atomically, or with ``append`` extended line by line (flushed per line).
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if append:
+        with open(path, "a", encoding="utf-8") as f:
+            for i, record in enumerate(records):
+                f.write(_record_line(record, i, int_x) + "\n")
+                f.flush()
+        return path
+    lines = [_record_line(record, i, int_x) + "\n" for i, record in enumerate(records)]
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.writelines(lines)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path

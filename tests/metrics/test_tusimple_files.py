@@ -1,0 +1,152 @@
+"""File-level TuSimple evaluation, its CLI, and agreement with the torchmetrics Metric."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lanevil_train.lanes import TUSIMPLE_H_SAMPLES, rows_to_lane
+from lanevil_train.metrics import TuSimpleMetric, evaluate_tusimple_files
+from lanevil_train.metrics.__main__ import main
+
+REPO = Path(__file__).resolve().parents[2]
+YS = [int(y) for y in TUSIMPLE_H_SAMPLES]  # 56 rows
+
+
+def _write_lines(path: Path, objs) -> Path:
+    path.write_text("".join(json.dumps(o) + "\n" for o in objs))
+    return path
+
+
+def _two_images(tmp_path: Path) -> tuple[Path, Path]:
+    """Image a: 2 GT, 2 good preds -> (1, 0, 0). Image b: 2 GT, one good + one far pred ->
+    acc 0.5, fp 1/2, fn 1/2. Means: Accuracy .75, FP .25, FN .25; F1 = .75 (P = R = .75)."""
+    l1, l2 = [300] * 56, [-2] * 10 + [700] * 46
+    gt = [
+        {"lanes": [l1, l2], "h_samples": YS, "raw_file": "clips/a/20.jpg"},
+        {"lanes": [l1, l2], "h_samples": YS, "raw_file": "clips/b/20.jpg"},
+    ]
+    pred = [
+        {"lanes": [[305.5] * 56, [-2] * 10 + [690] * 46], "raw_file": "clips/b/20.jpg", "run_time": 10},
+        {"lanes": [[310] * 56, [-2] * 10 + [712] * 46], "raw_file": "clips/a/20.jpg"},
+    ]
+    pred[0]["lanes"][1] = [1000] * 56
+    return _write_lines(tmp_path / "pred.json", pred), _write_lines(tmp_path / "gt.json", gt)
+
+
+def test_file_level_hand_computed(tmp_path):
+    pred, gt = _two_images(tmp_path)
+    out = evaluate_tusimple_files(pred, gt)
+    assert out == pytest.approx({"Accuracy": 0.75, "FP": 0.25, "FN": 0.25, "F1": 0.75})
+
+
+def test_cli_main_prints_json(tmp_path, capsys):
+    pred, gt = _two_images(tmp_path)
+    assert main(["tusimple", "--pred", str(pred), "--gt", str(gt)]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert printed == pytest.approx({"Accuracy": 0.75, "FP": 0.25, "FN": 0.25, "F1": 0.75})
+
+
+def test_cli_subprocess(tmp_path):
+    pred, gt = _two_images(tmp_path)
+    res = subprocess.run(
+        [sys.executable, "-m", "lanevil_train.metrics", "tusimple", "--pred", str(pred), "--gt", str(gt)],
+        cwd=REPO, capture_output=True, text=True, timeout=120,
+    )
+    assert res.returncode == 0, res.stderr
+    assert json.loads(res.stdout) == pytest.approx({"Accuracy": 0.75, "FP": 0.25, "FN": 0.25, "F1": 0.75})
+
+
+def test_cli_bad_input_exit_code_and_message(tmp_path, capsys):
+    _, gt = _two_images(tmp_path)
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"lanes": [], "raw_file": "clips/a/20.jpg"}\n{"lanes": [\n')
+    assert main(["tusimple", "--pred", str(bad), "--gt", str(gt)]) == 1
+    err = capsys.readouterr().err
+    assert f"{bad}:2" in err and "malformed JSON" in err
+
+
+def test_metric_equals_file_level(tmp_path):
+    rng = np.random.default_rng(11)
+    gt_objs, pred_objs, gts, preds = [], [], [], []
+    ys = np.asarray(YS, dtype=float)
+    for i in range(60):
+        g_rows, p_rows = [], []
+        for _ in range(int(rng.integers(1, 6))):
+            xs = np.round(rng.uniform(200, 1100) + rng.uniform(-1.5, 1.5) * (ys - 400))
+            start = int(rng.integers(0, 30))
+            xs[:start] = -2
+            xs[xs < 0] = -2
+            if np.count_nonzero(xs >= 0) < 2:
+                continue
+            g_rows.append(xs)
+            if rng.random() < 0.8:
+                p_rows.append(np.where(xs >= 0, np.maximum(xs + rng.normal(0, 12, 56), 0), -2.0))
+        for _ in range(int(rng.integers(0, 3))):
+            p_rows.append(np.maximum(np.round(rng.uniform(0, 1280) + 0.5 * (ys - 400)), -2))
+        p_rows = [p for p in p_rows if np.count_nonzero(p >= 0) >= 2 and np.all((p >= 0) | (p == -2))]
+        raw = f"clips/{i}/20.jpg"
+        gt_objs.append({"lanes": [r.tolist() for r in g_rows], "h_samples": YS, "raw_file": raw})
+        pred_objs.append({"lanes": [r.tolist() for r in p_rows], "raw_file": raw, "run_time": 5})
+        gts.append([rows_to_lane(r, ys) for r in g_rows])
+        preds.append([rows_to_lane(r, ys) for r in p_rows])
+    file_out = evaluate_tusimple_files(
+        _write_lines(tmp_path / "p.json", pred_objs[::-1]), _write_lines(tmp_path / "g.json", gt_objs)
+    )
+    metric = TuSimpleMetric()
+    metric.update(preds[:25], gts[:25], [ys] * 25)
+    metric.update(preds[25:], gts[25:], ys)  # one array for the whole batch
+    out = {k: float(v) for k, v in metric.compute().items()}
+    assert out == pytest.approx(file_out, abs=1e-12)
+    # h_samples=None uses only the rows some GT lane covers: rows where every GT lane is -2
+    # drop out of the per-lane denominator, so it is NOT the official score here
+    guessed = TuSimpleMetric()
+    guessed.update(preds, gts)
+    assert float(guessed.compute()["Accuracy"]) != pytest.approx(file_out["Accuracy"], abs=1e-6)
+    assert 0.3 < file_out["Accuracy"] < 0.99 and file_out["FP"] > 0 and file_out["FN"] > 0
+
+
+def test_error_malformed_json_names_file_and_line(tmp_path):
+    _, gt = _two_images(tmp_path)
+    bad = tmp_path / "pred_bad.json"
+    bad.write_text('{"lanes": [], "raw_file": "clips/a/20.jpg"}\n\n{"lanes": [1, 2}\n')
+    with pytest.raises(ValueError, match=rf"{bad}:3: malformed JSON"):
+        evaluate_tusimple_files(bad, gt)
+
+
+def test_error_missing_prediction_names_raw_file(tmp_path):
+    pred, gt = _two_images(tmp_path)
+    lines = pred.read_text().splitlines()
+    pred.write_text(lines[1] + "\n")  # only clips/a
+    with pytest.raises(ValueError, match=r"no prediction .* raw_file 'clips/b/20.jpg'"):
+        evaluate_tusimple_files(pred, gt)
+
+
+def test_error_unknown_raw_file_and_duplicates(tmp_path):
+    pred, gt = _two_images(tmp_path)
+    _write_lines(pred, [{"lanes": [], "raw_file": "clips/zzz/20.jpg"}])
+    with pytest.raises(ValueError, match=r"pred.json:1: raw_file 'clips/zzz/20.jpg' is not in the GT"):
+        evaluate_tusimple_files(pred, gt)
+    _write_lines(pred, [{"lanes": [], "raw_file": "clips/a/20.jpg"}] * 2)
+    with pytest.raises(ValueError, match=r"pred.json:2: duplicate prediction"):
+        evaluate_tusimple_files(pred, gt)
+
+
+def test_error_lane_length_and_missing_key(tmp_path):
+    pred, gt = _two_images(tmp_path)
+    _write_lines(pred, [
+        {"lanes": [], "raw_file": "clips/a/20.jpg"},
+        {"lanes": [[1, 2, 3]], "raw_file": "clips/b/20.jpg"},
+    ])
+    with pytest.raises(ValueError, match=r"pred.json:2: Format of lanes error: lane 0 .* 3 x values .* 56"):
+        evaluate_tusimple_files(pred, gt)
+    _write_lines(pred, [{"lanes": []}])
+    with pytest.raises(ValueError, match=r"pred.json:1: missing key\(s\) \['raw_file'\]"):
+        evaluate_tusimple_files(pred, gt)
+    with pytest.raises(FileNotFoundError, match="nope.json"):
+        evaluate_tusimple_files(tmp_path / "nope.json", gt)
