@@ -1,0 +1,76 @@
+"""LightningDataModule over any sample datasets: transforms, target encoding and batching."""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+import pytorch_lightning as pl
+import torch
+from torch.utils.data import DataLoader, Dataset
+
+from lanevil_train.data.transforms import LaneSampleProcessor
+
+
+class ProcessedDataset(Dataset):
+    """A dataset whose samples go through a processor (transform + target encoding) when read."""
+
+    def __init__(self, base: Dataset, processor):
+        self.base = base
+        self.processor = processor
+
+    def __len__(self) -> int:
+        return len(self.base)
+
+    def __getitem__(self, index: int) -> dict:
+        return self.processor(self.base[index])
+
+
+def collate_lanes(items: list[dict]) -> dict:
+    """Stack images and encoded targets; keep lanes and meta as per-sample lists (they vary in size).
+
+    batch = {"images": (B,3,H,W) float, "targets": (B, ...) float (if encoded),
+             "lanes": [[lane, ...], ...] in original pixels, "meta": [dict, ...]}
+    """
+    batch = {
+        "images": torch.from_numpy(np.stack([it["image"] for it in items])),
+        "lanes": [it["lanes"] for it in items],
+        "input_lanes": [it["input_lanes"] for it in items],
+        "meta": [it["meta"] for it in items],
+    }
+    if "target" in items[0]:
+        batch["targets"] = torch.from_numpy(np.stack([it["target"] for it in items]).astype(np.float32))
+    return batch
+
+
+class LaneDataModule(pl.LightningDataModule):
+    """Train/val/test loaders over sample datasets; `encode` is the detector family's target encoder."""
+
+    def __init__(self, train: Dataset | None, val: Dataset | None, test: Dataset | None,
+                 input_size: tuple[int, int], batch_size: int = 8, num_workers: int = 0,
+                 augment: bool = True, encode: Callable | None = None, train_transforms: list | None = None):
+        super().__init__()
+        self.sets = {"train": train, "val": val, "test": test}
+        self.input_size = tuple(input_size)
+        self.batch_size = batch_size
+        self.num_workers = num_workers
+        self.train_processor = LaneSampleProcessor(self.input_size, augment, encode, train_transforms)
+        self.eval_processor = LaneSampleProcessor(self.input_size, False, encode)
+
+    def _loader(self, split: str, shuffle: bool) -> DataLoader:
+        base = self.sets[split]
+        if base is None:
+            raise ValueError(f"no {split} dataset was configured (data.{split})")
+        processor = self.train_processor if split == "train" else self.eval_processor
+        return DataLoader(ProcessedDataset(base, processor), batch_size=self.batch_size, shuffle=shuffle,
+                          num_workers=self.num_workers, collate_fn=collate_lanes,
+                          persistent_workers=self.num_workers > 0)
+
+    def train_dataloader(self) -> DataLoader:
+        return self._loader("train", shuffle=True)
+
+    def val_dataloader(self) -> DataLoader:
+        return self._loader("val", shuffle=False)
+
+    def test_dataloader(self) -> DataLoader:
+        return self._loader("test", shuffle=False)

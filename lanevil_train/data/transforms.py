@@ -1,0 +1,84 @@
+"""Image + lane transforms: albumentations pipelines that move the lanes with the image.
+
+Lanes travel as keypoints labelled with their lane index; points pushed out of the image are
+dropped, and the lanes are rebuilt, re-sorted by y descending and re-ordered left to right
+(a horizontal flip reverses lane order).
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import albumentations as A
+import cv2
+import numpy as np
+
+from lanevil_train.lanes import as_lane
+
+IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
+IMAGENET_STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)
+
+
+def build_pipeline(input_size: tuple[int, int], augment: bool, extra: list | None = None) -> A.Compose:
+    """Resize to the network input (H, W), with photometric and mild geometric augmentation when asked.
+
+    `extra` transforms (e.g. a defense's data augmentation) run before the resize.
+    """
+    height, width = input_size
+    steps: list = []
+    if augment:
+        steps += [
+            A.HorizontalFlip(p=0.5),
+            A.Affine(scale=(0.9, 1.1), translate_percent=(-0.05, 0.05), rotate=(-5, 5), p=0.6),
+            A.RandomBrightnessContrast(brightness_limit=0.25, contrast_limit=0.25, p=0.6),
+            A.HueSaturationValue(hue_shift_limit=8, sat_shift_limit=20, val_shift_limit=15, p=0.4),
+        ]
+    steps += list(extra or [])
+    steps.append(A.Resize(height, width, interpolation=cv2.INTER_AREA))  # no aliasing when shrinking
+    return A.Compose(steps, keypoint_params=A.KeypointParams(format="xy", label_fields=["lane_ids"]))
+
+
+def apply_pipeline(pipeline: A.Compose, image: np.ndarray, lanes: list[np.ndarray]) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Run an albumentations pipeline on an image and its lanes; lanes come back in output pixels."""
+    points = np.concatenate(lanes, axis=0) if lanes else np.zeros((0, 2))
+    ids = np.concatenate([np.full(len(lane), i) for i, lane in enumerate(lanes)]) if lanes else np.zeros(0)
+    out = pipeline(image=image, keypoints=points, lane_ids=ids)
+    kps = np.asarray(out["keypoints"], dtype=np.float64).reshape(-1, 2)
+    kept_ids = np.asarray(out["lane_ids"])
+    moved = [as_lane(kps[kept_ids == i]) for i in range(len(lanes))]
+    moved = [lane for lane in moved if len(lane) >= 2]
+    moved.sort(key=lambda lane: lane[0, 0])  # left to right at each lane's lowest point
+    return out["image"], moved
+
+
+def normalize_image(image: np.ndarray) -> np.ndarray:
+    """uint8 HxWx3 RGB -> float32 3xHxW, ImageNet-normalised (what the timm backbones expect)."""
+    x = image.astype(np.float32) / 255.0
+    x = (x - IMAGENET_MEAN) / IMAGENET_STD
+    return np.ascontiguousarray(x.transpose(2, 0, 1))
+
+
+class LaneSampleProcessor:
+    """Turn a sample into network inputs: transform, normalise, and encode targets with the head's `encode`.
+
+    `encode` is the detector family's own target encoder (lanes in input pixels -> fixed-shape array),
+    passed in by the task so data/ never imports models/.
+    """
+
+    def __init__(self, input_size: tuple[int, int], augment: bool, encode: Callable | None = None,
+                 extra_transforms: list | None = None):
+        self.input_size = tuple(input_size)
+        self.pipeline = build_pipeline(self.input_size, augment, extra_transforms)
+        self.encode = encode
+
+    def __call__(self, sample: dict) -> dict:
+        image, lanes = apply_pipeline(self.pipeline, sample["image"], sample["lanes"])
+        item = {
+            "image": normalize_image(image),
+            "lanes": sample["lanes"],  # ground truth in the original image, for scoring
+            "input_lanes": lanes,
+            "meta": sample["meta"],
+        }
+        if self.encode is not None:
+            item["target"] = self.encode(lanes)
+        return item

@@ -1,0 +1,112 @@
+"""LaneDetector: the one LightningModule for every detector family (backbone + family head).
+
+forward(images) -> raw head outputs (no NMS, exportable); head.loss(raw, targets) -> losses;
+head.decode(raw) -> lanes in input pixels, scaled here to each image's original size and scored
+by the same TuSimple metric for every family.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytorch_lightning as pl
+import torch
+from torch import nn
+
+from lanevil_train.lanes import lanes_to_rows, scale_lanes
+from lanevil_train.metrics.tusimple import TuSimpleMetric, tusimple_image_scores
+
+
+class LaneDetector(pl.LightningModule):
+    """A lane detector = backbone (list of feature maps) + head (forward/loss/decode/encode)."""
+
+    def __init__(self, backbone: nn.Module, head: nn.Module, lr: float = 3e-4, weight_decay: float = 0.0,
+                 scheduler: str = "cosine", decode: dict | None = None):
+        super().__init__()
+        if scheduler not in ("cosine", "none"):
+            raise ValueError(f"scheduler={scheduler!r}: expected 'cosine' or 'none'")
+        self.backbone = backbone
+        self.head = head
+        self.lr = lr
+        self.weight_decay = weight_decay
+        self.scheduler = scheduler
+        self.decode_kwargs = dict(decode or {})
+        self.val_metric = TuSimpleMetric()
+        self.test_metric = TuSimpleMetric()
+        self.test_records: list[dict] = []
+        # The config that built this model (set by the tasks); saved in checkpoints so that
+        # evaluation rebuilds the same network.
+        self.build_config: dict | None = None
+
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        if self.build_config is not None:
+            checkpoint["lanevil_model"] = self.build_config
+
+    def forward(self, images: torch.Tensor) -> dict[str, torch.Tensor]:
+        return self.head(self.backbone(images))
+
+    def predict_lanes(self, images: torch.Tensor, original_sizes: list[tuple[int, int]]) -> list[list[np.ndarray]]:
+        """Decoded lanes per image, in each image's original pixels (original_sizes: (H, W) each)."""
+        raw = self(images)
+        lanes = self.head.decode(raw, **self.decode_kwargs)
+        in_h, in_w = images.shape[-2:]
+        return [scale_lanes(per_image, w / in_w, h / in_h) for per_image, (h, w) in zip(lanes, original_sizes)]
+
+    def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
+        raw = self(batch["images"])
+        losses = self.head.loss(raw, batch["targets"])
+        batch_size = len(batch["images"])
+        self.log("train/loss", losses["loss"], prog_bar=True, batch_size=batch_size)
+        for key in ("cls_loss", "reg_loss"):
+            if key in losses:
+                self.log(f"train/{key}", losses[key], batch_size=batch_size)
+        return losses["loss"]
+
+    def _score_batch(self, batch: dict, metric: TuSimpleMetric) -> list[list[np.ndarray]]:
+        sizes = [_original_size(meta) for meta in batch["meta"]]
+        preds = self.predict_lanes(batch["images"], sizes)
+        h_samples = [meta["h_samples"] for meta in batch["meta"]]
+        metric.update(preds, batch["lanes"], h_samples)
+        return preds
+
+    def validation_step(self, batch: dict, batch_idx: int) -> None:
+        self._score_batch(batch, self.val_metric)
+
+    def on_validation_epoch_end(self) -> None:
+        self._log_metric("val", self.val_metric)
+
+    def on_test_epoch_start(self) -> None:
+        self.test_records = []
+
+    def test_step(self, batch: dict, batch_idx: int) -> None:
+        preds = self._score_batch(batch, self.test_metric)
+        for pred, gt, meta in zip(preds, batch["lanes"], batch["meta"]):
+            rows = meta["h_samples"]
+            acc, fp, fn = tusimple_image_scores(lanes_to_rows(pred, rows), lanes_to_rows(gt, rows), rows)
+            self.test_records.append({"case_id": meta["case_id"], "accuracy": acc, "fp": fp, "fn": fn,
+                                      "num_pred": len(pred), "num_gt": len(gt)})
+
+    def on_test_epoch_end(self) -> None:
+        self._log_metric("test", self.test_metric)
+
+    def _log_metric(self, stage: str, metric: TuSimpleMetric) -> None:
+        scores = metric.compute()  # reduced across DDP ranks
+        for key, value in scores.items():
+            self.log(f"{stage}/{key}", value, sync_dist=False, rank_zero_only=False)
+        metric.reset()
+
+    def configure_optimizers(self):
+        optimizer = torch.optim.Adam(self.parameters(), lr=self.lr, weight_decay=self.weight_decay)
+        if self.scheduler == "none":
+            return optimizer
+        total = max(int(self.trainer.estimated_stepping_batches), 1)
+        schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=total)
+        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": schedule, "interval": "step"}}
+
+
+def _original_size(meta: dict) -> tuple[int, int]:
+    """(H, W) of the image the ground truth refers to."""
+    if "height" in meta and "width" in meta:
+        return int(meta["height"]), int(meta["width"])
+    if "image_size" in meta:
+        return tuple(meta["image_size"])
+    raise KeyError(f"sample meta has no original image size (height/width): keys {sorted(meta)}")

@@ -1,0 +1,19 @@
+"""Tasks: one function each, a composed config in, results out. Only tasks/ and cli.py see Hydra."""
+
+from __future__ import annotations
+
+from omegaconf import DictConfig
+
+
+def run_task(cfg: DictConfig) -> float | None:
+    """Dispatch to the task named by cfg.task.name."""
+    name = cfg.task.name
+    if name == "train":
+        from lanevil_train.tasks.train import train
+
+        return train(cfg)
+    if name == "evaluate":
+        from lanevil_train.tasks.evaluate import evaluate
+
+        return evaluate(cfg)
+    raise ValueError(f"task.name={name!r}: expected one of 'train', 'evaluate'")

@@ -1,0 +1,82 @@
+"""Build library objects from a composed config: the bridge between Hydra and plain Python."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytorch_lightning as pl
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+from lanevil_train.data.datamodule import LaneDataModule
+from lanevil_train.models.detector import LaneDetector
+
+# The parts of a config that define the network; stored in every checkpoint so that
+# `task=evaluate ckpt_path=...` rebuilds the same model whatever the command line says.
+MODEL_KEYS = ("model", "backbone")
+
+
+def model_config(cfg: DictConfig) -> dict:
+    """The network-defining part of cfg, as a plain dict (model, backbone, input size)."""
+    out = {key: OmegaConf.to_container(cfg[key], resolve=True) for key in MODEL_KEYS}
+    out["input_size"] = list(cfg.data.input_size)
+    return out
+
+
+def build_model(spec: dict) -> LaneDetector:
+    """A LaneDetector from a model_config() dict."""
+    backbone = instantiate(spec["backbone"])
+    model = spec["model"]
+    head = instantiate(model["head"], in_channels=backbone.channels[-1], feature_stride=backbone.strides[-1],
+                       image_size=tuple(spec["input_size"]))
+    opt = model.get("optimizer", {})
+    detector = LaneDetector(backbone, head, lr=opt.get("lr", 3e-4), weight_decay=opt.get("weight_decay", 0.0),
+                            scheduler=model.get("scheduler", "cosine"), decode=model.get("decode"))
+    detector.build_config = spec
+    return detector
+
+
+def build_datamodule(cfg: DictConfig, splits: tuple[str, ...], encode,
+                     input_size: tuple[int, int] | None = None) -> LaneDataModule:
+    """The datamodule with only the named splits instantiated (reading a split can be slow).
+
+    input_size overrides cfg.data.input_size (evaluation uses the checkpoint's own input size).
+    """
+    sets = {}
+    for split in ("train", "val", "test"):
+        node = cfg.data.get(split)
+        sets[split] = instantiate(node) if split in splits and node is not None else None
+    return LaneDataModule(sets["train"], sets["val"], sets["test"], input_size=tuple(input_size or cfg.data.input_size),
+                          batch_size=cfg.data.batch_size, num_workers=cfg.data.num_workers,
+                          augment=cfg.data.augment, encode=encode)
+
+
+def build_trainer(cfg: DictConfig, callbacks: list | None = None, logger=True) -> pl.Trainer:
+    """A Lightning Trainer from cfg.trainer, with the configured progress display and logger."""
+    args = OmegaConf.to_container(cfg.trainer, resolve=True)
+    callbacks = list(callbacks or [])
+    if cfg.progress == "rich":
+        callbacks.append(pl.callbacks.RichProgressBar())
+    elif cfg.progress == "tqdm":
+        callbacks.append(pl.callbacks.TQDMProgressBar())
+    elif cfg.progress != "none":
+        raise ValueError(f"progress={cfg.progress!r}: expected 'rich', 'tqdm' or 'none'")
+    return pl.Trainer(**args, callbacks=callbacks, logger=build_logger(cfg) if logger else False,
+                      enable_progress_bar=cfg.progress != "none", default_root_dir=cfg.output_dir)
+
+
+def build_logger(cfg: DictConfig):
+    """The configured Lightning logger, or False for logger=none."""
+    if cfg.logger.get("_target_") is None:
+        return False
+    if "Wandb" in cfg.logger._target_:
+        import os
+
+        os.environ.setdefault("WANDB_MODE", "offline")
+    return instantiate(cfg.logger)
+
+
+def output_dir(cfg: DictConfig) -> Path:
+    path = Path(cfg.output_dir)
+    path.mkdir(parents=True, exist_ok=True)
+    return path

@@ -1,0 +1,34 @@
+"""Run the CLI in a subprocess with a tiny configuration (small images, few scenes, few steps)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[2]
+
+TINY = [
+    "data.input_size=[64,160]",
+    "data.batch_size=2",
+    "data.train.num_scenes=6",
+    "data.train.size=[90,160]",
+    "data.val.num_scenes=2",
+    "data.val.size=[90,160]",
+    "data.test.num_scenes=4",
+    "data.test.size=[90,160]",
+    "trainer.accelerator=cpu",
+    "progress=none",
+    "trainer.log_every_n_steps=1",
+]
+
+
+def run_cli(args: list[str], run_dir: Path, timeout: int = 600) -> subprocess.CompletedProcess:
+    """`python -m lanevil_train ARGS hydra.run.dir=RUN_DIR`; raises with the output on failure."""
+    env = {**os.environ, "PYTHONPATH": str(REPO), "WANDB_MODE": "offline", "OMP_NUM_THREADS": "1"}
+    cmd = [sys.executable, "-m", "lanevil_train", *args, f"hydra.run.dir={run_dir}"]
+    proc = subprocess.run(cmd, cwd=run_dir.parent, env=env, capture_output=True, text=True, timeout=timeout)
+    if proc.returncode != 0:
+        raise AssertionError(f"{' '.join(cmd)} failed ({proc.returncode}):\n{proc.stdout[-4000:]}\n{proc.stderr[-6000:]}")
+    return proc
