@@ -1,0 +1,51 @@
+"""Synthetic ground-truth lanes and a small TuSimple-style scorer shared by the model tests."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from lanevil_train.lanes import INVALID_X, default_h_samples, lane_x_at
+
+
+def synthetic_lanes(rng: np.random.Generator, image_size: tuple[int, int], n_lanes: int, curved: bool) -> list[np.ndarray]:
+    """n_lanes lanes converging to a vanishing point, straight or gently curved, left to right."""
+    h, w = image_size
+    vp_x = w * (0.5 + rng.uniform(-0.08, 0.08))
+    vp_y = h * rng.uniform(0.35, 0.45)
+    top = vp_y + 0.06 * h
+    spacing = w * rng.uniform(0.45, 0.6)
+    bottoms = vp_x + (np.arange(n_lanes) - (n_lanes - 1) / 2) * spacing
+    bend = rng.uniform(-0.06, 0.06) * w if curved else 0.0
+    lanes = []
+    for xb in bottoms:
+        ys = np.linspace(h - 1, top, 40)
+        t = (h - 1 - ys) / (h - 1 - vp_y)
+        xs = xb + (vp_x - xb) * t + bend * t**2
+        lanes.append(np.stack([xs, ys], axis=1))
+    # keep only the parts inside the image, as annotations do
+    out = []
+    for lane in lanes:
+        ok = (lane[:, 0] >= 0) & (lane[:, 0] <= w - 1)
+        if ok.sum() >= 2:
+            out.append(lane[ok])
+    return out
+
+
+def tusimple_accuracy(pred: list[np.ndarray], gt: list[np.ndarray], image_size: tuple[int, int]) -> tuple[int, int]:
+    """(correct points, GT points): per GT lane the best prediction, points within 20 px at 1280 width."""
+    h, w = image_size
+    ys = default_h_samples(h)
+    ys = ys[ys <= h - 1]
+    thr = 20.0 * w / 1280.0
+    correct = total = 0
+    for g in gt:
+        gx = lane_x_at(g, ys)
+        valid = gx != INVALID_X
+        total += int(valid.sum())
+        best = 0
+        for p in pred:
+            px = lane_x_at(p, ys)
+            hit = valid & (px != INVALID_X) & (np.abs(px - gx) < thr)
+            best = max(best, int(hit.sum()))
+        correct += best
+    return correct, total

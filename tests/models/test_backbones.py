@@ -1,0 +1,70 @@
+import pytest
+import timm
+import torch
+
+from lanevil_train.models.backbones import SUPPORTED_BACKBONES, build_backbone
+
+
+@pytest.mark.parametrize("name", SUPPORTED_BACKBONES)
+def test_every_backbone_builds_offline_and_reports_its_maps(name):
+    torch.manual_seed(0)
+    net = build_backbone(name).eval()
+    with torch.no_grad():
+        maps = net(torch.zeros(1, 3, 64, 96))
+    assert len(maps) == len(net.channels) == len(net.strides) == 1
+    assert maps[0].shape[1] == net.channels[0]
+    # timm rounds ResNet sizes up and VGG pools down
+    assert maps[0].shape[-1] == 96 // net.strides[0]
+    expected_stride = 16 if name == "vgg16" else 32
+    assert net.strides == [expected_stride]
+    assert net.channels == [512 if name in ("resnet18", "resnet34", "vgg16") else 2048]
+
+
+def test_unknown_backbone_lists_supported_names():
+    with pytest.raises(ValueError, match="resnet18.*vgg16"):
+        build_backbone("resnet19")
+
+
+def test_checkpoint_round_trip_and_wrapped_formats(tmp_path):
+    torch.manual_seed(1)
+    src = build_backbone("resnet18", out_indices=(2, 4))
+    path = tmp_path / "bb.pt"
+    # a Lightning-style file with a prefix on every key
+    torch.save({"state_dict": {f"model.{k}": v for k, v in src.state_dict().items()}}, path)
+    torch.manual_seed(2)
+    dst = build_backbone("resnet18", checkpoint=str(path), out_indices=(2, 4))
+    for k, v in src.state_dict().items():
+        assert torch.equal(v, dst.state_dict()[k]), k
+    x = torch.randn(1, 3, 64, 64)
+    src.eval(), dst.eval()
+    assert all(torch.equal(a, b) for a, b in zip(src(x), dst(x)))
+
+
+def test_imagenet_style_state_dicts_load(tmp_path):
+    # a full timm classifier (with fc) loads into the features-only net, ignoring the head
+    torch.manual_seed(3)
+    full = timm.create_model("resnet18", pretrained=False)
+    path = tmp_path / "imagenet.pth"
+    torch.save(full.state_dict(), path)
+    net = build_backbone("resnet18", checkpoint=str(path), out_indices=(3,))  # layer4 pruned: ignored too
+    assert torch.equal(net.state_dict()["conv1.weight"], full.state_dict()["conv1.weight"])
+    # torchvision-style vgg16 keys ("features.0.weight") map onto timm's flattened names
+    vgg = timm.create_model("vgg16", pretrained=False)
+    path = tmp_path / "vgg.pth"
+    torch.save(vgg.state_dict(), path)
+    net = build_backbone("vgg16", checkpoint=str(path))
+    assert torch.equal(net.state_dict()["features_28.weight"], vgg.state_dict()["features.28.weight"])
+
+
+def test_bad_checkpoints_raise_clear_errors(tmp_path):
+    with pytest.raises(FileNotFoundError, match="nope.pt"):
+        build_backbone("resnet18", checkpoint=str(tmp_path / "nope.pt"))
+    other = build_backbone("resnet34").state_dict()
+    path = tmp_path / "r34.pt"
+    torch.save(other, path)
+    with pytest.raises(ValueError, match=r"r34\.pt.*resnet18.*unexpected keys.*layer1\.2\."):
+        build_backbone("resnet18", checkpoint=str(path))
+    junk = tmp_path / "junk.pt"
+    junk.write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="junk.pt"):
+        build_backbone("resnet18", checkpoint=str(junk))
