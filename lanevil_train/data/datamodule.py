@@ -48,14 +48,15 @@ class LaneDataModule(pl.LightningDataModule):
 
     def __init__(self, train: Dataset | None, val: Dataset | None, test: Dataset | None,
                  input_size: tuple[int, int], batch_size: int = 8, num_workers: int = 0,
-                 augment: bool = True, encode: Callable | None = None, train_transforms: list | None = None):
+                 augment: bool = True, encode: Callable | None = None, train_transforms: list | None = None,
+                 crop_top: float = 0.0):
         super().__init__()
         self.sets = {"train": train, "val": val, "test": test}
         self.input_size = tuple(input_size)
         self.batch_size = batch_size
         self.num_workers = num_workers
-        self.train_processor = LaneSampleProcessor(self.input_size, augment, encode, train_transforms)
-        self.eval_processor = LaneSampleProcessor(self.input_size, False, encode)
+        self.train_processor = LaneSampleProcessor(self.input_size, augment, encode, train_transforms, crop_top)
+        self.eval_processor = LaneSampleProcessor(self.input_size, False, encode, crop_top=crop_top)
 
     def _loader(self, split: str, shuffle: bool) -> DataLoader:
         base = self.sets[split]

@@ -58,21 +58,40 @@ def normalize_image(image: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(x.transpose(2, 0, 1))
 
 
+def crop_rows(crop_top: float, height: int) -> int:
+    """Rows cut from the top of an image of this height (the sky, which holds no lane)."""
+    if not 0.0 <= crop_top < 1.0:
+        raise ValueError(f"crop_top must be a fraction in [0, 1), got {crop_top}")
+    return int(round(crop_top * height))
+
+
+def crop_top_rows(image: np.ndarray, lanes: list[np.ndarray], rows: int) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Drop the top `rows` rows of an image; lanes move up with it and lose their points above the cut."""
+    if rows == 0:
+        return image, lanes
+    moved = [lane[lane[:, 1] >= rows] - np.array([0.0, rows]) for lane in lanes]
+    return image[rows:], [lane for lane in moved if len(lane) >= 2]
+
+
 class LaneSampleProcessor:
-    """Turn a sample into network inputs: transform, normalise, and encode targets with the head's `encode`.
+    """Turn a sample into network inputs: crop, transform, normalise, and encode targets with `encode`.
 
     `encode` is the detector family's own target encoder (lanes in input pixels -> fixed-shape array),
-    passed in by the task so data/ never imports models/.
+    passed in by the task so data/ never imports models/. `crop_top` is the fraction of the image
+    height cut from the top before anything else (as CLRNet's and UFLD's cut_height).
     """
 
     def __init__(self, input_size: tuple[int, int], augment: bool, encode: Callable | None = None,
-                 extra_transforms: list | None = None):
+                 extra_transforms: list | None = None, crop_top: float = 0.0):
         self.input_size = tuple(input_size)
         self.pipeline = build_pipeline(self.input_size, augment, extra_transforms)
         self.encode = encode
+        crop_rows(crop_top, 1)  # validate now, not in a data worker
+        self.crop_top = crop_top
 
     def __call__(self, sample: dict) -> dict:
-        image, lanes = apply_pipeline(self.pipeline, sample["image"], sample["lanes"])
+        image, lanes = crop_top_rows(sample["image"], sample["lanes"], crop_rows(self.crop_top, sample["image"].shape[0]))
+        image, lanes = apply_pipeline(self.pipeline, image, lanes)
         item = {
             "image": normalize_image(image),
             "lanes": sample["lanes"],  # ground truth in the original image, for scoring

@@ -20,7 +20,7 @@ class LaneDetector(pl.LightningModule):
     """A lane detector = backbone (list of feature maps) + head (forward/loss/decode/encode)."""
 
     def __init__(self, backbone: nn.Module, head: nn.Module, lr: float = 3e-4, weight_decay: float = 0.0,
-                 scheduler: str = "cosine", decode: dict | None = None):
+                 scheduler: str = "cosine", decode: dict | None = None, crop_top: float = 0.0):
         super().__init__()
         if scheduler not in ("cosine", "none"):
             raise ValueError(f"scheduler={scheduler!r}: expected 'cosine' or 'none'")
@@ -30,6 +30,7 @@ class LaneDetector(pl.LightningModule):
         self.weight_decay = weight_decay
         self.scheduler = scheduler
         self.decode_kwargs = dict(decode or {})
+        self.crop_top = crop_top  # fraction of the original height cut before resizing (data.crop_top)
         self.val_metric = TuSimpleMetric()
         self.test_metric = TuSimpleMetric()
         self.test_records: list[dict] = []
@@ -49,7 +50,11 @@ class LaneDetector(pl.LightningModule):
         raw = self(images)
         lanes = self.head.decode(raw, **self.decode_kwargs)
         in_h, in_w = images.shape[-2:]
-        return [scale_lanes(per_image, w / in_w, h / in_h) for per_image, (h, w) in zip(lanes, original_sizes)]
+        out = []
+        for per_image, (h, w) in zip(lanes, original_sizes):
+            cut = int(round(self.crop_top * h))
+            out.append([lane + np.array([0.0, cut]) for lane in scale_lanes(per_image, w / in_w, (h - cut) / in_h)])
+        return out
 
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
         raw = self(batch["images"])

@@ -58,4 +58,7 @@ def print_table(rows: list[dict], title: str, digits: int = 2) -> None:
         table.add_column(column, justify="right")
     for row in rows:
         table.add_row(*(_fmt(row.get(c, ""), digits) for c in columns))
-    Console().print(table)
+    console = Console()
+    if not console.is_terminal:  # logs and pipes: don't squeeze the columns into 80 characters
+        console = Console(width=160)
+    console.print(table)

@@ -20,6 +20,7 @@ def model_config(cfg: DictConfig) -> dict:
     """The network-defining part of cfg, as a plain dict (model, backbone, input size)."""
     out = {key: OmegaConf.to_container(cfg[key], resolve=True) for key in MODEL_KEYS}
     out["input_size"] = list(cfg.data.input_size)
+    out["crop_top"] = float(cfg.data.get("crop_top", 0.0))
     return out
 
 
@@ -31,24 +32,26 @@ def build_model(spec: dict) -> LaneDetector:
                        image_size=tuple(spec["input_size"]))
     opt = model.get("optimizer", {})
     detector = LaneDetector(backbone, head, lr=opt.get("lr", 3e-4), weight_decay=opt.get("weight_decay", 0.0),
-                            scheduler=model.get("scheduler", "cosine"), decode=model.get("decode"))
+                            scheduler=model.get("scheduler", "cosine"), decode=model.get("decode"),
+                            crop_top=spec.get("crop_top", 0.0))
     detector.build_config = spec
     return detector
 
 
-def build_datamodule(cfg: DictConfig, splits: tuple[str, ...], encode,
-                     input_size: tuple[int, int] | None = None) -> LaneDataModule:
+def build_datamodule(cfg: DictConfig, splits: tuple[str, ...], model: LaneDetector) -> LaneDataModule:
     """The datamodule with only the named splits instantiated (reading a split can be slow).
 
-    input_size overrides cfg.data.input_size (evaluation uses the checkpoint's own input size).
+    The input geometry (size, top crop) and target encoder come from the model, so a checkpoint
+    is always fed what it was trained on.
     """
+    spec = model.build_config
     sets = {}
     for split in ("train", "val", "test"):
         node = cfg.data.get(split)
         sets[split] = instantiate(node) if split in splits and node is not None else None
-    return LaneDataModule(sets["train"], sets["val"], sets["test"], input_size=tuple(input_size or cfg.data.input_size),
+    return LaneDataModule(sets["train"], sets["val"], sets["test"], input_size=tuple(spec["input_size"]),
                           batch_size=cfg.data.batch_size, num_workers=cfg.data.num_workers,
-                          augment=cfg.data.augment, encode=encode)
+                          augment=cfg.data.augment, encode=model.head.encode, crop_top=spec.get("crop_top", 0.0))
 
 
 def build_trainer(cfg: DictConfig, callbacks: list | None = None, logger=True) -> pl.Trainer:

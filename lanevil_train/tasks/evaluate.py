@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytorch_lightning as pl
 import torch
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from lanevil_train.tasks.builders import build_datamodule, build_model, build_trainer, model_config, output_dir
 from lanevil_train.tasks.scoring import score_test_set
@@ -24,7 +24,10 @@ def evaluate(cfg: DictConfig) -> float:
     spec = checkpoint.get("lanevil_model") or model_config(cfg)
     model = build_model(spec)
     model.load_state_dict(checkpoint["state_dict"])
-    datamodule = build_datamodule(cfg, ("test",), encode=model.head.encode, input_size=spec["input_size"])
+    # decoding is post-processing, not the network: task.decode.* overrides what the checkpoint used
+    overrides = OmegaConf.to_container(cfg.task.decode, resolve=True)
+    model.decode_kwargs.update({key: value for key, value in overrides.items() if value is not None})
+    datamodule = build_datamodule(cfg, ("test",), model)
     trainer = build_trainer(cfg, logger=False)
     label = {"model": spec["model"]["name"], "backbone": spec["backbone"]["name"], "data": cfg.data.name,
              "checkpoint": str(path)}

@@ -15,7 +15,7 @@ def train(cfg: DictConfig) -> float | None:
     out = output_dir(cfg)
     model = build_model(model_config(cfg))
     splits = ("train", "val", "test") if cfg.task.test_after_fit else ("train", "val")
-    datamodule = build_datamodule(cfg, splits, encode=model.head.encode)
+    datamodule = build_datamodule(cfg, splits, model)
     checkpoints = pl.callbacks.ModelCheckpoint(dirpath=out / "checkpoints", filename="epoch{epoch:03d}",
                                                auto_insert_metric_name=False, save_last=True)
     trainer = build_trainer(cfg, callbacks=[checkpoints, pl.callbacks.LearningRateMonitor("step")])

@@ -5,9 +5,11 @@ from __future__ import annotations
 import albumentations as A
 import cv2
 import numpy as np
+import torch
 
 from lanevil_train.data.datamodule import collate_lanes
 from lanevil_train.data.transforms import LaneSampleProcessor, apply_pipeline, build_pipeline
+from lanevil_train.models.detector import LaneDetector
 
 
 def _painted_sample(height: int = 180, width: int = 320) -> dict:
@@ -74,3 +76,33 @@ def test_eval_processor_only_resizes_and_keeps_original_ground_truth():
     assert tuple(batch["images"].shape) == (2, 3, 90, 160)
     assert tuple(batch["targets"].shape) == (2, 4, 3)
     assert len(batch["lanes"]) == 2 and batch["meta"][1]["case_id"] == "x"
+
+
+class _EchoHead(torch.nn.Module):
+    """A head whose decode returns fixed lanes in input pixels: isolates the detector's mapping back."""
+
+    def __init__(self, lanes):
+        super().__init__()
+        self.lanes = lanes
+
+    def forward(self, features):
+        return {}
+
+    def decode(self, raw, **kwargs):
+        return [self.lanes]
+
+
+def test_predicted_lanes_map_back_through_crop_and_resize():
+    sample = _painted_sample(height=180, width=320)
+    processor = LaneSampleProcessor((54, 160), augment=False, crop_top=0.4)
+    item = processor(sample)
+    assert item["image"].shape == (3, 54, 160)
+    cut = 72  # 0.4 * 180
+    for lane in item["input_lanes"]:
+        assert lane[:, 1].min() >= 0
+    detector = LaneDetector(torch.nn.Identity(), _EchoHead(item["input_lanes"]), crop_top=0.4)
+    back = detector.predict_lanes(torch.zeros(1, 3, 54, 160), [(180, 320)])[0]
+    assert len(back) == 3
+    for mapped, original in zip(back, sample["lanes"]):
+        kept = original[original[:, 1] >= cut]
+        np.testing.assert_allclose(mapped, kept, atol=1.0)
