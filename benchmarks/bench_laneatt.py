@@ -1,6 +1,9 @@
 """LaneATT-ResNet18 CPU speed: forward latency (batch 1) and train step time (batch 8).
 
 Usage: python benchmarks/bench_laneatt.py [--repeats N] [--threads T] [--sizes 360x640,192x320] [--topk-anchors K]
+
+Besides the --sizes rows (stride-32 layer4 features, LaneATT's default anchors), it always measures the
+`experiment=quickstart` setup: 112x320 input, stride-16 layer3 features, 16 + 40 anchor origins.
 """
 
 from __future__ import annotations
@@ -14,6 +17,8 @@ import torch
 
 from lanevil_train.models.backbones import build_backbone
 from lanevil_train.models.laneatt import LaneATTHead
+
+QUICKSTART = {"size": (112, 320), "out_indices": (3,), "lateral_n": 16, "bottom_n": 40}
 
 
 def _targets(head: LaneATTHead, batch: int, size: tuple[int, int]) -> torch.Tensor:
@@ -45,10 +50,14 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
     rows = []
-    for spec in args.sizes.split(","):
-        size = tuple(int(v) for v in spec.split("x"))
-        bb = build_backbone("resnet18")
-        head = LaneATTHead(bb.channels[-1], bb.strides[-1], size, topk_anchors=args.topk_anchors)
+    setups = [(spec, {"size": tuple(int(v) for v in spec.split("x")), "out_indices": (4,)})
+              for spec in args.sizes.split(",")]
+    setups.append(("quickstart", QUICKSTART))
+    for spec, setup in setups:
+        size = setup["size"]
+        bb = build_backbone("resnet18", out_indices=setup["out_indices"])
+        head = LaneATTHead(bb.channels[-1], bb.strides[-1], size, topk_anchors=args.topk_anchors,
+                           lateral_n=setup.get("lateral_n"), bottom_n=setup.get("bottom_n"))
         bb.eval(), head.eval()
         x1 = torch.randn(1, 3, *size)
         with torch.inference_mode():
@@ -69,9 +78,9 @@ def main() -> None:
         train = _median_time(step, max(3, args.repeats // 2), warmup=1)
         rows.append((spec, head.n_anchors, f"{head.fmap_size[0]}x{head.fmap_size[1]}", fwd * 1e3, dec * 1e3, train))
     print(f"LaneATT-ResNet18, CPU, torch {torch.__version__}, {args.threads} threads, train batch {args.batch}")
-    print(f"{'input':>9} {'anchors':>7} {'fmap':>6} {'fwd b1 (ms)':>12} {'decode b1 (ms)':>15} {'train step (s)':>15}")
+    print(f"{'input':>10} {'anchors':>7} {'fmap':>6} {'fwd b1 (ms)':>12} {'decode b1 (ms)':>15} {'train step (s)':>15}")
     for spec, a, fm, f, d, t in rows:
-        print(f"{spec:>9} {a:>7} {fm:>6} {f:>12.1f} {d:>15.1f} {t:>15.2f}")
+        print(f"{spec:>10} {a:>7} {fm:>6} {f:>12.1f} {d:>15.1f} {t:>15.2f}")
 
 
 if __name__ == "__main__":
