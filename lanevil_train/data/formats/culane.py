@@ -11,12 +11,12 @@ written (no clipping) and write bottom-up with fixed decimals, trailing zeros st
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 from typing import Iterable, Sequence
 
 import numpy as np
 
+from lanevil_train.data.formats.atomic import atomic_write_text
 from lanevil_train.lanes import as_lane
 
 __all__ = ["read_culane", "read_culane_lanes", "write_culane_lanes", "write_culane", "lines_path_for"]
@@ -126,19 +126,6 @@ def _fmt(value: float, decimals: int) -> str:
     return "0" if text in ("-0", "") else text
 
 
-def _atomic_write(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 def write_culane_lanes(lanes: Sequence[np.ndarray], path: Path | str, decimals: int = 3) -> Path:
     """Write lanes to one ``.lines.txt`` (one lane per line, bottom point first); skips empty lanes."""
     path = Path(path)
@@ -147,7 +134,7 @@ def write_culane_lanes(lanes: Sequence[np.ndarray], path: Path | str, decimals: 
         arr = as_lane(lane, name=f"lane {j} for {path}")
         if len(arr):
             lines.append(" ".join(f"{_fmt(x, decimals)} {_fmt(y, decimals)}" for x, y in arr))
-    _atomic_write(path, "".join(line + "\n" for line in lines))
+    atomic_write_text(path, "".join(line + "\n" for line in lines))
     return path
 
 
@@ -184,5 +171,5 @@ def write_culane(records: Iterable[dict], root: Path | str, list_path: Path | st
     full = all(isinstance(e, tuple) for e in entries) and entries
     text = "".join((f"{e[0]} {e[1]}" if full else (e[0] if isinstance(e, tuple) else e)) + "\n" for e in entries)
     list_path = Path(list_path)
-    _atomic_write(list_path, text)
+    atomic_write_text(list_path, text)
     return list_path

@@ -9,13 +9,12 @@ the official script (we write them anyway, which it ignores).
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from pathlib import Path
 from typing import Iterable, Sequence
 
 import numpy as np
 
+from lanevil_train.data.formats.atomic import atomic_write_text
 from lanevil_train.lanes import INVALID_X, TUSIMPLE_H_SAMPLES, as_lane, lane_x_at, rows_to_lane
 
 __all__ = ["read_tusimple", "write_tusimple"]
@@ -141,14 +140,5 @@ def write_tusimple(
                 f.write(_record_line(record, i, int_x) + "\n")
                 f.flush()
         return path
-    lines = [_record_line(record, i, int_x) + "\n" for i, record in enumerate(records)]
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.writelines(lines)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    atomic_write_text(path, "".join(_record_line(record, i, int_x) + "\n" for i, record in enumerate(records)))
     return path
