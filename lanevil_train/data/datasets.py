@@ -59,9 +59,8 @@ class SyntheticLaneDataset(Dataset):
 class _RecordDataset(Dataset):
     """Samples from format records {"image_path", "lanes", ...}: the image is read when asked for."""
 
-    def __init__(self, records: list[dict], root: Path):
+    def __init__(self, records: list[dict]):
         self.records = records
-        self.root = Path(root)
 
     def __len__(self) -> int:
         return len(self.records)
@@ -72,8 +71,8 @@ class _RecordDataset(Dataset):
         h_samples = record.get("h_samples")
         if h_samples is None:
             h_samples = default_h_samples(image.shape[0])
-        case_id = str(Path(record["image_path"]).relative_to(self.root)) \
-            if Path(record["image_path"]).is_relative_to(self.root) else str(record["image_path"])
+        # the dataset's own name for the image: TuSimple's raw_file, CULane's list path
+        case_id = str(record.get("raw_file") or record.get("rel_path") or record["image_path"])
         meta = {"case_id": case_id, "h_samples": np.asarray(h_samples, dtype=np.float64),
                 "image_path": str(record["image_path"]), "height": image.shape[0], "width": image.shape[1]}
         return {"image": image, "lanes": record["lanes"], "meta": meta}
@@ -85,7 +84,7 @@ class TuSimpleDataset(_RecordDataset):
     def __init__(self, root: str | Path, label_files: list[str] | str, check_images: bool = True):
         root = Path(root)
         files = [label_files] if isinstance(label_files, (str, Path)) else list(label_files)
-        super().__init__(read_tusimple([root / f for f in files], root, check_images=check_images), root)
+        super().__init__(read_tusimple([root / f for f in files], root, check_images=check_images))
 
 
 class CULaneDataset(_RecordDataset):
@@ -93,4 +92,4 @@ class CULaneDataset(_RecordDataset):
 
     def __init__(self, root: str | Path, list_file: str | Path, check_images: bool = True):
         root = Path(root)
-        super().__init__(read_culane(root / list_file, root, check_images=check_images), root)
+        super().__init__(read_culane(root / list_file, root, check_images=check_images))

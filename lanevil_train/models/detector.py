@@ -112,6 +112,4 @@ def _original_size(meta: dict) -> tuple[int, int]:
     """(H, W) of the image the ground truth refers to."""
     if "height" in meta and "width" in meta:
         return int(meta["height"]), int(meta["width"])
-    if "image_size" in meta:
-        return tuple(meta["image_size"])
     raise KeyError(f"sample meta has no original image size (height/width): keys {sorted(meta)}")
