@@ -1,0 +1,56 @@
+"""Where an illusion acts: the camera, the road in world metres, and the light.
+
+Every illusion is rendered in world space from an IllusionContext, so it behaves the same on a
+simulated scene (exact geometry, `context_from_scene`) and on a real photo (geometry recovered
+from the annotated lanes, `recover.context_from_lanes`).
+
+World frame (as in lanevil_train.sim): metres, x right, y up, z forward, camera above the origin.
+Road frame: lateral offset d (+ right of the road centre line) and forward distance z;
+`road.world_point(d, z)` gives the 3D point on the road surface, `road.lateral(x, z)` the inverse.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from lanevil_train.sim import Camera, RoadGeometry, Scene
+
+
+@dataclass(frozen=True)
+class IllusionContext:
+    """Geometry and lighting of one image, enough to place, shade and project 3D illusions."""
+
+    camera: Camera                 # intrinsics, height, pitch, yaw; project() / ground_intersect()
+    road: RoadGeometry             # centre line, vertical profile, lane boundaries (road.boundaries[i].d)
+    lane_offsets: tuple[float, ...]  # d of each ground-truth lane, left to right (metres)
+    sun_direction: np.ndarray      # unit world vector towards the sun (its y < 0: the sun is down)
+    night: bool = False            # street lamps and headlights instead of the sun
+    wet: float = 0.0               # 0 dry .. 1 soaked (reflections are strong on wet asphalt)
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        """(H, W) of the image this context describes."""
+        return self.camera.height, self.camera.width
+
+    @property
+    def lane_width(self) -> float:
+        """Median spacing of adjacent ground-truth lanes (metres); 3.6 with fewer than two lanes."""
+        d = np.sort(np.asarray(self.lane_offsets, dtype=np.float64))
+        return float(np.median(np.diff(d))) if len(d) >= 2 else 3.6
+
+    def ground_pixels(self) -> np.ndarray:
+        """World points (H, W, 3) where each pixel's ray meets the road surface (NaN above the horizon)."""
+        h, w = self.image_size
+        v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+        return self.camera.ground_intersect(u, v, surface=self.road)
+
+
+def context_from_scene(scene: Scene) -> IllusionContext:
+    """The exact context of a simulated scene (its own camera, road and weather)."""
+    offsets = tuple(float(b.d) for b in scene.road.boundaries if b.marking != "none")
+    weather = scene.weather
+    return IllusionContext(camera=scene.camera, road=scene.road, lane_offsets=offsets,
+                           sun_direction=scene.sun_direction, night=bool(weather["night"]),
+                           wet=float(weather["wet"]))

@@ -1,0 +1,230 @@
+"""recover.py: the context recovered from a simulated camera's lanes matches that camera."""
+
+import math
+import time
+
+import numpy as np
+import pytest
+
+from lanevil_train.illusions.context import IllusionContext, context_from_scene
+from lanevil_train.illusions.recover import (
+    GroundPlaneError, context_from_lanes, fallback_context,
+)
+from lanevil_train.lanes import TUSIMPLE_H_SAMPLES, lanes_to_rows, rows_to_lane
+from lanevil_train.sim import SceneParams, build_scene
+
+# (pitch_deg, yaw_deg, camera_height, lane_width, num_lanes, lateral_offset)
+CAMERAS = [
+    (2.0, 0.0, 1.5, 3.5, 3, 0.0),
+    (5.0, 3.0, 1.2, 3.0, 4, 0.4),
+    (0.5, -4.0, 2.5, 4.0, 2, -0.3),
+    (8.0, 10.0, 3.0, 3.6, 5, 0.0),
+    (-2.0, 1.5, 1.8, 3.75, 3, 0.8),
+]
+
+
+def _scene(pitch, yaw, hcam, lw, nl, lo, width=1280, height=720):
+    params = SceneParams(road="straight", pitch_deg=pitch, yaw_deg=yaw, camera_height=hcam,
+                         lane_width=lw, num_lanes=nl, lateral_offset=lo)
+    return build_scene(3, params, width, height)
+
+
+def _tusimple_lanes(scene):
+    """GT lanes as a TuSimple annotator would give them: x on the 10-px rows, rounded to integers."""
+    lanes, _, offsets = scene.lanes()
+    rows = np.round(lanes_to_rows(lanes, TUSIMPLE_H_SAMPLES))
+    rows[rows < 0] = -2.0
+    rows[rows >= scene.camera.width] = -2.0
+    return [rows_to_lane(r, TUSIMPLE_H_SAMPLES) for r in rows], offsets
+
+
+@pytest.mark.parametrize("cam", CAMERAS)
+def test_recovers_simulated_camera_from_rounded_tusimple_rows(cam):
+    pitch, yaw, hcam, lw, _, _ = cam
+    scene = _scene(*cam)
+    lanes, true_offsets = _tusimple_lanes(scene)
+    ctx = context_from_lanes(lanes, (720, 1280), lane_width=lw)
+    assert isinstance(ctx, IllusionContext)
+    assert abs(ctx.camera.pitch_deg - pitch) < 0.3
+    assert abs(ctx.camera.yaw_deg - yaw) < 0.3
+    assert abs(ctx.camera.height_m - hcam) < 0.05 * hcam
+    # offsets relative to the road centre (midpoint of the outermost lanes), as in the simulator
+    true = np.asarray(true_offsets)
+    assert len(ctx.lane_offsets) == len(true)
+    np.testing.assert_allclose(ctx.lane_offsets, true, atol=0.05 * lw)
+    assert [b.d for b in ctx.road.boundaries] == list(ctx.lane_offsets)
+    # the camera sits where it does in the scene: same road centre x (within 5 % of a lane)
+    assert abs(ctx.road.x0 - scene.road.x0) < 0.05 * lw
+
+
+@pytest.mark.parametrize("cam", CAMERAS[:3])
+def test_near_field_projection_matches_true_camera(cam):
+    scene = _scene(*cam)
+    lanes, _ = _tusimple_lanes(scene)
+    ctx = context_from_lanes(lanes, (720, 1280), lane_width=cam[3])
+    true_ctx = context_from_scene(scene)
+    d, z = np.meshgrid(np.linspace(-4.0, 4.0, 9), np.linspace(6.0, 30.0, 9))
+    got = ctx.camera.project(ctx.road.world_point(d, z))
+    want = true_ctx.camera.project(true_ctx.road.world_point(d, z))
+    inside = np.all((want >= 0) & (want < [1280, 720]), axis=-1)
+    assert inside.sum() > 20
+    err = np.linalg.norm(got - want, axis=-1)[inside]
+    assert err.max() < 2.0
+
+
+def test_exact_lanes_give_exact_camera():
+    scene = _scene(5.0, 3.0, 1.2, 3.0, 4, 0.4)
+    lanes, _, offsets = scene.lanes()
+    ctx = context_from_lanes(lanes, (720, 1280), lane_width=3.0)
+    assert ctx.camera.pitch_deg == pytest.approx(5.0, abs=1e-6)
+    assert ctx.camera.yaw_deg == pytest.approx(3.0, abs=1e-6)
+    assert ctx.camera.height_m == pytest.approx(1.2, abs=1e-6)
+    np.testing.assert_allclose(ctx.lane_offsets, offsets, atol=1e-6)
+
+
+def test_small_image_and_hfov():
+    params = SceneParams(road="straight", pitch_deg=3.0, yaw_deg=-2.0, camera_height=1.6, lane_width=3.5,
+                         hfov_deg=60.0, num_lanes=3)
+    scene = build_scene(0, params, 320, 180)
+    lanes, _, offsets = scene.lanes()
+    lanes = [np.round(lane) for lane in lanes]
+    ctx = context_from_lanes(lanes, (180, 320), lane_width=3.5, hfov_deg=60.0)
+    assert ctx.image_size == (180, 320)
+    assert abs(ctx.camera.pitch_deg - 3.0) < 0.3 and abs(ctx.camera.yaw_deg + 2.0) < 0.3
+    np.testing.assert_allclose(ctx.lane_offsets, offsets, atol=0.05 * 3.5)
+
+
+def test_lane_width_none_uses_camera_height():
+    scene = _scene(2.0, 0.0, 1.5, 3.5, 3, 0.0)
+    lanes, _, offsets = scene.lanes()
+    ctx = context_from_lanes(lanes, (720, 1280), lane_width=None, camera_height=3.0)
+    assert ctx.camera.height_m == 3.0
+    # twice the height => everything twice as wide
+    np.testing.assert_allclose(ctx.lane_offsets, 2.0 * np.asarray(offsets), atol=1e-6)
+    assert ctx.lane_width == pytest.approx(7.0, abs=1e-6)
+    # and with a lane width given, the lanes are that far apart whatever camera_height says
+    ctx2 = context_from_lanes(lanes, (720, 1280), lane_width=3.2, camera_height=3.0)
+    assert ctx2.lane_width == pytest.approx(3.2, abs=1e-9)
+    assert ctx2.camera.height_m == pytest.approx(1.5 * 3.2 / 3.5, abs=1e-6)
+
+
+def test_short_lanes_are_ignored_but_two_good_ones_suffice():
+    scene = _scene(2.0, 1.0, 1.5, 3.5, 3, 0.0)
+    lanes, _, offsets = scene.lanes()
+    stub = lanes[1][:3]  # three points: unusable
+    # the adjacent recovered lanes are two lanes apart: 7 m, re-centred on their midpoint
+    ctx = context_from_lanes([lanes[0], stub, lanes[2]], (720, 1280), lane_width=7.0)
+    assert len(ctx.lane_offsets) == 2
+    assert abs(ctx.camera.yaw_deg - 1.0) < 1e-6
+    assert ctx.camera.height_m == pytest.approx(1.5, abs=1e-6)
+    np.testing.assert_allclose(ctx.lane_offsets, [-3.5, 3.5], atol=1e-6)
+    assert offsets[2] - offsets[0] == pytest.approx(7.0)
+
+
+def test_sun_night_wet_passed_through():
+    scene = _scene(2.0, 0.0, 1.5, 3.5, 3, 0.0)
+    lanes, _, _ = scene.lanes()
+    day = context_from_lanes(lanes, (720, 1280))
+    assert day.sun_direction[1] == pytest.approx(math.sin(math.radians(60.0)))
+    assert np.linalg.norm(day.sun_direction) == pytest.approx(1.0)
+    night = context_from_lanes(lanes, (720, 1280), night=True, wet=0.7)
+    assert night.night and night.wet == 0.7 and night.sun_direction[1] < 0
+    custom = context_from_lanes(lanes, (720, 1280), sun_direction=np.array([0.0, 2.0, 0.0]))
+    np.testing.assert_allclose(custom.sun_direction, [0.0, 1.0, 0.0])
+    with pytest.raises(ValueError, match="sun_direction"):
+        context_from_lanes(lanes, (720, 1280), sun_direction=np.zeros(3))
+    with pytest.raises(ValueError, match="wet"):
+        context_from_lanes(lanes, (720, 1280), wet=2.0)
+
+
+def test_errors_name_the_problem_and_suggest_fallback():
+    scene = _scene(2.0, 0.0, 1.5, 3.5, 3, 0.0)
+    lanes, _, _ = scene.lanes()
+    with pytest.raises(GroundPlaneError, match="at least 2 usable lanes.*got 0.*fallback_context"):
+        context_from_lanes([], (720, 1280))
+    with pytest.raises(GroundPlaneError, match="got 1 of 1.*fallback_context"):
+        context_from_lanes([lanes[0]], (720, 1280))
+    ys = np.arange(710.0, 400.0, -10.0)
+    parallel = [np.stack([np.full_like(ys, x), ys], axis=1) for x in (300.0, 700.0)]
+    with pytest.raises(GroundPlaneError, match="parallel.*fallback_context"):
+        context_from_lanes(parallel, (720, 1280))
+    # lanes converging downwards: they meet below the lanes
+    down = [np.stack([600.0 - (700.0 - ys) * s, ys], axis=1) for s in (0.5, -0.5)]
+    with pytest.raises(GroundPlaneError, match="not above the lanes"):
+        context_from_lanes(down, (720, 1280))
+    # lanes meeting far above the image: pitch beyond 30 degrees
+    steep = [np.stack([640.0 + (ys + 2000.0) * s, ys], axis=1) for s in (-0.2, 0.2)]
+    with pytest.raises(GroundPlaneError, match="pitch"):
+        context_from_lanes(steep, (720, 1280))
+    assert issubclass(GroundPlaneError, ValueError)
+    with pytest.raises(ValueError, match=r"lanes\[1\]"):
+        context_from_lanes([lanes[0], np.zeros((4, 3))], (720, 1280))
+    with pytest.raises(ValueError, match="camera_height"):
+        context_from_lanes(lanes, (720, 1280), lane_width=None, camera_height=0.05)
+    with pytest.raises(ValueError, match="image_size"):
+        context_from_lanes(lanes, (720,))
+
+
+def test_fallback_context_is_usable():
+    ctx = fallback_context((720, 1280), camera_height=1.6, pitch_deg=3.0, lane_width=3.5, num_lanes=4)
+    assert ctx.image_size == (720, 1280)
+    np.testing.assert_allclose(ctx.lane_offsets, [-5.25, -1.75, 1.75, 5.25])
+    assert ctx.lane_width == pytest.approx(3.5)
+    # the camera (x = 0) is in the middle of the ego lane (between lines 1 and 2)
+    assert ctx.road.lateral(0.0, 10.0) == pytest.approx(0.0)
+    # ego-lane lines project symmetrically and below the horizon, converging with distance
+    near = ctx.camera.project(ctx.road.world_point(np.array([-1.75, 1.75]), np.array([10.0, 10.0])))
+    far = ctx.camera.project(ctx.road.world_point(np.array([-1.75, 1.75]), np.array([40.0, 40.0])))
+    assert near[0, 0] + near[1, 0] == pytest.approx(2 * ctx.camera.cx)
+    assert near[1, 0] - near[0, 0] > far[1, 0] - far[0, 0] > 0
+    horizon = ctx.camera.cy - ctx.camera.fy * math.tan(math.radians(3.0))
+    assert near[0, 1] > far[0, 1] > horizon
+    # the lanes it implies can be recovered again (round trip)
+    three = fallback_context((720, 1280), num_lanes=3, lane_width=3.0)
+    np.testing.assert_allclose(three.lane_offsets, [-3.0, 0.0, 3.0])
+    assert three.road.lateral(0.0, 5.0) == pytest.approx(1.5)  # camera mid-lane, right of the centre line
+    zs = np.linspace(5.0, 60.0, 40)
+    lanes = [ctx.camera.project(ctx.road.world_point(np.full_like(zs, d), zs)) for d in ctx.lane_offsets]
+    back = context_from_lanes(lanes, (720, 1280), lane_width=3.5)
+    assert back.camera.pitch_deg == pytest.approx(3.0, abs=1e-6)
+    assert back.camera.height_m == pytest.approx(1.6, abs=1e-6)
+    with pytest.raises(ValueError, match="num_lanes"):
+        fallback_context((720, 1280), num_lanes=1)
+
+
+def test_speed_under_5ms():
+    scene = _scene(2.0, 1.0, 1.5, 3.5, 4, 0.0)
+    lanes, _ = _tusimple_lanes(scene)
+    context_from_lanes(lanes, (720, 1280))
+    times = []
+    for _ in range(20):
+        t = time.perf_counter()
+        context_from_lanes(lanes, (720, 1280))
+        times.append(time.perf_counter() - t)
+    assert np.median(times) < 0.005
+
+
+@pytest.mark.parametrize("road", ["left_curve", "uphill", "downhill"])
+def test_near_band_fit_copes_with_curves_and_hills(road):
+    # the far ends bend away (a 300 m curve; a 6 % grade from 20 m): the near band is still a flat road
+    params = SceneParams(road=road, pitch_deg=2.5, camera_height=1.5, lane_width=3.5, num_lanes=3)
+    scene = build_scene(3, params, 1280, 720)
+    lanes, offsets = _tusimple_lanes(scene)
+    ctx = context_from_lanes(lanes, (720, 1280), lane_width=3.5)
+    assert abs(ctx.camera.pitch_deg - 2.5) < 0.3
+    assert abs(ctx.camera.height_m - 1.5) < 0.05 * 1.5
+    np.testing.assert_allclose(ctx.lane_offsets, offsets, atol=0.05 * 3.5)
+    if road != "left_curve":
+        assert abs(ctx.camera.yaw_deg) < 0.3
+    else:  # the near road heading has turned left a little: the camera looks right of it
+        assert 0.0 < ctx.camera.yaw_deg < 2.0
+
+
+def test_noisy_annotations_stay_close():
+    rng = np.random.default_rng(0)
+    scene = _scene(3.0, 2.0, 1.5, 3.5, 4, 0.2)
+    lanes, offsets = _tusimple_lanes(scene)
+    noisy = [lane + np.stack([rng.normal(0.0, 1.5, len(lane)), np.zeros(len(lane))], axis=1) for lane in lanes]
+    ctx = context_from_lanes(noisy, (720, 1280), lane_width=3.5)
+    assert abs(ctx.camera.pitch_deg - 3.0) < 0.3 and abs(ctx.camera.yaw_deg - 2.0) < 0.3
+    np.testing.assert_allclose(ctx.lane_offsets, offsets, atol=0.05 * 3.5)
