@@ -1,0 +1,44 @@
+"""`apply_illusion`: perturb any image with known lanes — simulated or a real photo."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from lanevil_train.illusions.context import IllusionContext
+from lanevil_train.illusions.recover import context_from_lanes
+from lanevil_train.illusions.registry import get_illusion
+
+
+def check_image(image) -> np.ndarray:
+    """The image if it is uint8 HxWx3, else a ValueError saying what was expected."""
+    if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
+        got = f"{type(image).__name__}" if not isinstance(image, np.ndarray) else f"{image.dtype} array {image.shape}"
+        raise ValueError(f"image must be a uint8 HxWx3 RGB array, got {got}")
+    return image
+
+
+def apply_illusion(image: np.ndarray, lanes: list[np.ndarray], name: str, severity: int, seed: int = 0,
+                   context: IllusionContext | None = None, **recover_kwargs) -> np.ndarray:
+    """The image with illusion `name` at `severity` (1..5) composited in world space.
+
+    The ground plane comes from `context` when given (a simulated scene: `context_from_scene`),
+    otherwise it is recovered from the lanes (`context_from_lanes(lanes, image_size, **recover_kwargs)`:
+    lane_width, camera_height, hfov_deg ...). The lanes themselves never change.
+    """
+    check_image(image)
+    illusion = get_illusion(name)
+    ctx = context if context is not None else context_from_lanes(lanes, image.shape[:2], **recover_kwargs)
+    if ctx.image_size != image.shape[:2]:
+        raise ValueError(f"context is for a {ctx.image_size} image, the image is {image.shape[:2]}")
+    return illusion(image, ctx, severity, seed)
+
+
+def apply_illusions(image: np.ndarray, lanes: list[np.ndarray], combo: list[tuple[str, int]], seed: int = 0,
+                    context: IllusionContext | None = None, **recover_kwargs) -> np.ndarray:
+    """Several illusions at once (paper §5.6), applied in order, e.g. [("rail_shadow", 3), ("vehicle", 2)]."""
+    check_image(image)
+    ctx = context if context is not None else context_from_lanes(lanes, image.shape[:2], **recover_kwargs)
+    out = image
+    for k, (name, severity) in enumerate(combo):
+        out = get_illusion(name)(out, ctx, severity, seed * 1000 + k)
+    return out
