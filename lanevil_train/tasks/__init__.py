@@ -16,4 +16,8 @@ def run_task(cfg: DictConfig) -> float | None:
         from lanevil_train.tasks.evaluate import evaluate
 
         return evaluate(cfg)
-    raise ValueError(f"task.name={name!r}: expected one of 'train', 'evaluate'")
+    if name == "build":
+        from lanevil_train.tasks.build import build
+
+        return build(cfg)
+    raise ValueError(f"task.name={name!r}: expected one of 'train', 'evaluate', 'build'")

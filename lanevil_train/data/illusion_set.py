@@ -1,0 +1,197 @@
+"""Write an illusion test set to disk: each case's clean original plus its perturbed variants.
+
+Output (root/): images/<case>/<variant>.png, labels (TuSimple JSON lines `labels.json`, or CULane
+`.lines.txt` beside each image plus `list/test.txt`), and `manifest.jsonl` (data/formats/manifest.py).
+Resumable: images are written atomically (temp file + rename) before their manifest line, so a rerun
+skips every image the manifest lists and an interruption never leaves a half-written image or line.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from dataclasses import dataclass
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Iterator
+
+import cv2
+import numpy as np
+
+from lanevil_train.data.formats import load_image, write_culane_lanes
+from lanevil_train.data.formats.atomic import atomic_write_text
+from lanevil_train.data.formats.manifest import ManifestWriter, read_manifest
+from lanevil_train.illusions import ILLUSIONS, GroundPlaneError, context_from_lanes, context_from_scene, fallback_context
+from lanevil_train.lanes import default_h_samples, lanes_to_rows
+from lanevil_train.sim import build_scene, render_scene, sample_scene_params
+
+
+@dataclass(frozen=True)
+class Case:
+    """One source image: a simulated scene (seed, frame) or a file with its lanes."""
+
+    case_id: str
+    seed: int
+    frame: int = 0
+    image_path: str | None = None  # a real photo; None for a simulated scene
+    lanes: tuple = ()              # the photo's lanes (pixels)
+
+
+@dataclass(frozen=True)
+class Plan:
+    """What to write for every case."""
+
+    illusions: tuple[str, ...]
+    severities: tuple[int, ...] = (1, 2, 3, 4, 5)
+    repeats: int = 1               # perturbed variants per (illusion, severity), each with its own seed
+    size: tuple[int, int] = (720, 1280)  # (H, W) of simulated scenes
+    frame_step_m: float = 4.0      # camera advance between frames of a simulated case
+    label_format: str = "tusimple"  # "tusimple" | "culane"
+    fallback: bool = False         # photos whose lanes cannot define a ground plane: fallback camera
+    image_ext: str = ".png"
+
+
+def synthetic_cases(num_cases: int, first_seed: int, frames: int = 1) -> list[Case]:
+    """Cases from simulated scenes: case i is scene seed first_seed + i, seen from `frames` positions."""
+    return [Case(f"sim-{first_seed + i:07d}-f{f}", first_seed + i, f) for i in range(num_cases) for f in range(frames)]
+
+
+def dataset_cases(records: list[dict]) -> list[Case]:
+    """Cases from format records (read_tusimple / read_culane)."""
+    out = []
+    for i, record in enumerate(records):
+        name = str(record.get("raw_file") or record.get("rel_path") or record["image_path"])
+        out.append(Case(name, i, 0, str(record["image_path"]), tuple(np.asarray(l) for l in record["lanes"])))
+    return out
+
+
+def variants(case: Case, plan: Plan) -> list[dict]:
+    """Manifest records (without files) of every image of a case: the original first."""
+    folder = case.case_id.replace("/", "_").replace(".", "_")
+    records = [{"image": f"images/{folder}/original{plan.image_ext}", "case_id": case.case_id, "illusion": None,
+                "category": None, "severity": 0, "seed": case.seed}]
+    for name in plan.illusions:
+        for severity in plan.severities:
+            for r in range(plan.repeats):
+                records.append({"image": f"images/{folder}/{name}_s{severity}_r{r}{plan.image_ext}",
+                                "case_id": case.case_id, "illusion": name, "category": ILLUSIONS[name].category,
+                                "severity": severity, "seed": case.seed * 1000 + r})
+    for record in records:
+        record["source_image"] = records[0]["image"]
+    return records
+
+
+def _source(case: Case, plan: Plan):
+    """(clean image, lanes, illusion context) of a case."""
+    if case.image_path is None:
+        params = sample_scene_params(case.seed)
+        params = params.replace(travel=params.travel + case.frame * plan.frame_step_m)
+        h, w = plan.size
+        sample = render_scene(case.seed, params, width=w, height=h)
+        return sample["image"], sample["lanes"], context_from_scene(build_scene(case.seed, params, w, h))
+    image = load_image(case.image_path)
+    lanes = [np.asarray(lane, dtype=np.float64) for lane in case.lanes]
+    try:
+        ctx = context_from_lanes(lanes, image.shape[:2])
+    except GroundPlaneError:
+        if not plan.fallback:
+            raise
+        ctx = fallback_context(image.shape[:2])
+    return image, lanes, ctx
+
+
+def _write_image(path: Path, image: np.ndarray) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-", suffix=path.suffix)
+    os.close(fd)
+    try:
+        if not cv2.imwrite(tmp, cv2.cvtColor(image, cv2.COLOR_RGB2BGR)):
+            raise OSError(f"cv2 could not write {path}")
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def render_case(args: tuple[Case, Plan, str, frozenset]) -> list[dict]:
+    """Render and write the not-yet-written images of one case; returns their records with labels."""
+    case, plan, root, done = args
+    todo = [r for r in variants(case, plan) if r["image"] not in done]
+    if not todo:
+        return []
+    image, lanes, ctx = _source(case, plan)
+    h_samples = default_h_samples(image.shape[0])
+    label = {"lanes": lanes_to_rows(lanes, h_samples).round().astype(int).tolist(), "h_samples": h_samples.astype(int).tolist()}
+    out = []
+    for record in todo:
+        picture = image if record["illusion"] is None else \
+            ILLUSIONS[record["illusion"]](image, ctx, record["severity"], record["seed"])
+        path = Path(root) / record["image"]
+        if plan.label_format == "culane":
+            write_culane_lanes(lanes, path.with_suffix(".lines.txt"))
+        _write_image(path, picture)
+        out.append({**record, "label": {**label, "raw_file": record["image"]}})
+    return out
+
+
+def build_illusion_set(cases: list[Case], plan: Plan, root: str | Path, workers: int = 0,
+                       progress: bool = True) -> dict:
+    """Write every case's images, labels and manifest under root; skip what an earlier run finished."""
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    for name in plan.illusions:
+        if name not in ILLUSIONS:
+            raise ValueError(f"unknown illusion {name!r}; expected one of: {', '.join(ILLUSIONS)}")
+    manifest_path = root / "manifest.jsonl"
+    done = {r["image"] for r in read_manifest(manifest_path)} if manifest_path.exists() else set()
+    _repair_labels(root, plan, done)
+    total = sum(len(variants(c, plan)) for c in cases)
+    skipped = len(done)
+    jobs = [(case, plan, str(root), frozenset(done)) for case in cases]
+    bar = _progress(total, skipped, progress)
+    written = 0
+    with ManifestWriter(manifest_path) as manifest:
+        for records in _map(render_case, jobs, workers):
+            for record in records:
+                if plan.label_format == "tusimple":
+                    with open(root / "labels.json", "a", encoding="utf-8") as labels:
+                        labels.write(json.dumps(record["label"]) + "\n")
+                manifest.write(record)
+                written += 1
+                bar.update(1)
+    bar.close()
+    if plan.label_format == "culane":
+        images = [r["image"] for r in read_manifest(manifest_path)]
+        atomic_write_text(root / "list" / "test.txt", "".join(f"/{image}\n" for image in images))
+    return {"root": str(root), "images": total, "written": written, "skipped": skipped}
+
+
+def _repair_labels(root: Path, plan: Plan, done: set[str]) -> None:
+    """Keep only well-formed label lines of images the manifest lists (an interruption may leave others)."""
+    path = root / "labels.json"
+    if plan.label_format != "tusimple" or not path.exists():
+        return
+    kept = []
+    for line in path.read_text(encoding="utf-8").splitlines():
+        try:
+            obj = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if isinstance(obj, dict) and obj.get("raw_file") in done:
+            kept.append(line + "\n")
+    atomic_write_text(path, "".join(kept))
+
+
+def _map(fn, jobs: list, workers: int) -> Iterator:
+    if workers <= 0:
+        yield from map(fn, jobs)
+        return
+    with get_context("spawn").Pool(workers) as pool:
+        yield from pool.imap(fn, jobs)
+
+
+def _progress(total: int, initial: int, enabled: bool):
+    from tqdm import tqdm
+
+    return tqdm(total=total, initial=initial, unit="img", desc="build", disable=not enabled)

@@ -1,0 +1,32 @@
+"""task=build: write an illusion test set (images, labels, manifest) from data.test, resumably."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from hydra.utils import instantiate
+from omegaconf import DictConfig
+
+from lanevil_train.data.illusion_set import Plan, build_illusion_set, dataset_cases, synthetic_cases
+from lanevil_train.illusions import ILLUSIONS
+from lanevil_train.tasks.builders import output_dir
+
+
+def build(cfg: DictConfig) -> None:
+    """Synthetic data: cases are test-split scene seeds; TuSimple/CULane: the test split's images."""
+    task = cfg.task
+    names = tuple(ILLUSIONS) if task.illusions == "all" else tuple(task.illusions)
+    root = Path(task.out_dir) if task.out_dir else output_dir(cfg) / "illusion_set"
+    if cfg.data.name == "synthetic":
+        cases = synthetic_cases(task.cases, cfg.data.test.first_seed, task.frames)
+        size = tuple(cfg.data.test.size)
+    else:
+        records = instantiate(cfg.data.test).records
+        cases = dataset_cases(records[: task.cases] if task.cases else records)
+        size = (720, 1280)  # unused for photos
+    plan = Plan(illusions=names, severities=tuple(task.severities), repeats=task.repeats, size=size,
+                frame_step_m=task.frame_step_m, label_format="culane" if cfg.data.name == "culane" else "tusimple",
+                fallback=task.fallback)
+    summary = build_illusion_set(cases, plan, root, workers=task.workers, progress=cfg.progress != "none")
+    print(f"illusion set: {summary['images']} images in {summary['root']} "
+          f"({summary['written']} written now, {summary['skipped']} already there)")
