@@ -16,3 +16,26 @@ def test_build_task_writes_and_then_skips(tmp_path):
     assert sorted({r["illusion"] for r in manifest if r["illusion"]}) == ["pedestrian", "rail_shadow"]
     second = run_cli(args, tmp_path / "run2")
     assert "0 written now, 6 already there" in second.stdout
+
+
+def test_build_from_tusimple_and_culane_folders(tmp_path):
+    from lanevil_train.data.formats import read_culane, read_tusimple, write_culane, write_tusimple
+    from tests.tasks.test_real_formats_cli import _write_images
+
+    common = ["task=build", "task.illusions=[vehicle]", "task.severities=[2,4]", "task.workers=0", "progress=none"]
+    tusimple = tmp_path / "tusimple"
+    write_tusimple(_write_images(tusimple, [f"clips/a/{i}/20.jpg" for i in range(2)]), tusimple / "test.json")
+    out = tmp_path / "tusimple_set"
+    run_cli([*common, "data=tusimple", f"data.root={tusimple}", "data.test.label_files=[test.json]",
+             f"task.out_dir={out}"], tmp_path / "run1")
+    labels = read_tusimple(out / "labels.json", out)
+    assert len(labels) == 2 * 3 and all(len(r["lanes"]) >= 2 for r in labels)
+    manifest = read_manifest(out / "manifest.jsonl")
+    assert {r["case_id"] for r in manifest} == {"clips/a/0/20.jpg", "clips/a/1/20.jpg"}
+
+    culane = tmp_path / "culane"
+    write_culane(_write_images(culane, [f"driver_1/v.MP4/{i:05d}.jpg" for i in range(2)]), culane, culane / "list" / "test.txt")
+    out = tmp_path / "culane_set"
+    run_cli([*common, "data=culane", f"data.root={culane}", f"task.out_dir={out}"], tmp_path / "run2")
+    records = read_culane(out / "list" / "test.txt", out)
+    assert len(records) == 6 and all(len(r["lanes"]) >= 2 for r in records)
