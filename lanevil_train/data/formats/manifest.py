@@ -10,6 +10,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from lanevil_train.data.formats.jsonl import read_json_objects
+
 MANIFEST_KEYS = ("image", "source_image", "case_id", "illusion", "category", "severity", "seed")
 
 
@@ -26,19 +28,7 @@ def read_manifest(path: str | Path) -> list[dict]:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"manifest not found: {path}")
-    records = []
-    for lineno, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
-        if not line.strip():
-            continue
-        try:
-            record = json.loads(line)
-        except json.JSONDecodeError as e:
-            raise ValueError(f"{path}:{lineno}: malformed JSON ({e.msg} at column {e.colno})") from e
-        missing = [k for k in MANIFEST_KEYS if not isinstance(record, dict) or k not in record]
-        if missing:
-            raise ValueError(f"{path}:{lineno}: missing key(s) {missing}; a manifest line needs {list(MANIFEST_KEYS)}")
-        records.append(record)
-    return records
+    return [record for _, record in read_json_objects(path, MANIFEST_KEYS, "manifest")]
 
 
 class ManifestWriter:

@@ -15,6 +15,7 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from lanevil_train.data.formats.atomic import atomic_write_text
+from lanevil_train.data.formats.jsonl import read_json_objects
 from lanevil_train.lanes import INVALID_X, TUSIMPLE_H_SAMPLES, as_lane, lane_x_at, rows_to_lane
 
 __all__ = ["read_tusimple", "write_tusimple"]
@@ -34,17 +35,8 @@ def _numbers(value, where: str, what: str) -> np.ndarray:
     return arr
 
 
-def _parse_line(line: str, where: str) -> dict:
-    """Validate one label line and return its JSON object."""
-    try:
-        obj = json.loads(line)
-    except json.JSONDecodeError as e:
-        raise ValueError(f"{where}: malformed JSON ({e.msg} at column {e.colno})") from e
-    if not isinstance(obj, dict):
-        raise ValueError(f"{where}: expected a JSON object with keys {list(_REQUIRED)}, got {type(obj).__name__}")
-    missing = [k for k in _REQUIRED if k not in obj]
-    if missing:
-        raise ValueError(f"{where}: missing key(s) {missing}; a TuSimple label needs {list(_REQUIRED)}")
+def _check_line(obj: dict, where: str) -> dict:
+    """TuSimple-specific checks of one parsed label line."""
     if not isinstance(obj["raw_file"], str) or not obj["raw_file"]:
         raise ValueError(f"{where}: raw_file must be a non-empty string, got {obj['raw_file']!r}")
     if not isinstance(obj["lanes"], list):
@@ -68,15 +60,8 @@ def read_tusimple(
     root = Path(root)
     records: list[dict] = []
     for label_file in map(Path, label_files):
-        try:
-            text = label_file.read_text(encoding="utf-8")
-        except OSError as e:
-            raise FileNotFoundError(f"cannot read TuSimple label file {label_file}: {e}") from e
-        for lineno, line in enumerate(text.splitlines(), start=1):
-            if not line.strip():
-                continue
-            where = f"{label_file}:{lineno}"
-            obj = _parse_line(line, where)
+        for where, obj in read_json_objects(label_file, _REQUIRED, "TuSimple label"):
+            _check_line(obj, where)
             ys = _numbers(obj["h_samples"], where, "h_samples")
             lanes = []
             for j, xs in enumerate(obj["lanes"]):

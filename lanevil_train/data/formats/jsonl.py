@@ -1,0 +1,33 @@
+"""JSON-lines files (TuSimple labels, illusion-set manifests): one object per line, errors with file:line."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Iterator
+
+
+def read_json_objects(path: str | Path, required: tuple[str, ...], what: str) -> Iterator[tuple[str, dict]]:
+    """("file:line", object) for each non-blank line of `path`, each a JSON object with the `required` keys.
+
+    `what` names the kind of file in messages ("TuSimple label", "manifest").
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as e:
+        raise FileNotFoundError(f"cannot read {what} file {path}: {e}") from e
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        if not line.strip():
+            continue
+        where = f"{path}:{lineno}"
+        try:
+            obj = json.loads(line)
+        except json.JSONDecodeError as e:
+            raise ValueError(f"{where}: malformed JSON ({e.msg} at column {e.colno})") from e
+        if not isinstance(obj, dict):
+            raise ValueError(f"{where}: expected a JSON object with keys {list(required)}, got {type(obj).__name__}")
+        missing = [k for k in required if k not in obj]
+        if missing:
+            raise ValueError(f"{where}: missing key(s) {missing}; a {what} line needs {list(required)}")
+        yield where, obj
