@@ -28,7 +28,28 @@ def _add_tusimple(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-_SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [_add_tusimple]
+def _add_culane(subparsers: argparse._SubParsersAction) -> None:
+    """`culane`: the official CULane evaluation (TP, FP, FN, Precision, Recall, F1) of .lines.txt folders."""
+    p = subparsers.add_parser("culane", help="CULane TP/FP/FN/Precision/Recall/F1 of .lines.txt directories")
+    p.add_argument("--pred-dir", required=True, help="predictions, <dir>/<image path sans ext>.lines.txt")
+    p.add_argument("--gt-dir", required=True, help="annotations in the same layout")
+    p.add_argument("--list", required=True, help="image list, one relative image path per line")
+    p.add_argument("--width", type=int, default=1640, help="canvas width (official: 1640)")
+    p.add_argument("--height", type=int, default=590, help="canvas height (official: 590)")
+    p.add_argument("--lane-width", type=int, default=30, help="drawn lane width in px (official: 30)")
+    p.add_argument("--iou", type=float, default=0.5, help="IoU threshold, strict '>' (official: 0.5)")
+
+    def run(args: argparse.Namespace) -> dict:
+        from lanevil_train.metrics.culane import evaluate_culane_dirs
+
+        return evaluate_culane_dirs(
+            args.pred_dir, args.gt_dir, args.list, args.width, args.height, args.lane_width, args.iou
+        )
+
+    p.set_defaults(func=run)
+
+
+_SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [_add_tusimple, _add_culane]
 
 
 def build_parser() -> argparse.ArgumentParser:

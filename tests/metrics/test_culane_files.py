@@ -1,0 +1,89 @@
+"""CULane file-level evaluation and the `culane` CLI on small .lines.txt trees."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lanevil_train.metrics.__main__ import main
+from lanevil_train.metrics.culane import (
+    CULaneMetric,
+    culane_image_counts,
+    evaluate_culane_dirs,
+    read_lines_file,
+)
+
+GT_A = [[(100.0, 589.0), (200.0, 450.0), (260.0, 300.0)], [(900.0, 589.0), (850.0, 450.0), (800.0, 300.0)]]
+PRED_A = [[(104.0, 589.0), (204.0, 450.0), (264.0, 300.0)], [(1400.0, 589.0), (1300.0, 300.0)]]
+GT_B = [[(600.0, 580.0), (700.0, 300.0)]]
+PRED_B: list = []  # no prediction file written at all for image b -> all FN
+
+
+def _write(path: Path, lanes: list) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("".join(" ".join(f"{x:.3f} {y:.3f}" for x, y in lane) + " \n" for lane in lanes))
+
+
+@pytest.fixture()
+def tree(tmp_path: Path) -> tuple[Path, Path, Path]:
+    gt, pred = tmp_path / "gt", tmp_path / "pred"
+    _write(gt / "driver_1/05/a.lines.txt", GT_A)
+    _write(pred / "driver_1/05/a.lines.txt", PRED_A)
+    _write(gt / "driver_1/05/b.lines.txt", GT_B)
+    lst = tmp_path / "test.txt"
+    lst.write_text("/driver_1/05/a.jpg\n/driver_1/05/b.jpg\n")
+    return pred, gt, lst
+
+
+def test_dirs_hand_counts(tree: tuple[Path, Path, Path]) -> None:
+    pred, gt, lst = tree
+    res = evaluate_culane_dirs(str(pred), str(gt), str(lst))
+    # a: lane 1 matched (4 px shift), the far-right pred is an FP, gt lane 2 an FN; b: 1 FN
+    assert (res["TP"], res["FP"], res["FN"]) == (1, 1, 2)
+    assert res["Precision"] == 0.5 and res["Recall"] == pytest.approx(1 / 3) and res["F1"] == pytest.approx(0.4)
+
+
+def test_metric_equals_file_level(tree: tuple[Path, Path, Path]) -> None:
+    pred, gt, lst = tree
+    m = CULaneMetric()
+    m.update([[np.array(l) for l in PRED_A], PRED_B], [[np.array(l) for l in GT_A], [np.array(l) for l in GT_B]])
+    assert m.compute() == evaluate_culane_dirs(str(pred), str(gt), str(lst))
+
+
+def test_cli_prints_json(tree: tuple[Path, Path, Path], capsys: pytest.CaptureFixture) -> None:
+    pred, gt, lst = tree
+    assert main(["culane", "--pred-dir", str(pred), "--gt-dir", str(gt), "--list", str(lst)]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert set(out) == {"TP", "FP", "FN", "Precision", "Recall", "F1"}
+    assert (out["TP"], out["FP"], out["FN"]) == (1, 1, 2)
+    # 1000 px wide lanes overlap heavily: the far-right pred now matches gt lane 2 at IoU > 0.1
+    assert main(["culane", "--pred-dir", str(pred), "--gt-dir", str(gt), "--list", str(lst),
+                 "--lane-width", "1000", "--iou", "0.1"]) == 0
+    assert json.loads(capsys.readouterr().out)["TP"] == 2
+
+
+def test_cli_subprocess_and_errors(tree: tuple[Path, Path, Path], tmp_path: Path) -> None:
+    pred, gt, lst = tree
+    r = subprocess.run([sys.executable, "-m", "lanevil_train.metrics", "culane", "--pred-dir", str(pred),
+                        "--gt-dir", str(gt), "--list", str(lst)], capture_output=True, text=True, check=True)
+    assert json.loads(r.stdout)["FN"] == 2
+    assert main(["culane", "--pred-dir", str(pred), "--gt-dir", str(gt), "--list", str(tmp_path / "no.txt")]) == 1
+    bad = tmp_path / "bad.lines.txt"
+    bad.write_text("1 2 3 4\n5 x 6 7\n")
+    with pytest.raises(ValueError, match="bad.lines.txt:2"):
+        read_lines_file(str(bad))
+
+
+def test_reader_matches_official_stream_semantics(tmp_path: Path) -> None:
+    f = tmp_path / "x.lines.txt"
+    f.write_text("1 2 3 4 5\n\n10.5 20.25 30 40 \n")
+    lanes = read_lines_file(str(f))
+    assert [l.shape for l in lanes] == [(2, 2), (0, 2), (2, 2)]  # odd tail dropped, blank line is a lane
+    assert lanes[2][0].tolist() == [10.5, 20.25]
+    assert read_lines_file(str(tmp_path / "missing.lines.txt")) == []
+    assert culane_image_counts(lanes, lanes) == (2, 1, 1)  # the 0-point lane is an FP and an FN
