@@ -41,6 +41,10 @@ class SyntheticLaneDataset(Dataset):
     def case_id(self, index: int) -> str:
         return f"sim-{self.first_seed + index:07d}"
 
+    def item_key(self, index: int) -> str:
+        """A unique, stable name for item `index` (what resumable evaluation skips by)."""
+        return self.case_id(index)
+
     def __getitem__(self, index: int) -> dict:
         if not 0 <= index < self.num_scenes:
             raise IndexError(index)
@@ -65,15 +69,18 @@ class _RecordDataset(Dataset):
     def __len__(self) -> int:
         return len(self.records)
 
+    def item_key(self, index: int) -> str:
+        """The dataset's own name for the image: TuSimple's raw_file, CULane's list path."""
+        record = self.records[index]
+        return str(record.get("raw_file") or record.get("rel_path") or record["image_path"])
+
     def __getitem__(self, index: int) -> dict:
         record = self.records[index]
         image = load_image(record["image_path"])
         h_samples = record.get("h_samples")
         if h_samples is None:
             h_samples = default_h_samples(image.shape[0])
-        # the dataset's own name for the image: TuSimple's raw_file, CULane's list path
-        case_id = str(record.get("raw_file") or record.get("rel_path") or record["image_path"])
-        meta = {"case_id": case_id, "h_samples": np.asarray(h_samples, dtype=np.float64),
+        meta = {"case_id": self.item_key(index), "h_samples": np.asarray(h_samples, dtype=np.float64),
                 "image_path": str(record["image_path"]), "height": image.shape[0], "width": image.shape[1]}
         return {"image": image, "lanes": record["lanes"], "meta": meta}
 

@@ -82,7 +82,7 @@ def variants(case: Case, plan: Plan) -> list[dict]:
     return records
 
 
-def _source(case: Case, plan: Plan):
+def case_source(case: Case, plan: Plan):
     """(clean image, lanes, illusion context) of a case."""
     if case.image_path is None:
         params = sample_scene_params(case.seed)
@@ -120,7 +120,7 @@ def render_case(args: tuple[Case, Plan, str, frozenset]) -> list[dict]:
     todo = [r for r in variants(case, plan) if r["image"] not in done]
     if not todo:
         return []
-    image, lanes, ctx = _source(case, plan)
+    image, lanes, ctx = case_source(case, plan)
     h_samples = default_h_samples(image.shape[0])
     label = {"lanes": lanes_to_rows(lanes, h_samples).round().astype(int).tolist(), "h_samples": h_samples.astype(int).tolist()}
     out = []

@@ -16,8 +16,16 @@ def run_task(cfg: DictConfig) -> float | None:
         from lanevil_train.tasks.evaluate import evaluate
 
         return evaluate(cfg)
+    if name == "cross_domain":
+        from lanevil_train.tasks.evaluate import cross_domain
+
+        return cross_domain(cfg)
     if name == "build":
         from lanevil_train.tasks.build import build
 
         return build(cfg)
-    raise ValueError(f"task.name={name!r}: expected one of 'train', 'evaluate', 'build'")
+    if name == "report":
+        from lanevil_train.tasks.report import report
+
+        return report(cfg)
+    raise ValueError(f"task.name={name!r}: expected one of 'train', 'evaluate', 'cross_domain', 'build', 'report'")

@@ -1,4 +1,8 @@
-"""task=evaluate: score a trained checkpoint on the configured test set (table, JSON, CSV)."""
+"""task=evaluate: score a checkpoint on a test set or an illusion suite, streaming and resumable.
+
+Per-image scores go to `<out_dir>/per_image.jsonl` as they are produced (a rerun with the same
+out_dir continues where it stopped); the tables and plots are then built from that file alone.
+"""
 
 from __future__ import annotations
 
@@ -6,20 +10,24 @@ from pathlib import Path
 
 import pytorch_lightning as pl
 import torch
+from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from lanevil_train.tasks.builders import build_datamodule, build_model, build_trainer, model_config, output_dir
-from lanevil_train.tasks.scoring import score_test_set
+from lanevil_train.data.suites import IllusionSetDataset, SyntheticIllusionSuite
+from lanevil_train.models.detector import LaneDetector
+from lanevil_train.tasks.builders import build_logger, build_model, model_config, output_dir
+from lanevil_train.report.scores import summarise
+from lanevil_train.tasks.results import log_results, write_results
+from lanevil_train.tasks.streaming import read_records, stream_evaluate
 
 
-def evaluate(cfg: DictConfig) -> float:
-    """Rebuild the checkpoint's network, load its weights, and score it on cfg.data.test."""
+def load_checkpoint(cfg: DictConfig) -> LaneDetector:
+    """The checkpoint's network with its weights; decoding overridable with task.decode.*."""
     if cfg.ckpt_path is None:
         raise ValueError("task=evaluate needs ckpt_path=/path/to/checkpoint.ckpt")
     path = Path(cfg.ckpt_path)
     if not path.is_file():
         raise FileNotFoundError(f"ckpt_path={path}: no such checkpoint file")
-    pl.seed_everything(cfg.seed, workers=True)
     checkpoint = torch.load(path, map_location="cpu", weights_only=False)
     spec = checkpoint.get("lanevil_model") or model_config(cfg)
     model = build_model(spec)
@@ -27,8 +35,54 @@ def evaluate(cfg: DictConfig) -> float:
     # decoding is post-processing, not the network: task.decode.* overrides what the checkpoint used
     overrides = OmegaConf.to_container(cfg.task.decode, resolve=True)
     model.decode_kwargs.update({key: value for key, value in overrides.items() if value is not None})
-    datamodule = build_datamodule(cfg, ("test",), model)
-    trainer = build_trainer(cfg, logger=False)
-    label = {"model": spec["model"]["name"], "backbone": spec["backbone"]["name"], "data": cfg.data.name,
-             "checkpoint": str(path)}
-    return score_test_set(trainer, model, datamodule, output_dir(cfg), label)["Accuracy"]
+    return model
+
+
+def test_dataset(cfg: DictConfig):
+    """data.test as is (task.suite=null), the illusion suite generated from it (task.suite=synthetic),
+    or a set written by task=build (task.suite=/path/to/set)."""
+    suite = cfg.task.suite
+    if suite is None:
+        return instantiate(cfg.data.test), cfg.data.name
+    if suite == "synthetic":
+        return synthetic_suite(cfg), "synthetic-illusions"
+    return IllusionSetDataset(suite), Path(suite).name
+
+
+def synthetic_suite(cfg: DictConfig) -> SyntheticIllusionSuite:
+    """The on-the-fly illusion suite, from data.test's seeds when data=synthetic (else the defaults)."""
+    test = cfg.data.test if cfg.data.name == "synthetic" else {"first_seed": 1000000, "size": [720, 1280]}
+    return SyntheticIllusionSuite(cfg.task.cases, test["first_seed"], tuple(test["size"]), cfg.task.illusions,
+                                  tuple(cfg.task.severities), cfg.task.repeats)
+
+
+def evaluate(cfg: DictConfig) -> float:
+    """Score the checkpoint; returns the Accuracy (%) over the perturbed images (all images if none)."""
+    pl.seed_everything(cfg.seed, workers=True)
+    model = load_checkpoint(cfg)
+    dataset, dataset_name = test_dataset(cfg)
+    out = Path(cfg.task.out_dir) if cfg.task.out_dir else output_dir(cfg)
+    results = _stream(cfg, model, dataset, dataset_name, out)
+    summary = write_results(read_records(results), out, baseline=cfg.task.baseline)
+    log_results(build_logger(cfg), out)
+    return summary["Accuracy"]
+
+
+def cross_domain(cfg: DictConfig) -> float:
+    """task=cross_domain (paper §5.5): data.test (e.g. a TuSimple or CULane folder) and the simulated
+    illusion suite, scored side by side in one table; returns the real data's Accuracy (%)."""
+    pl.seed_everything(cfg.seed, workers=True)
+    model = load_checkpoint(cfg)
+    out = Path(cfg.task.out_dir) if cfg.task.out_dir else output_dir(cfg)
+    real = _stream(cfg, model, instantiate(cfg.data.test), cfg.data.name, out / cfg.data.name)
+    suite = _stream(cfg, model, synthetic_suite(cfg), "synthetic-illusions", out / "synthetic-illusions")
+    write_results(read_records(real) + read_records(suite), out, baseline=cfg.task.baseline)
+    log_results(build_logger(cfg), out)
+    return summarise(read_records(real))["Accuracy"]
+
+
+def _stream(cfg: DictConfig, model: LaneDetector, dataset, dataset_name: str, out: Path) -> Path:
+    spec = model.build_config
+    label = {"model": cfg.task.label or f"{spec['model']['name']}-{spec['backbone']['name']}", "dataset": dataset_name}
+    return stream_evaluate(model, dataset, out / "per_image.jsonl", label, batch_size=cfg.data.batch_size,
+                           num_workers=cfg.data.num_workers, progress=cfg.progress != "none")

@@ -1,0 +1,87 @@
+"""Illusion suites as datasets: a set written by task=build, or the same suite generated on the fly.
+
+Items are samples {"image", "lanes", "meta"} whose meta says which case, illusion, category and
+severity (0 = the clean original) the image is, so every score can be grouped the paper's way.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from torch.utils.data import Dataset
+
+from lanevil_train.data.formats import load_image, read_culane, read_tusimple
+from lanevil_train.data.formats.manifest import read_manifest
+from lanevil_train.data.illusion_set import Plan, case_source, synthetic_cases, variants
+from lanevil_train.illusions import ILLUSIONS
+from lanevil_train.lanes import default_h_samples
+
+_VARIANT_KEYS = ("case_id", "illusion", "category", "severity", "seed")
+
+
+class IllusionSetDataset(Dataset):
+    """A test set written by `task=build` (manifest.jsonl + TuSimple labels.json or CULane list)."""
+
+    def __init__(self, root: str | Path):
+        self.root = Path(root)
+        self.manifest = read_manifest(self.root / "manifest.jsonl")
+        if (self.root / "labels.json").exists():
+            labels = {str(r["raw_file"]): r for r in read_tusimple(self.root / "labels.json", self.root)}
+        else:
+            labels = {str(r["rel_path"]): r for r in read_culane(self.root / "list" / "test.txt", self.root)}
+        missing = [m["image"] for m in self.manifest if m["image"] not in labels]
+        if missing:
+            raise ValueError(f"{self.root}: {len(missing)} manifest images have no label, e.g. {missing[0]}")
+        self.labels = labels
+
+    def __len__(self) -> int:
+        return len(self.manifest)
+
+    def item_key(self, index: int) -> str:
+        return self.manifest[index]["image"]
+
+    def __getitem__(self, index: int) -> dict:
+        entry = self.manifest[index]
+        label = self.labels[entry["image"]]
+        image = load_image(self.root / entry["image"])
+        h_samples = label.get("h_samples")
+        meta = {k: entry[k] for k in _VARIANT_KEYS}
+        meta.update(key=entry["image"], image_path=str(self.root / entry["image"]), height=image.shape[0],
+                    width=image.shape[1], h_samples=np.asarray(h_samples if h_samples is not None
+                                                               else default_h_samples(image.shape[0]), float))
+        return {"image": image, "lanes": label["lanes"], "meta": meta}
+
+
+class SyntheticIllusionSuite(Dataset):
+    """The suite `task=build` would write from simulated scenes, generated on the fly (nothing on disk).
+
+    Items run case by case (original first), and the last case's clean render is cached, so a loader
+    without shuffling renders each scene about once.
+    """
+
+    def __init__(self, num_cases: int, first_seed: int, size: tuple[int, int] = (720, 1280),
+                 illusions: str | list[str] = "all", severities: tuple[int, ...] = (1, 2, 3, 4, 5), repeats: int = 1):
+        names = tuple(ILLUSIONS) if illusions == "all" else tuple(illusions)
+        self.plan = Plan(illusions=names, severities=tuple(severities), repeats=repeats, size=tuple(size))
+        self.items = [(case, record) for case in synthetic_cases(num_cases, first_seed)
+                      for record in variants(case, self.plan)]
+        self._cached: tuple | None = None
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def item_key(self, index: int) -> str:
+        return self.items[index][1]["image"]
+
+    def __getitem__(self, index: int) -> dict:
+        case, record = self.items[index]
+        if self._cached is None or self._cached[0] != case:
+            self._cached = (case, case_source(case, self.plan))
+        image, lanes, ctx = self._cached[1]
+        if record["illusion"] is not None:
+            image = ILLUSIONS[record["illusion"]](image, ctx, record["severity"], record["seed"])
+        meta = {k: record[k] for k in _VARIANT_KEYS}
+        meta.update(key=record["image"], image_path=None, height=image.shape[0], width=image.shape[1],
+                    h_samples=default_h_samples(image.shape[0]))
+        return {"image": image, "lanes": lanes, "meta": meta}

@@ -1,0 +1,78 @@
+"""`task=evaluate task.suite=...` and `task=report` over run directories, from the command line."""
+
+from __future__ import annotations
+
+import json
+
+from lanevil_train.tasks.streaming import read_records
+from tests.tasks.cli_helpers import TINY, run_cli
+
+
+def _fake_run(path, model: str, original: float, perturbed: float):
+    """Per-image results of one model: 2 cases, each an original and a shadow + a vehicle variant."""
+    path.mkdir(parents=True)
+    lines = []
+    for case in ("c1", "c2"):
+        for illusion, category, severity, acc in ((None, None, 0, original), ("rail_shadow", "shadow", 3, perturbed),
+                                                  ("vehicle", "traffic_obstruction", 3, perturbed)):
+            lines.append({"model": model, "dataset": "sim", "key": f"{case}/{illusion}", "case_id": case,
+                          "image": None, "illusion": illusion, "category": category, "severity": severity,
+                          "accuracy": acc, "fp": 0.0, "fn": 0.0, "num_pred": 4, "num_gt": 4})
+    (path / "per_image.jsonl").write_text("".join(json.dumps(line) + "\n" for line in lines))
+
+
+def test_report_combines_run_directories(tmp_path):
+    _fake_run(tmp_path / "runs" / "0", "laneatt", original=0.9, perturbed=0.6)
+    _fake_run(tmp_path / "runs" / "1", "ufld", original=0.8, perturbed=0.7)
+    out = tmp_path / "report"
+    run_cli(["task=report", f"task.runs=[{tmp_path / 'runs'}]", "task.baseline=laneatt", "progress=none"], out)
+    scores = json.loads((out / "test_scores.json").read_text())
+    assert [(r["model"], r["images_kind"], round(r["Accuracy"], 6)) for r in scores] == [
+        ("laneatt", "original", 90.0), ("laneatt", "perturbed", 60.0),
+        ("ufld", "original", 80.0), ("ufld", "perturbed", 70.0)]
+    assert (out / "report.md").is_file()
+    assert sorted(p.name for p in out.glob("*.png"))  # plots were written
+    for png in out.glob("*.png"):
+        assert png.stat().st_size > 2000
+
+
+def test_evaluate_on_the_synthetic_illusion_suite_resumes_in_place(tmp_path):
+    train_dir = tmp_path / "train"
+    run_cli([*TINY, "trainer.max_steps=1", "trainer.limit_val_batches=0", "task.test_after_fit=false"], train_dir)
+    ckpt = train_dir / "checkpoints" / "last.ckpt"
+    out = tmp_path / "eval"
+    args = ["task=evaluate", f"ckpt_path={ckpt}", *TINY, "task.suite=synthetic", "task.cases=2",
+            "task.illusions=[fence_shadow,pedestrian]", "task.severities=[2,4]", f"task.out_dir={out}"]
+    run_cli(args, tmp_path / "run1")
+    records = read_records(out / "per_image.jsonl")
+    assert len(records) == 2 * (1 + 2 * 2)
+    assert (out / "report.md").is_file()
+    run_cli(args, tmp_path / "run2")  # everything is already there: nothing is added
+    assert len(read_records(out / "per_image.jsonl")) == 10
+
+
+def test_cross_domain_scores_a_real_folder_beside_the_suite(tmp_path):
+    from lanevil_train.data.formats import write_tusimple
+    from tests.tasks.test_real_formats_cli import _write_images
+
+    root = tmp_path / "tusimple"
+    write_tusimple(_write_images(root, [f"clips/x/{i}/20.jpg" for i in range(2)]), root / "test.json")
+    train_dir = tmp_path / "train"
+    run_cli([*TINY, "trainer.max_steps=1", "trainer.limit_val_batches=0", "task.test_after_fit=false"], train_dir)
+    out = tmp_path / "xd"
+    run_cli(["task=cross_domain", f"ckpt_path={train_dir / 'checkpoints' / 'last.ckpt'}", "data=tusimple",
+             f"data.root={root}", "data.test.label_files=[test.json]", "data.batch_size=2", "data.num_workers=0",
+             "task.cases=1", "task.illusions=[vehicle]", "task.severities=[3]", "progress=none",
+             f"task.out_dir={out}"], tmp_path / "run")
+    rows = json.loads((out / "test_scores.json").read_text())
+    assert [(r["dataset"], r["images_kind"], r["images"]) for r in rows] == [
+        ("tusimple", "original", 2), ("synthetic-illusions", "original", 1), ("synthetic-illusions", "perturbed", 1)]
+
+
+def test_report_goes_to_wandb_offline_as_tables_and_images(tmp_path):
+    _fake_run(tmp_path / "runs" / "0", "laneatt", original=0.9, perturbed=0.6)
+    out = tmp_path / "report"
+    run_cli(["task=report", f"task.runs=[{tmp_path / 'runs'}]", "logger=wandb", "progress=none"], out)
+    run = next((out / "wandb").glob("offline-run-*"))
+    data = b"".join(p.read_bytes() for p in run.rglob("*.wandb"))
+    assert b"evaluate/test_scores" in data and b"evaluate/plots" in data
