@@ -63,7 +63,7 @@ def evaluate(cfg: DictConfig) -> float:
     dataset, dataset_name = test_dataset(cfg)
     out = Path(cfg.task.out_dir) if cfg.task.out_dir else output_dir(cfg)
     results = _stream(cfg, model, dataset, dataset_name, out)
-    summary = write_results(read_records(results), out, baseline=cfg.task.baseline)
+    summary = write_results([results], out, baseline=cfg.task.baseline)
     log_results(build_logger(cfg), out)
     return summary["Accuracy"]
 
@@ -76,9 +76,9 @@ def cross_domain(cfg: DictConfig) -> float:
     out = Path(cfg.task.out_dir) if cfg.task.out_dir else output_dir(cfg)
     real = _stream(cfg, model, instantiate(cfg.data.test), cfg.data.name, out / cfg.data.name)
     suite = _stream(cfg, model, synthetic_suite(cfg), "synthetic-illusions", out / "synthetic-illusions")
-    write_results(read_records(real) + read_records(suite), out, baseline=cfg.task.baseline)
+    write_results([real, suite], out, baseline=cfg.task.baseline)
     log_results(build_logger(cfg), out)
-    return summarise(read_records(real))["Accuracy"]
+    return summarise(read_records(real, keep_lanes=False))["Accuracy"]
 
 
 def _stream(cfg: DictConfig, model: LaneDetector, dataset, dataset_name: str, out: Path) -> Path:

@@ -8,7 +8,6 @@ from omegaconf import DictConfig
 
 from lanevil_train.tasks.builders import build_logger, output_dir
 from lanevil_train.tasks.results import log_results, write_results
-from lanevil_train.tasks.streaming import read_records
 
 
 def results_files(runs: list[str]) -> list[Path]:
@@ -29,7 +28,6 @@ def report(cfg: DictConfig) -> float:
     """Combine the runs' per-image results into the report in this run's directory."""
     if not cfg.task.runs:
         raise ValueError("task=report needs task.runs=[run_dir, ...] (directories holding per_image.jsonl)")
-    records = [record for path in results_files(list(cfg.task.runs)) for record in read_records(path)]
-    summary = write_results(records, output_dir(cfg), baseline=cfg.task.baseline)
+    summary = write_results(results_files(list(cfg.task.runs)), output_dir(cfg), baseline=cfg.task.baseline)
     log_results(build_logger(cfg), output_dir(cfg))
     return summary["Accuracy"]

@@ -6,12 +6,24 @@ from pathlib import Path
 
 from lanevil_train.report.scores import summarise, summary_rows
 from lanevil_train.report.tables import print_table, write_table
+from lanevil_train.tasks.streaming import read_records
 
 
-def write_results(records: list[dict], out_dir: Path, baseline: str | None = None) -> dict:
-    """Tables (and plots) from per-image records; returns the scores of the perturbed images (all if none)."""
+def write_results(result_files: list[Path], out_dir: Path, baseline: str | None = None) -> dict:
+    """Tables (and plots) from per-image results files; returns the scores of the perturbed images (all if none).
+
+    Records are read without their stored lanes, then read again keeping lanes only for the few
+    worst cases that get drawn, so memory stays small however many images were scored.
+    """
+    records = [r for path in result_files for r in read_records(path, keep_lanes=False)]
     if not records:
         raise ValueError(f"no per-image results to report in {out_dir}")
+    if any(r.get("severity", 0) > 0 for r in records):
+        from lanevil_train.report.plots import worst_case_pairs
+
+        drawn = {r["key"] for pair in worst_case_pairs(records) for r in pair}
+        if drawn:
+            records = [r for path in result_files for r in read_records(path, keep_lanes=False, lanes_for=drawn)]
     rows = summary_rows(records)
     write_table(rows, out_dir, "test_scores")
     print_table(rows, title=f"Scores (%) — {out_dir}")

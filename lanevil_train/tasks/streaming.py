@@ -111,14 +111,26 @@ def _drop_torn_tail(path: Path) -> None:
         path.write_bytes(data[: data.rfind(b"\n") + 1])
 
 
-def read_records(path: str | Path) -> list[dict]:
-    """All complete per-image records of a results file."""
+LANE_FIELDS = ("pred_lanes", "gt_lanes")
+
+
+def read_records(path: str | Path, keep_lanes: bool = True, lanes_for: set[str] | None = None) -> list[dict]:
+    """All complete per-image records of a results file.
+
+    keep_lanes=False drops the stored lanes (most of a record's size) except for the keys in
+    `lanes_for`, so tables over tens of thousands of images stay small in memory.
+    """
     records = []
-    for line in Path(path).read_text(encoding="utf-8").splitlines():
-        try:
-            records.append(json.loads(line))
-        except json.JSONDecodeError:
-            continue
+    with open(path, encoding="utf-8") as handle:
+        for line in handle:
+            try:
+                record = json.loads(line)
+            except json.JSONDecodeError:
+                continue
+            if not keep_lanes and record.get("key") not in (lanes_for or ()):
+                for field in LANE_FIELDS:
+                    record.pop(field, None)
+            records.append(record)
     return records
 
 

@@ -76,3 +76,20 @@ def test_report_goes_to_wandb_offline_as_tables_and_images(tmp_path):
     run = next((out / "wandb").glob("offline-run-*"))
     data = b"".join(p.read_bytes() for p in run.rglob("*.wandb"))
     assert b"evaluate/test_scores" in data and b"evaluate/plots" in data
+
+
+def test_evaluate_a_built_set_draws_the_worst_cases(tmp_path):
+    from lanevil_train.data.illusion_set import Plan, build_illusion_set, synthetic_cases
+
+    suite = tmp_path / "set"
+    build_illusion_set(synthetic_cases(2, 1000000), Plan(illusions=("rail_shadow",), severities=(5,), size=(90, 160)),
+                       suite, progress=False)
+    train_dir = tmp_path / "train"
+    run_cli([*TINY, "trainer.max_steps=1", "trainer.limit_val_batches=0", "task.test_after_fit=false"], train_dir)
+    out = tmp_path / "eval"
+    run_cli(["task=evaluate", f"ckpt_path={train_dir / 'checkpoints' / 'last.ckpt'}", *TINY, f"task.suite={suite}",
+             f"task.out_dir={out}"], tmp_path / "run")
+    records = read_records(out / "per_image.jsonl")
+    assert len(records) == 4 and all(r["image"].startswith(str(suite)) for r in records)
+    assert {r["category"] for r in records} == {None, "shadow"}
+    assert (out / "worst_cases.png").stat().st_size > 2000
