@@ -10,6 +10,7 @@ from lanevil_train.metrics.tusimple import (
     TuSimpleMetric,
     evaluate_tusimple_files,
     tusimple_image_scores,
+    tusimple_lane_scores,
     tusimple_summary,
 )
 
@@ -21,5 +22,6 @@ __all__ = [
     "TuSimpleMetric",
     "evaluate_tusimple_files",
     "tusimple_image_scores",
+    "tusimple_lane_scores",
     "tusimple_summary",
 ]

@@ -30,6 +30,7 @@ from lanevil_train.lanes import lanes_to_rows
 
 __all__ = [
     "tusimple_image_scores",
+    "tusimple_lane_scores",
     "tusimple_summary",
     "TuSimpleMetric",
     "evaluate_tusimple_files",
@@ -141,6 +142,14 @@ def _as_np_lane(lane) -> np.ndarray:
     return arr
 
 
+def tusimple_lane_scores(pred_lanes: Sequence[np.ndarray], gt_lanes: Sequence[np.ndarray], h_samples: np.ndarray,
+                         pixel_thresh: float = 20.0, pt_thresh: float = 0.85) -> tuple[float, float, float]:
+    """(accuracy, fp, fn) of one image from lanes in pixels, sampled at its h_samples rows."""
+    ys = np.asarray(h_samples, dtype=np.float64).reshape(-1)
+    return tusimple_image_scores(lanes_to_rows(list(pred_lanes), ys), lanes_to_rows(list(gt_lanes), ys), ys,
+                                 pixel_thresh, pt_thresh)
+
+
 class TuSimpleMetric(Metric):
     """TuSimple Accuracy / FP / FN / F1 over decoded lanes (pixels); DDP-safe sum states.
 
@@ -184,9 +193,7 @@ class TuSimpleMetric(Metric):
                 ys = np.unique(np.concatenate([g[:, 1] for g in gts])) if gts else np.zeros(0)
             else:
                 ys = np.asarray(h_samples[i], dtype=np.float64).reshape(-1)
-            a, p, n = tusimple_image_scores(
-                lanes_to_rows(prs, ys), lanes_to_rows(gts, ys), ys, self.pixel_thresh, self.pt_thresh
-            )
+            a, p, n = tusimple_lane_scores(prs, gts, ys, self.pixel_thresh, self.pt_thresh)
             acc += a
             fp += p
             fn += n

@@ -12,8 +12,8 @@ import pytorch_lightning as pl
 import torch
 from torch import nn
 
-from lanevil_train.lanes import lanes_to_rows, scale_lanes
-from lanevil_train.metrics.tusimple import TuSimpleMetric, tusimple_image_scores
+from lanevil_train.lanes import scale_lanes
+from lanevil_train.metrics.tusimple import TuSimpleMetric, tusimple_lane_scores
 
 
 class LaneDetector(pl.LightningModule):
@@ -85,8 +85,7 @@ class LaneDetector(pl.LightningModule):
     def test_step(self, batch: dict, batch_idx: int) -> None:
         preds = self._score_batch(batch, self.test_metric)
         for pred, gt, meta in zip(preds, batch["lanes"], batch["meta"]):
-            rows = meta["h_samples"]
-            acc, fp, fn = tusimple_image_scores(lanes_to_rows(pred, rows), lanes_to_rows(gt, rows), rows)
+            acc, fp, fn = tusimple_lane_scores(pred, gt, meta["h_samples"])
             self.test_records.append({"case_id": meta["case_id"], "accuracy": acc, "fp": fp, "fn": fn,
                                       "num_pred": len(pred), "num_gt": len(gt)})
 

@@ -16,7 +16,7 @@ from torch.utils.data import DataLoader, Dataset, Subset
 from lanevil_train.data.datamodule import ProcessedDataset, collate_lanes
 from lanevil_train.data.transforms import LaneSampleProcessor
 from lanevil_train.lanes import lanes_to_rows
-from lanevil_train.metrics.tusimple import tusimple_image_scores
+from lanevil_train.metrics.tusimple import tusimple_lane_scores
 from lanevil_train.models.detector import LaneDetector
 
 
@@ -49,8 +49,7 @@ def _compact(lanes: list[np.ndarray], rows: np.ndarray) -> list[list[list[int]]]
 
 def score_image(pred: list[np.ndarray], gt: list[np.ndarray], meta: dict) -> dict:
     """TuSimple per-image scores (and CULane TP/FP/FN where metrics.culane is available)."""
-    rows = np.asarray(meta["h_samples"], dtype=np.float64)
-    acc, fp, fn = tusimple_image_scores(lanes_to_rows(pred, rows), lanes_to_rows(gt, rows), rows)
+    acc, fp, fn = tusimple_lane_scores(pred, gt, meta["h_samples"])
     scores = {"accuracy": acc, "fp": fp, "fn": fn, "num_pred": len(pred), "num_gt": len(gt)}
     try:
         from lanevil_train.metrics.culane import culane_image_counts
