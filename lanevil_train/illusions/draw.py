@@ -108,8 +108,15 @@ def overlay(image: np.ndarray, mask: np.ndarray, color, alpha: float = 1.0) -> n
 
 
 def road_mask(ctx: IllusionContext, far: float = 150.0) -> np.ndarray:
-    """Mask of the asphalt (between the road's left and right edges, from NEAR_Z to `far` metres)."""
-    left, right = ctx.road.left_edge, ctx.road.right_edge
-    zs = np.linspace(NEAR_Z, far, 64)
-    band = np.concatenate([np.stack([np.full_like(zs, left), zs], 1), np.stack([np.full_like(zs, right), zs[::-1]], 1)])
-    return ground_polygon_mask(ctx, [band], step=far)
+    """Mask of the asphalt between the road's left and right edges, out to `far` metres.
+
+    The band starts at the nearest distance where both edges are in front of the camera, so a
+    strongly turned (yawed) camera still gets its road.
+    """
+    zs = np.linspace(NEAR_Z, far, 96)
+    edges = [road_points(ctx, np.full_like(zs, d), zs) for d in (ctx.road.left_edge, ctx.road.right_edge)]
+    (pl, dl), (pr, dr) = (project(ctx, e) for e in edges)
+    ok = (dl > NEAR_Z) & (dr > NEAR_Z) & np.all(np.isfinite(pl), 1) & np.all(np.isfinite(pr), 1)
+    if ok.sum() < 2:
+        return np.zeros(ctx.image_size, np.float32)
+    return fill_polygons(ctx.image_size, [np.concatenate([pl[ok], pr[ok][::-1]])])

@@ -147,7 +147,7 @@ def _finish(image: np.ndarray, ctx: IllusionContext, streaks: np.ndarray, streak
     if sbox is not None:
         if blur_px > 0:
             layer = cv2.GaussianBlur(layer, (0, 0), sigmaX=blur_px * 0.6, sigmaY=blur_px)
-        layer = layer * _road_mask(ctx)[y0:y1, x0:x1, None]
+        layer = layer * draw.road_mask(ctx, far=200.0)[y0:y1, x0:x1, None]
         if glitter > 0:  # wet-asphalt ripples: noise coarse across, fine along the image rows
             gh, gw = max(2, (y1 - y0) // 3), max(2, (x1 - x0) // 24)
             noise = rng.uniform(1.0 - glitter, 1.0 + glitter, size=(gh, gw)).astype(np.float32)
@@ -159,20 +159,6 @@ def _finish(image: np.ndarray, ctx: IllusionContext, streaks: np.ndarray, streak
     res = src + (255.0 - src) * layer  # screen blend: brightens, never darkens
     out[y0:y1, x0:x1] = np.clip(np.floor(res + 0.5), 0, 255).astype(np.uint8)
     return out
-
-
-def _road_mask(ctx: IllusionContext, far: float = 200.0) -> np.ndarray:
-    """Mask of the asphalt between the road edges, from the nearest distance at which both edges are
-    in front of the camera (so a yawed camera still gets its road; draw.road_mask drops the whole band
-    when its near corners fall behind the camera)."""
-    zs = np.linspace(draw.NEAR_Z, far, 96)
-    edges = [draw.road_points(ctx, np.full_like(zs, d), zs) for d in (ctx.road.left_edge, ctx.road.right_edge)]
-    (pl, dl), (pr, dr) = (draw.project(ctx, e) for e in edges)
-    ok = (dl > draw.NEAR_Z) & (dr > draw.NEAR_Z) & np.all(np.isfinite(pl), 1) & np.all(np.isfinite(pr), 1)
-    if ok.sum() < 2:
-        return np.zeros(ctx.image_size, np.float32)
-    band = np.concatenate([pl[ok], pr[ok][::-1]])
-    return draw.fill_polygons(ctx.image_size, [band])
 
 
 def _check(image: np.ndarray, ctx: IllusionContext) -> None:
