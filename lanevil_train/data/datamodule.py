@@ -43,28 +43,55 @@ def collate_lanes(items: list[dict]) -> dict:
     return batch
 
 
+class MixingCollate:
+    """Train collate with a batch mixer: mix the (unencoded) items, THEN encode targets, then collate.
+
+    The mixer may move labels between images (copy-paste), so encoding has to follow it.
+    A class, not a closure, so DataLoader workers can pickle it.
+    """
+
+    def __init__(self, mixer: Callable[[list[dict]], list[dict]], encode: Callable | None = None):
+        self.mixer = mixer
+        self.encode = encode
+
+    def __call__(self, items: list[dict]) -> dict:
+        items = self.mixer(items)
+        if self.encode is not None:
+            items = [{**it, "target": self.encode(it["input_lanes"])} for it in items]
+        return collate_lanes(items)
+
+
 class LaneDataModule(pl.LightningDataModule):
-    """Train/val/test loaders over sample datasets; `encode` is the detector family's target encoder."""
+    """Train/val/test loaders over sample datasets; `encode` is the detector family's target encoder.
+
+    `train_mixer` (e.g. mixers.MixUp) mixes each train batch before its targets are encoded;
+    val and test batches are never mixed.
+    """
 
     def __init__(self, train: Dataset | None, val: Dataset | None, test: Dataset | None,
                  input_size: tuple[int, int], batch_size: int = 8, num_workers: int = 0,
                  augment: bool = True, encode: Callable | None = None, train_transforms: list | None = None,
-                 crop_top: float = 0.0):
+                 crop_top: float = 0.0, train_mixer: Callable[[list[dict]], list[dict]] | None = None):
         super().__init__()
         self.sets = {"train": train, "val": val, "test": test}
         self.input_size = tuple(input_size)
         self.batch_size = batch_size
         self.num_workers = num_workers
-        self.train_processor = LaneSampleProcessor(self.input_size, augment, encode, train_transforms, crop_top)
+        self.train_mixer = train_mixer
+        # with a mixer the train items leave the processor unencoded and MixingCollate encodes them
+        train_encode = encode if train_mixer is None else None
+        self.train_processor = LaneSampleProcessor(self.input_size, augment, train_encode, train_transforms, crop_top)
         self.eval_processor = LaneSampleProcessor(self.input_size, False, encode, crop_top=crop_top)
+        self.train_collate = collate_lanes if train_mixer is None else MixingCollate(train_mixer, encode)
 
     def _loader(self, split: str, shuffle: bool) -> DataLoader:
         base = self.sets[split]
         if base is None:
             raise ValueError(f"no {split} dataset was configured (data.{split})")
         processor = self.train_processor if split == "train" else self.eval_processor
+        collate = self.train_collate if split == "train" else collate_lanes
         return DataLoader(ProcessedDataset(base, processor), batch_size=self.batch_size, shuffle=shuffle,
-                          num_workers=self.num_workers, collate_fn=collate_lanes,
+                          num_workers=self.num_workers, collate_fn=collate,
                           persistent_workers=self.num_workers > 0)
 
     def train_dataloader(self) -> DataLoader:
