@@ -1,0 +1,108 @@
+"""PGD adversarial training (Madry et al. 2018) as a drop-in Lightning callback.
+
+Before each training step the batch images are replaced, in place, by L-inf PGD adversarial examples
+of the module's own loss: `steps` signed-gradient steps of `step_size` from a random start inside the
+eps-ball, projected back onto the ball and onto the valid pixel range. eps and step_size are in [0, 1]
+pixel units; `std`/`mean` say how the batch images were normalised ((pixel - mean) / std per channel),
+so the ball is eps / std wide in the tensor the model sees.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, Sequence
+
+import pytorch_lightning as pl
+import torch
+
+from lanevil_train.callbacks.adapter import BatchAdapter
+
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+
+
+def default_loss(module: pl.LightningModule, batch: Any) -> torch.Tensor:
+    """The module's training loss on `batch`: `module.batch_loss(batch)` if it has one, else its training_step."""
+    if hasattr(module, "batch_loss"):
+        out = module.batch_loss(batch)
+    else:
+        out = module.training_step(batch, 0)
+    loss = out["loss"] if isinstance(out, dict) else out
+    if not isinstance(loss, torch.Tensor) or loss.ndim != 0:
+        raise TypeError("PGDAdversarialTraining: the loss function must return a scalar tensor "
+                        "(or a dict with a scalar 'loss')")
+    return loss
+
+
+class PGDAdversarialTraining(pl.Callback):
+    """Train on PGD adversarial examples of a `fraction` of each batch (all of it by default)."""
+
+    def __init__(self, eps: float = 4 / 255, step_size: float = 1 / 255, steps: int = 3, random_start: bool = True,
+                 fraction: float = 1.0, mean: Sequence[float] = IMAGENET_MEAN, std: Sequence[float] = IMAGENET_STD,
+                 adapter: BatchAdapter | None = None,
+                 loss_fn: Callable[[pl.LightningModule, Any], torch.Tensor] | None = None, seed: int = 0):
+        if eps < 0 or step_size <= 0 or steps < 1:
+            raise ValueError(f"PGDAdversarialTraining: need eps >= 0, step_size > 0, steps >= 1; got "
+                             f"eps={eps}, step_size={step_size}, steps={steps}")
+        if not 0.0 <= fraction <= 1.0:
+            raise ValueError(f"PGDAdversarialTraining: fraction={fraction} must be in [0, 1]")
+        self.eps, self.step_size, self.steps = eps, step_size, steps
+        self.random_start = random_start
+        self.fraction = fraction
+        self.mean = torch.tensor(mean, dtype=torch.float32)
+        self.std = torch.tensor(std, dtype=torch.float32)
+        self.adapter = adapter or BatchAdapter()
+        self.loss_fn = loss_fn or default_loss
+        self.generator = torch.Generator().manual_seed(seed)
+
+    def on_train_batch_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule, batch, batch_idx: int) -> None:
+        images = self.adapter.images(batch)
+        count = int(round(self.fraction * images.shape[0]))
+        if count == 0 or self.eps == 0:
+            return
+        adversarial = self.attack(pl_module, batch, images, trainer)
+        with torch.no_grad():
+            images[:count] = adversarial[:count]
+
+    def bounds(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(eps, step, low, high) per channel, in the units of the image tensor, shaped (1, C, 1, 1)."""
+        if images.shape[1] != len(self.std):
+            raise ValueError(f"PGDAdversarialTraining: images have {images.shape[1]} channels but mean/std "
+                             f"give {len(self.std)}")
+        std = self.std.to(images.device).view(1, -1, 1, 1)
+        mean = self.mean.to(images.device).view(1, -1, 1, 1)
+        return self.eps / std, self.step_size / std, (0 - mean) / std, (1 - mean) / std
+
+    def attack(self, pl_module: pl.LightningModule, batch, images: torch.Tensor, trainer: pl.Trainer | None = None):
+        """The PGD adversarial images for `batch` (the batch itself is left as it was)."""
+        clean = images.detach().clone().float()
+        eps, step, low, high = self.bounds(clean)
+        delta = torch.zeros_like(clean)
+        if self.random_start:
+            noise = torch.rand(clean.shape, generator=self.generator).to(clean.device)
+            delta = (2 * noise - 1) * eps
+        delta = torch.max(torch.min(clean + delta, high), low) - clean
+        context = trainer.precision_plugin.forward_context() if trainer is not None else _null_context()
+        for _ in range(self.steps):
+            delta.requires_grad_(True)
+            with torch.no_grad():
+                images.copy_((clean + delta).to(images.dtype))
+            images.requires_grad_(True)
+            with context:
+                loss = self.loss_fn(pl_module, batch)
+            (grad,) = torch.autograd.grad(loss, images)
+            images.requires_grad_(False)
+            with torch.no_grad():
+                delta = delta.detach() + step * grad.float().sign()
+                delta = torch.max(torch.min(delta, eps), -eps)
+                delta = torch.max(torch.min(clean + delta, high), low) - clean
+        with torch.no_grad():
+            images.copy_(clean.to(images.dtype))
+        return (clean + delta).detach()
+
+
+class _null_context:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
