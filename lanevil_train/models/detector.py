@@ -12,8 +12,10 @@ import pytorch_lightning as pl
 import torch
 from torch import nn
 
-from lanevil_train.lanes import scale_lanes
+from lanevil_train.lanes import default_h_samples, scale_lanes
 from lanevil_train.metrics.tusimple import TuSimpleMetric, tusimple_lane_scores
+
+TUSIMPLE_WIDTH = 1280  # the TuSimple 20 px threshold is for images this wide
 
 
 class LaneDetector(pl.LightningModule):
@@ -37,6 +39,9 @@ class LaneDetector(pl.LightningModule):
         # The config that built this model (set by the tasks); saved in checkpoints so that
         # evaluation rebuilds the same network.
         self.build_config: dict | None = None
+        # Score each training image (TuSimple accuracy in input pixels) in training_step: hard-example
+        # defenses (AAM, AAM++) switch this on; it costs one decode per step.
+        self.score_train_batches = False
 
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         if self.build_config is not None:
@@ -56,15 +61,32 @@ class LaneDetector(pl.LightningModule):
             out.append([lane + np.array([0.0, cut]) for lane in scale_lanes(per_image, w / in_w, (h - cut) / in_h)])
         return out
 
-    def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
+    def batch_loss(self, batch: dict) -> dict[str, torch.Tensor]:
+        """The head's losses on a batch (total, parts and the per-sample vector), and the raw outputs."""
         raw = self(batch["images"])
-        losses = self.head.loss(raw, batch["targets"])
+        return {**self.head.loss(raw, batch["targets"]), "raw": raw}
+
+    def training_step(self, batch: dict, batch_idx: int) -> dict[str, torch.Tensor]:
+        losses = self.batch_loss(batch)
         batch_size = len(batch["images"])
         self.log("train/loss", losses["loss"], prog_bar=True, batch_size=batch_size)
         for key in ("cls_loss", "reg_loss"):
             if key in losses:
                 self.log(f"train/{key}", losses[key], batch_size=batch_size)
-        return losses["loss"]
+        out = {"loss": losses["loss"], "per_sample_loss": losses["per_sample"].detach()}
+        if self.score_train_batches:
+            out["per_sample_accuracy"] = self.train_accuracy(losses["raw"], batch)
+        return out
+
+    def train_accuracy(self, raw: dict, batch: dict) -> torch.Tensor:
+        """Per-image TuSimple accuracy of a training batch, in input pixels (threshold scaled to the width)."""
+        height, width = batch["images"].shape[-2:]
+        preds = self.head.decode(raw, **self.decode_kwargs)
+        rows = default_h_samples(height)
+        thresh = 20.0 * width / TUSIMPLE_WIDTH
+        scores = [tusimple_lane_scores(pred, gt, rows, pixel_thresh=thresh)[0]
+                  for pred, gt in zip(preds, batch["input_lanes"])]
+        return torch.tensor(scores, dtype=torch.float32)
 
     def _score_batch(self, batch: dict, metric: TuSimpleMetric) -> list[list[np.ndarray]]:
         sizes = [_original_size(meta) for meta in batch["meta"]]

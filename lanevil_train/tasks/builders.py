@@ -38,12 +38,31 @@ def build_model(spec: dict) -> LaneDetector:
     return detector
 
 
-def build_datamodule(cfg: DictConfig, splits: tuple[str, ...], model: LaneDetector) -> LaneDataModule:
+def build_defense(cfg: DictConfig) -> dict:
+    """The configured defense as library objects: {"transforms": [...], "mixer": ..., "callback": ...}.
+
+    Data-only defenses are albumentations transforms (added to the training pipeline) or a collate-level
+    mixer; model-aware ones are a Lightning callback. Any part may be empty.
+    """
+    defense = cfg.defense
+    unknown = set(defense) - {"name", "transforms", "mixer", "callback"}
+    if unknown:
+        raise ValueError(f"defense={defense.name}: unknown keys {sorted(unknown)}; a defense config has "
+                         f"name, transforms, mixer and callback")
+    transforms = [instantiate(node) for node in (defense.get("transforms") or [])]
+    mixer = instantiate(defense.mixer) if defense.get("mixer") is not None else None
+    callback = instantiate(defense.callback) if defense.get("callback") is not None else None
+    return {"transforms": transforms, "mixer": mixer, "callback": callback}
+
+
+def build_datamodule(cfg: DictConfig, splits: tuple[str, ...], model: LaneDetector,
+                     defense: dict | None = None) -> LaneDataModule:
     """The datamodule with only the named splits instantiated (reading a split can be slow).
 
     The input geometry (size, top crop) and target encoder come from the model, so a checkpoint
-    is always fed what it was trained on.
+    is always fed what it was trained on; a defense's transforms and mixer act on the train split.
     """
+    defense = defense or {}
     spec = model.build_config
     sets = {}
     for split in ("train", "val", "test"):
@@ -51,7 +70,8 @@ def build_datamodule(cfg: DictConfig, splits: tuple[str, ...], model: LaneDetect
         sets[split] = instantiate(node) if split in splits and node is not None else None
     return LaneDataModule(sets["train"], sets["val"], sets["test"], input_size=tuple(spec["input_size"]),
                           batch_size=cfg.data.batch_size, num_workers=cfg.data.num_workers,
-                          augment=cfg.data.augment, encode=model.head.encode, crop_top=spec.get("crop_top", 0.0))
+                          augment=cfg.data.augment, encode=model.head.encode, crop_top=spec.get("crop_top", 0.0),
+                          train_transforms=defense.get("transforms"), train_mixer=defense.get("mixer"))
 
 
 def build_trainer(cfg: DictConfig, callbacks: list | None = None, logger=True) -> pl.Trainer:

@@ -83,6 +83,12 @@ def cross_domain(cfg: DictConfig) -> float:
 
 def _stream(cfg: DictConfig, model: LaneDetector, dataset, dataset_name: str, out: Path) -> Path:
     spec = model.build_config
-    label = {"model": cfg.task.label or f"{spec['model']['name']}-{spec['backbone']['name']}", "dataset": dataset_name}
+    return stream_dataset(cfg, model, dataset, dataset_name, out,
+                          cfg.task.label or f"{spec['model']['name']}-{spec['backbone']['name']}")
+
+
+def stream_dataset(cfg: DictConfig, model: LaneDetector, dataset, dataset_name: str, out: Path, model_label: str) -> Path:
+    """Score `model` on `dataset` into out/per_image.jsonl (resumes a partial file); returns that path."""
+    label = {"model": model_label, "dataset": dataset_name}
     return stream_evaluate(model, dataset, out / "per_image.jsonl", label, batch_size=cfg.data.batch_size,
                            num_workers=cfg.data.num_workers, progress=cfg.progress != "none")

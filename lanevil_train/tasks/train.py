@@ -1,28 +1,62 @@
-"""task=train: fit a detector (checkpoints, resume with ckpt_path), then score it on the clean test set."""
+"""task=train: fit a detector with the configured defense (checkpoints, resume with ckpt_path), score it on
+the clean test set, and, with task.suite set, on an illusion suite (the value a sweep optimises)."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import pytorch_lightning as pl
 from omegaconf import DictConfig
 
-from lanevil_train.tasks.builders import build_datamodule, build_model, build_trainer, model_config, output_dir
+from lanevil_train.tasks.builders import (build_datamodule, build_defense, build_model, build_trainer, model_config,
+                                          output_dir)
 from lanevil_train.tasks.scoring import score_test_set
 
 
 def train(cfg: DictConfig) -> float | None:
-    """Train cfg.model on cfg.data; returns the clean test Accuracy (%) when the test runs."""
+    """Train cfg.model on cfg.data with cfg.defense.
+
+    Returns the average Accuracy (%) over the perturbed images of task.suite when one is set, else the
+    clean test Accuracy (%) when the test runs, else None.
+    """
     pl.seed_everything(cfg.seed, workers=True)
     out = output_dir(cfg)
     model = build_model(model_config(cfg))
+    defense = build_defense(cfg)
     splits = ("train", "val", "test") if cfg.task.test_after_fit else ("train", "val")
-    datamodule = build_datamodule(cfg, splits, model)
+    datamodule = build_datamodule(cfg, splits, model, defense)
     checkpoints = pl.callbacks.ModelCheckpoint(dirpath=out / "checkpoints", filename="epoch{epoch:03d}",
                                                auto_insert_metric_name=False, save_last=True)
-    trainer = build_trainer(cfg, callbacks=[checkpoints, pl.callbacks.LearningRateMonitor("step")])
+    callbacks = [checkpoints, pl.callbacks.LearningRateMonitor("step")]
+    if defense["callback"] is not None:
+        callbacks.append(defense["callback"])
+    trainer = build_trainer(cfg, callbacks=callbacks)
     trainer.fit(model, datamodule=datamodule, ckpt_path=cfg.ckpt_path)
-    if not cfg.task.test_after_fit:
-        return None
-    label = {"model": cfg.model.name, "backbone": cfg.backbone.name, "data": cfg.data.name,
-             "defense": cfg.defense.name}
-    row = score_test_set(trainer, model, datamodule, out, label)
-    return row["Accuracy"]
+    result = None
+    if cfg.task.test_after_fit:
+        label = {"model": cfg.model.name, "backbone": cfg.backbone.name, "data": cfg.data.name,
+                 "defense": cfg.defense.name}
+        result = score_test_set(trainer, model, datamodule, out, label)["Accuracy"]
+    if cfg.task.get("suite") is not None and trainer.is_global_zero:
+        result = score_robustness(cfg, model, out / "robustness")
+    return result
+
+
+def run_label(cfg: DictConfig) -> str:
+    """The model's name in robustness tables: <model>-<backbone>, plus +<defense> when there is one."""
+    if cfg.task.get("label"):
+        return cfg.task.label
+    name = f"{cfg.model.name}-{cfg.backbone.name}"
+    return name if cfg.defense.name == "none" else f"{name}+{cfg.defense.name}"
+
+
+def score_robustness(cfg: DictConfig, model, out: Path) -> float:
+    """Stream the trained model over task.suite into `out` (resumable); the perturbed Accuracy (%)."""
+    from lanevil_train.tasks.evaluate import stream_dataset, test_dataset
+    from lanevil_train.tasks.results import write_results
+
+    model.score_train_batches = False
+    dataset, dataset_name = test_dataset(cfg)
+    results = stream_dataset(cfg, model, dataset, dataset_name, out, run_label(cfg))
+    summary = write_results([results], out, baseline=cfg.task.get("baseline"))
+    return summary["Accuracy"]
