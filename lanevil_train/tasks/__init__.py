@@ -28,4 +28,9 @@ def run_task(cfg: DictConfig) -> float | None:
         from lanevil_train.tasks.report import report
 
         return report(cfg)
-    raise ValueError(f"task.name={name!r}: expected one of 'train', 'evaluate', 'cross_domain', 'build', 'report'")
+    if name == "compare":
+        from lanevil_train.tasks.compare import compare
+
+        return compare(cfg)
+    raise ValueError(f"task.name={name!r}: expected one of 'train', 'evaluate', 'cross_domain', 'build', 'report', "
+                     f"'compare'")

@@ -1,0 +1,197 @@
+"""task=compare: train the model once per defense, score each on the illusion suite, report each defense's gain
+over `none` (paper Fig. enhance). Each run is kept in <out>/runs/<defense>/, so an interrupted compare resumes.
+
+Each run's config is composed as if the user had typed `task=train defense=<d>` with all their other
+command-line overrides; task=compare's own suite keys are copied into it.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf, open_dict
+
+from lanevil_train.report.defenses import (REFERENCE, best_defense, defense_gain, defense_scores, gain_pivot,
+                                           write_defense_report)
+from lanevil_train.report.tables import print_table
+from lanevil_train.tasks.builders import output_dir
+from lanevil_train.tasks.streaming import read_records
+
+log = logging.getLogger(__name__)
+
+DONE = "done.json"  # written in runs/<d>/robustness/ once the run's robustness results are complete
+SUITE_KEYS = ("suite", "cases", "illusions", "severities", "repeats", "test_after_fit", "init_from")
+
+
+def available_defenses() -> list[str]:
+    """The defense configs shipped in conf/defense/ (file stems)."""
+    import lanevil_train.conf
+
+    return sorted(p.stem for p in (Path(lanevil_train.conf.__file__).parent / "defense").glob("*.yaml"))
+
+
+def check_defenses(defenses: list[str]) -> list[str]:
+    """Validate task.defenses: known names, no repeats, `none` among them, something to compare it with."""
+    known = available_defenses()
+    defenses = [str(d) for d in defenses]
+    bad = [d for d in defenses if d not in known]
+    if bad:
+        raise ValueError(f"task.defenses: unknown defense(s) {bad}; expected names of conf/defense/*.yaml: {known}")
+    repeated = sorted({d for d in defenses if defenses.count(d) > 1})
+    if repeated:
+        raise ValueError(f"task.defenses: {repeated} listed more than once")
+    if REFERENCE not in defenses:
+        raise ValueError(f"task.defenses={defenses} must include {REFERENCE!r}: it is the reference every "
+                         f"defense's gain is measured against")
+    if len(defenses) < 2:
+        raise ValueError(f"task.defenses={defenses}: add at least one defense to compare with {REFERENCE!r}")
+    return defenses
+
+
+def run_overrides(user: list[str]) -> list[str]:
+    """The user's command-line overrides that apply to every run: without task/defense/output_dir entries.
+
+    defense.* and ckpt_path are refused: they cannot mean the same thing for every defense.
+    """
+    keep = []
+    for override in user:
+        key = override.split("=", 1)[0].lstrip("+~")
+        if key in ("task", "defense", "output_dir") or key.startswith("task."):
+            continue
+        if key.startswith("defense."):
+            raise ValueError(f"task=compare: override {override!r} would apply to every defense; put the setting in "
+                             f"a defense config (conf/defense/<name>.yaml) and list that name in task.defenses")
+        if key == "ckpt_path":
+            raise ValueError(f"task=compare: {override!r} is not used; each run resumes from its own "
+                             f"runs/<defense>/checkpoints/last.ckpt")
+        keep.append(override)
+    return keep
+
+
+def compose_run(cfg: DictConfig, defense: str, overrides: list[str], run_dir: Path) -> DictConfig:
+    """The config of `task=train defense=<defense>` plus `overrides`, with compare's suite keys and run_dir."""
+    from hydra import compose
+
+    run_cfg = compose(config_name="config", overrides=[*overrides, "task=train", f"defense={defense}"])
+    with open_dict(run_cfg):
+        for key in SUITE_KEYS:
+            run_cfg.task[key] = OmegaConf.to_container(cfg.task[key]) if OmegaConf.is_config(cfg.task[key]) \
+                else cfg.task[key]
+        run_cfg.output_dir = str(run_dir)
+        last = run_dir / "checkpoints" / "last.ckpt"
+        run_cfg.ckpt_path = str(last) if last.is_file() else None
+    return run_cfg
+
+
+def run_defense(cfg: DictConfig, defense: str, overrides: list[str], run_dir: Path) -> None:
+    """Train and score one defense into run_dir, unless a finished result is there (then nothing is done)."""
+    from lanevil_train.tasks.train import run_label, train
+
+    done = run_dir / "robustness" / DONE
+    if done.is_file():
+        log.info("compare: defense=%s already done (%s), skipped", defense, done)
+        return
+    run_cfg = compose_run(cfg, defense, overrides, run_dir)
+    state = f"resuming from {run_cfg.ckpt_path}" if run_cfg.ckpt_path else "training"
+    log.info("compare: defense=%s %s in %s", defense, state, run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    OmegaConf.save(run_cfg, run_dir / "config.yaml")
+    result = train(run_cfg)
+    _finish_wandb()
+    if not _is_rank_zero():
+        return
+    done.write_text(json.dumps({"defense": defense, "label": run_label(run_cfg), "perturbed_accuracy": result},
+                               indent=2) + "\n")
+
+
+def _is_rank_zero() -> bool:
+    """False in the extra processes of a multi-process (DDP) run: only rank 0 marks runs done and reports."""
+    from pytorch_lightning.utilities.rank_zero import rank_zero_only
+
+    return getattr(rank_zero_only, "rank", 0) == 0
+
+
+def _finish_wandb() -> None:
+    """Close a wandb run the finished training left open, so the next defense logs to a run of its own."""
+    import sys
+
+    wandb = sys.modules.get("wandb")
+    if wandb is not None and getattr(wandb, "run", None) is not None:
+        wandb.finish()
+
+
+def _defense_of(run: Path, records: list[dict]) -> str:
+    """A run's defense: from its .hydra/config.yaml or config.yaml, else from its label <model>-<bb>[+<defense>]."""
+    for config in (run / ".hydra" / "config.yaml", run / "config.yaml"):
+        if config.is_file():
+            name = OmegaConf.select(OmegaConf.load(config), "defense.name")
+            if name:
+                return str(name)
+    labels = sorted({r.get("model", "") for r in records})
+    if len(labels) != 1:
+        raise ValueError(f"task.runs: {run} has no config naming its defense and {len(labels)} model labels {labels}")
+    return labels[0].split("+", 1)[1] if "+" in labels[0] else REFERENCE
+
+
+def _run_dirs(path: Path) -> list[tuple[Path, Path]]:
+    """(run directory, per_image.jsonl) for a run, an evaluate output, or a directory of runs one level down."""
+    for results in (path / "robustness" / "per_image.jsonl", path / "per_image.jsonl"):
+        if results.is_file():
+            return [(path, results)]
+    found = [(p.parent.parent, p) for p in path.glob("*/robustness/per_image.jsonl")]
+    found += [(p.parent, p) for p in path.glob("*/per_image.jsonl")]
+    if not found:
+        raise FileNotFoundError(f"task.runs: no robustness/per_image.jsonl in {path} or its subdirectories")
+    key = lambda t: (0, int(t[0].name), "") if t[0].name.isdigit() else (1, 0, t[0].name)  # noqa: E731
+    return sorted(found, key=key)
+
+
+def records_from_runs(runs: list[str]) -> tuple[dict[str, list[dict]], dict[str, str]]:
+    """{defense: records} and {defense: run dir} from run directories trained elsewhere; `none` first."""
+    records, where = {}, {}
+    for path in map(Path, runs):
+        for run, results in _run_dirs(path):
+            recs = read_records(results, keep_lanes=False)
+            defense = _defense_of(run, recs)
+            if defense in records:
+                raise ValueError(f"task.runs: defense {defense!r} found twice: {where[defense]} and {run}")
+            records[defense], where[defense] = recs, str(run)
+    order = sorted(records, key=lambda d: d != REFERENCE)
+    return {d: records[d] for d in order}, {d: where[d] for d in order}
+
+
+def compare(cfg: DictConfig, overrides: list[str] | None = None) -> float | None:
+    """Run (or, with task.runs, only report) the defense comparison; returns the best average perturbed Accuracy
+    (None in the non-zero ranks of a DDP run, which only train).
+
+    `overrides`: the command-line overrides every run gets (default: this Hydra run's own, minus task/defense).
+    """
+    out = Path(cfg.task.out_dir) if cfg.task.get("out_dir") else output_dir(cfg)
+    if cfg.task.get("runs"):
+        records, runs = records_from_runs(list(cfg.task.runs))
+    else:
+        defenses = check_defenses(list(cfg.task.defenses))
+        if overrides is None:
+            from hydra.core.hydra_config import HydraConfig
+
+            overrides = list(HydraConfig.get().overrides.task)
+        common = run_overrides(overrides)
+        runs = {d: str(out / "runs" / d) for d in defenses}
+        for i, defense in enumerate(defenses, 1):
+            log.info("compare: [%d/%d] defense=%s", i, len(defenses), defense)
+            run_defense(cfg, defense, common, Path(runs[defense]))
+        if not _is_rank_zero():
+            return None
+        records = {d: read_records(Path(runs[d]) / "robustness" / "per_image.jsonl", keep_lanes=False)
+                   for d in defenses}
+    scores = defense_scores(records)
+    gains = defense_gain(scores)
+    write_defense_report(scores, gains, out, runs)
+    print_table(gain_pivot(gains, "Accuracy"),
+                title=f"Accuracy gain over {REFERENCE} (points) — {out / 'compare.md'}")
+    name, value = best_defense(scores)
+    log.info("compare: best average perturbed Accuracy %.2f%% (defense=%s); report in %s", value, name,
+             out / "compare.md")
+    return value

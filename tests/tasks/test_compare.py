@@ -1,0 +1,135 @@
+"""task=compare: one run per defense under runs/, the gain report, resuming, and the report-only route."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import pytest
+from hydra import compose, initialize_config_module
+from hydra.core.global_hydra import GlobalHydra
+from omegaconf import OmegaConf
+
+from lanevil_train.tasks.compare import check_defenses, compare, compose_run, records_from_runs, run_overrides
+from lanevil_train.tasks.streaming import read_records
+from tests.tasks.cli_helpers import TINY, run_cli
+from tests.report.test_defenses import RECORDS
+
+COMPARE = ["task=compare", "task.defenses=[none,aam++]", *TINY, "trainer.max_steps=2", "trainer.limit_val_batches=0",
+           "task.cases=1", "task.illusions=[rail_shadow]", "task.severities=[3]"]
+
+
+def _mtimes(run_dir) -> dict[str, int]:
+    """Modification times of a run's checkpoints and done marker."""
+    files = sorted(run_dir.glob("checkpoints/*.ckpt")) + sorted(run_dir.glob("robustness/done.json"))
+    return {str(p.relative_to(run_dir)): p.stat().st_mtime_ns for p in files}
+
+
+def test_compare_trains_each_defense_reports_gains_and_resumes(tmp_path):
+    out = tmp_path / "compare"
+    proc = run_cli(COMPARE, out)
+    for defense, label in (("none", "laneatt-resnet18"), ("aam++", "laneatt-resnet18+aam++")):
+        run = out / "runs" / defense
+        assert (run / "checkpoints" / "last.ckpt").is_file()
+        assert OmegaConf.load(run / "config.yaml").defense.name == defense
+        records = read_records(run / "robustness" / "per_image.jsonl")
+        assert sorted((r["severity"], r["illusion"]) for r in records) == [(0, None), (3, "rail_shadow")]
+        assert {r["model"] for r in records} == {label}
+        assert json.loads((run / "robustness" / "done.json").read_text())["defense"] == defense
+    gains = json.loads((out / "defense_gain.json").read_text())
+    assert [(r["defense"], r["category"]) for r in gains] == [("aam++", "shadow"), ("aam++", "average"),
+                                                               ("aam++", "original")]
+    scores = {r["defense"]: r for r in json.loads((out / "defense_scores.json").read_text())}
+    assert list(scores) == ["none", "aam++"]
+    shadow = gains[0]
+    expected = scores["aam++"]["shadow/Accuracy"] - scores["none"]["shadow/Accuracy"]
+    assert shadow["Accuracy/gain"] == pytest.approx(expected)
+    assert (out / "defense_gain.png").stat().st_size > 2000
+    assert "defense_gain.png" in (out / "compare.md").read_text()
+    assert "Accuracy gain over none" in proc.stdout
+
+    # the same command again: both runs are finished, nothing is trained or scored
+    before = {d: _mtimes(out / "runs" / d) for d in ("none", "aam++")}
+    proc = run_cli(COMPARE, out)
+    assert proc.stdout.count("already done") + proc.stderr.count("already done") == 2
+    assert {d: _mtimes(out / "runs" / d) for d in ("none", "aam++")} == before
+
+    # interrupted while scoring aam++: only its robustness part is redone, from its checkpoint
+    shutil.rmtree(out / "runs" / "aam++" / "robustness")
+    proc = run_cli(COMPARE, out)
+    logs = proc.stdout + proc.stderr
+    assert "defense=none already done" in logs and "defense=aam++ resuming from" in logs
+    assert _mtimes(out / "runs" / "none") == before["none"]
+    assert {k: v for k, v in _mtimes(out / "runs" / "aam++").items() if k.startswith("checkpoints")} == \
+        {k: v for k, v in before["aam++"].items() if k.startswith("checkpoints")}
+    assert len(read_records(out / "runs" / "aam++" / "robustness" / "per_image.jsonl")) == 2
+    assert (out / "runs" / "aam++" / "robustness" / "done.json").is_file()
+
+
+def test_defenses_are_checked_up_front():
+    assert check_defenses(["none", "aam++", "pgd"]) == ["none", "aam++", "pgd"]
+    with pytest.raises(ValueError, match=r"unknown defense\(s\) \['aam\+'\].*'aam\+\+'"):
+        check_defenses(["none", "aam+"])
+    with pytest.raises(ValueError, match="must include 'none'"):
+        check_defenses(["aam", "aam++"])
+    with pytest.raises(ValueError, match="listed more than once"):
+        check_defenses(["none", "aam", "aam"])
+    with pytest.raises(ValueError, match="at least one defense"):
+        check_defenses(["none"])
+
+
+def test_each_run_gets_the_users_overrides_but_its_own_task_defense_and_directory(tmp_path):
+    user = ["task=compare", "task.defenses=[none,pgd]", "defense=aam", "experiment=quickstart", "seed=3",
+            "trainer.max_steps=7", "output_dir=/elsewhere"]
+    assert run_overrides(user) == ["experiment=quickstart", "seed=3", "trainer.max_steps=7"]
+    with pytest.raises(ValueError, match="defense.callback.beta=0.3.*would apply to every defense"):
+        run_overrides(["defense.callback.beta=0.3"])
+    with pytest.raises(ValueError, match="ckpt_path=x.ckpt"):
+        run_overrides(["ckpt_path=x.ckpt"])
+    (tmp_path / "pgd" / "checkpoints").mkdir(parents=True)
+    (tmp_path / "pgd" / "checkpoints" / "last.ckpt").write_bytes(b"")
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_module(config_module="lanevil_train.conf", version_base="1.3"):
+            cfg = compose(config_name="config", overrides=["task=compare", "task.cases=2", "task.severities=[4]"])
+            none = compose_run(cfg, "none", run_overrides(user), tmp_path / "none")
+            pgd = compose_run(cfg, "pgd", run_overrides(user), tmp_path / "pgd")
+    finally:
+        GlobalHydra.instance().clear()
+    for run, defense in ((none, "none"), (pgd, "pgd")):
+        assert run.task.name == "train" and run.defense.name == defense
+        assert run.task.suite == "synthetic" and run.task.cases == 2 and list(run.task.severities) == [4]
+        assert run.seed == 3 and run.trainer.max_steps == 7 and list(run.data.input_size) == [112, 320]
+    assert none.output_dir == str(tmp_path / "none") and none.ckpt_path is None
+    assert pgd.output_dir == str(tmp_path / "pgd")
+    assert pgd.ckpt_path == str(tmp_path / "pgd" / "checkpoints" / "last.ckpt")
+    assert pgd.logger.save_dir == str(tmp_path / "pgd")  # interpolations follow the run directory
+
+
+def _write_run(run_dir, records, defense=None):
+    (run_dir / "robustness").mkdir(parents=True)
+    lines = [json.dumps({**r, "key": f"{r['case_id']}/{r.get('illusion')}"}) + "\n" for r in records]
+    (run_dir / "robustness" / "per_image.jsonl").write_text("".join(lines))
+    if defense:
+        (run_dir / ".hydra").mkdir()
+        OmegaConf.save(OmegaConf.create({"defense": {"name": defense}}), run_dir / ".hydra" / "config.yaml")
+
+
+def test_report_only_from_a_multirun_directory_and_a_single_run(tmp_path):
+    sweep = tmp_path / "multirun"
+    _write_run(sweep / "0", RECORDS["pgd"], defense="pgd")
+    _write_run(sweep / "1", RECORDS["none"], defense="none")
+    _write_run(tmp_path / "elsewhere", RECORDS["aam++"])  # no config: the defense comes from the label
+    records, runs = records_from_runs([str(sweep), str(tmp_path / "elsewhere")])
+    assert list(records) == ["none", "pgd", "aam++"]
+    assert runs["aam++"] == str(tmp_path / "elsewhere") and runs["pgd"] == str(sweep / "0")
+    cfg = OmegaConf.create({"task": {"runs": [str(sweep), str(tmp_path / "elsewhere")], "out_dir": None},
+                            "output_dir": str(tmp_path / "report")})
+    assert compare(cfg) == pytest.approx(72.5)
+    pivot = {r["defense"]: r for r in json.loads((tmp_path / "report" / "defense_gain.json").read_text())
+             if r["category"] == "average"}
+    assert pivot["aam++"]["Accuracy/gain"] == pytest.approx(12.5)
+    assert pivot["pgd"]["Accuracy/gain"] == pytest.approx(-2.5)
+    _write_run(tmp_path / "again", RECORDS["pgd"], defense="pgd")
+    with pytest.raises(ValueError, match="defense 'pgd' found twice"):
+        records_from_runs([str(sweep), str(tmp_path / "again")])
