@@ -81,13 +81,13 @@ class PGDAdversarialTraining(pl.Callback):
             noise = torch.rand(clean.shape, generator=self.generator).to(clean.device)
             delta = (2 * noise - 1) * eps
         delta = torch.max(torch.min(clean + delta, high), low) - clean
-        context = trainer.precision_plugin.forward_context() if trainer is not None else _null_context()
         for _ in range(self.steps):
             delta.requires_grad_(True)
             with torch.no_grad():
                 images.copy_((clean + delta).to(images.dtype))
             images.requires_grad_(True)
-            with context:
+            # the forward runs under the trainer's precision (autocast under mixed precision)
+            with trainer.precision_plugin.forward_context() if trainer is not None else _null_context():
                 loss = self.loss_fn(pl_module, batch)
             (grad,) = torch.autograd.grad(loss, images)
             images.requires_grad_(False)

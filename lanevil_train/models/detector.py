@@ -84,7 +84,8 @@ class LaneDetector(pl.LightningModule):
         preds = self.head.decode(raw, **self.decode_kwargs)
         rows = default_h_samples(height)
         thresh = 20.0 * width / TUSIMPLE_WIDTH
-        scores = [tusimple_lane_scores(pred, gt, rows, pixel_thresh=thresh)[0]
+        scores = [tusimple_lane_scores(pred, [np.asarray(lane, dtype=np.float64) for lane in gt], rows,
+                                       pixel_thresh=thresh)[0]
                   for pred, gt in zip(preds, batch["input_lanes"])]
         return torch.tensor(scores, dtype=torch.float32)
 

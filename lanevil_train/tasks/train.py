@@ -22,12 +22,14 @@ def train(cfg: DictConfig) -> float | None:
     pl.seed_everything(cfg.seed, workers=True)
     out = output_dir(cfg)
     model = build_model(model_config(cfg))
+    if cfg.task.get("init_from") and cfg.ckpt_path is None:
+        init_weights(model, Path(cfg.task.init_from))
     defense = build_defense(cfg)
     splits = ("train", "val", "test") if cfg.task.test_after_fit else ("train", "val")
     datamodule = build_datamodule(cfg, splits, model, defense)
     checkpoints = pl.callbacks.ModelCheckpoint(dirpath=out / "checkpoints", filename="epoch{epoch:03d}",
                                                auto_insert_metric_name=False, save_last=True)
-    callbacks = [checkpoints, pl.callbacks.LearningRateMonitor("step")]
+    callbacks = [checkpoints] + ([pl.callbacks.LearningRateMonitor("step")] if cfg.logger.get("_target_") else [])
     if defense["callback"] is not None:
         callbacks.append(defense["callback"])
     trainer = build_trainer(cfg, callbacks=callbacks)
@@ -40,6 +42,22 @@ def train(cfg: DictConfig) -> float | None:
     if cfg.task.get("suite") is not None and trainer.is_global_zero:
         result = score_robustness(cfg, model, out / "robustness")
     return result
+
+
+def init_weights(model, path: Path) -> None:
+    """Start from a trained checkpoint's weights (not its optimizer or step): fine-tuning with a defense."""
+    import torch
+
+    if not path.is_file():
+        raise FileNotFoundError(f"task.init_from={path}: no such checkpoint file")
+    state = torch.load(path, map_location="cpu", weights_only=False)
+    if "state_dict" not in state:
+        raise ValueError(f"task.init_from={path}: not a Lightning checkpoint (no 'state_dict')")
+    try:
+        model.load_state_dict(state["state_dict"])
+    except RuntimeError as error:
+        raise ValueError(f"task.init_from={path}: its weights do not fit this run's network "
+                         f"(model/backbone/input size must match the checkpoint's): {error}") from error
 
 
 def run_label(cfg: DictConfig) -> str:
