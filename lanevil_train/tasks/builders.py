@@ -63,6 +63,10 @@ def build_datamodule(cfg: DictConfig, splits: tuple[str, ...], model: LaneDetect
     is always fed what it was trained on; a defense's transforms and mixer act on the train split.
     """
     defense = defense or {}
+    # data.train_transforms: the user's own training-set transforms (e.g. illusions in the training scenes,
+    # as the paper's LanEvil training set has), applied before the defense's
+    transforms = [instantiate(node) for node in (cfg.data.get("train_transforms") or [])]
+    transforms += list(defense.get("transforms") or [])
     spec = model.build_config
     sets = {}
     for split in ("train", "val", "test"):
@@ -71,7 +75,7 @@ def build_datamodule(cfg: DictConfig, splits: tuple[str, ...], model: LaneDetect
     return LaneDataModule(sets["train"], sets["val"], sets["test"], input_size=tuple(spec["input_size"]),
                           batch_size=cfg.data.batch_size, num_workers=cfg.data.num_workers,
                           augment=cfg.data.augment, encode=model.head.encode, crop_top=spec.get("crop_top", 0.0),
-                          train_transforms=defense.get("transforms"), train_mixer=defense.get("mixer"))
+                          train_transforms=transforms, train_mixer=defense.get("mixer"))
 
 
 def build_trainer(cfg: DictConfig, callbacks: list | None = None, logger=True) -> pl.Trainer:

@@ -54,3 +54,16 @@ def test_an_unknown_defense_key_is_named(tmp_path):
     cfg = compose_defense("none", tmp_path, ["+defense.callbacks=[]"])
     with pytest.raises(ValueError, match="callbacks"):
         build_defense(cfg)
+
+
+def test_data_train_transforms_run_before_the_defense_transforms(tmp_path):
+    from lanevil_train.illusions import IllusionTransform
+    from lanevil_train.tasks.builders import build_datamodule, build_model, model_config
+
+    cfg = compose_defense("cutout", tmp_path,
+                          ["data.train_transforms=[{_target_: lanevil_train.illusions.IllusionTransform, p: 1.0}]"])
+    model = build_model(model_config(cfg))
+    datamodule = build_datamodule(cfg, ("train",), model, build_defense(cfg))
+    steps = [type(t) for t in datamodule.train_processor.pipeline.transforms]
+    assert steps.index(IllusionTransform) < steps.index(LaneCutout) < len(steps) - 1  # both before the resize
+    assert not any(t is IllusionTransform for t in map(type, datamodule.eval_processor.pipeline.transforms))
