@@ -115,6 +115,7 @@ class AttentionAreaMixing(pl.Callback):
         self._activation: torch.Tensor | None = None
         self._gradient: torch.Tensor | None = None
         self._mixed: set[int] = set()
+        self._masks: np.ndarray | None = None  # this step's lane masks, drawn once for mixing and mining
 
     # ------------------------------------------------------------------ hooks on the named layer
     def setup(self, trainer: pl.Trainer, pl_module: pl.LightningModule, stage: str) -> None:
@@ -154,10 +155,18 @@ class AttentionAreaMixing(pl.Callback):
         self._activation = self._gradient = None
         self._capture = True
         self._mixed = set()
+        self._masks = None
         if trainer.global_step >= self.start_step and len(self.bank):
-            self._mixed = self.mix(self.adapter.images(batch), self.adapter_masks(batch))
+            self._mixed = self.mix(self.adapter.images(batch), self.step_masks(batch))
+
+    def step_masks(self, batch) -> np.ndarray:
+        """The lane masks of this step's batch (mixing leaves the labels as they are, so one drawing serves)."""
+        if self._masks is None:
+            self._masks = self.adapter_masks(batch)
+        return self._masks
 
     def adapter_masks(self, batch) -> np.ndarray:
+        """Boolean (B, H, W) lane masks of a batch, lanes drawn `lane_width` of the image width wide."""
         images = self.adapter.images(batch)
         height, width = images.shape[-2:]
         return self.adapter.lane_masks(batch, (height, width), max(1, round(self.lane_width * width)))
@@ -188,6 +197,7 @@ class AttentionAreaMixing(pl.Callback):
         if activation is not None and gradient is not None:
             scores, higher_is_harder = self.per_sample_scores(outputs)
             found = self.harvest(activation, gradient, scores, higher_is_harder, batch)
+        self._masks = None
         for kind, patch in self._gather(found):
             self.bank.add(kind, patch)
         self.stats["banked"] += len(found)
@@ -221,7 +231,7 @@ class AttentionAreaMixing(pl.Callback):
         cams = grad_cam(activation[hard], gradient[hard])
         cams = F.interpolate(cams[:, None], size=(height, width), mode="bilinear", align_corners=False)[:, 0]
         cams = cams.cpu().numpy()
-        masks = self.adapter_masks(batch)
+        masks = self.step_masks(batch)
         max_pixels = self.max_region_fraction * height * width
         found = []
         for cam, i in zip(cams, hard):

@@ -9,6 +9,7 @@ so the ball is eps / std wide in the tensor the model sees.
 
 from __future__ import annotations
 
+from contextlib import nullcontext
 from typing import Any, Callable, Sequence
 
 import pytorch_lightning as pl
@@ -87,7 +88,7 @@ class PGDAdversarialTraining(pl.Callback):
                 images.copy_((clean + delta).to(images.dtype))
             images.requires_grad_(True)
             # the forward runs under the trainer's precision (autocast under mixed precision)
-            with trainer.precision_plugin.forward_context() if trainer is not None else _null_context():
+            with trainer.precision_plugin.forward_context() if trainer is not None else nullcontext():
                 loss = self.loss_fn(pl_module, batch)
             (grad,) = torch.autograd.grad(loss, images)
             images.requires_grad_(False)
@@ -98,11 +99,3 @@ class PGDAdversarialTraining(pl.Callback):
         with torch.no_grad():
             images.copy_(clean.to(images.dtype))
         return (clean + delta).detach()
-
-
-class _null_context:
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False

@@ -127,9 +127,8 @@ def best_defense(score_rows: list[dict]) -> tuple[str, float]:
 
 def gain_plot(gain_rows: list[dict], path: str | Path, metric: str = "Accuracy") -> Path:
     """Grouped bars: x = category and average, one bar per defense, y = gain over the reference in points."""
-    import matplotlib
+    from lanevil_train.report.plots import save_figure  # sets the Agg backend
 
-    matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     pivot = gain_pivot(gain_rows, metric)
@@ -147,11 +146,7 @@ def gain_plot(gain_rows: list[dict], path: str | Path, metric: str = "Accuracy")
     ax.grid(axis="y", alpha=0.3)
     if pivot:
         ax.legend(fontsize=7, ncol=min(n, 4))
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100, bbox_inches="tight")
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def write_defense_report(score_rows: list[dict], gain_rows: list[dict], out_dir: str | Path,

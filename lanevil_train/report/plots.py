@@ -20,7 +20,8 @@ from lanevil_train.report.robustness import (  # noqa: E402
 _STYLES = ("-", "--", ":", "-.")
 
 
-def _save(fig, path: str | Path) -> Path:
+def save_figure(fig, path: str | Path) -> Path:
+    """Write a figure (parent folders made) and close it."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=100, bbox_inches="tight")
@@ -51,7 +52,7 @@ def accuracy_vs_severity(records: list[dict], path: str | Path) -> Path:
         ax.set_xticks(range(0, 6))
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def gap_heatmap(records: list[dict], path: str | Path) -> Path:
@@ -74,7 +75,7 @@ def gap_heatmap(records: list[dict], path: str | Path) -> Path:
     ax.set_yticks(range(len(models)), models, fontsize=8)
     fig.colorbar(im, ax=ax, label="Accuracy gap (%)")
     ax.set_title("Accuracy gap per illusion (Perturbed - Original)")
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def _draw(image_path: str, gt, pred) -> np.ndarray:
@@ -130,4 +131,4 @@ def worst_cases(records: list[dict], path: str | Path, k: int = 6) -> Path | Non
             ax.imshow(_draw(rec["image"], rec.get("gt_lanes"), rec.get("pred_lanes")))
             ax.set_title(f"{rec['model']} {rec['case_id']} {label}: acc {100 * rec['accuracy']:.1f}%", fontsize=8)
             ax.axis("off")
-    return _save(fig, path)
+    return save_figure(fig, path)

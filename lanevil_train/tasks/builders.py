@@ -24,6 +24,19 @@ def model_config(cfg: DictConfig) -> dict:
     return out
 
 
+def read_checkpoint(path: str | Path, option: str) -> dict:
+    """A Lightning checkpoint from disk (on CPU); errors name the option that gave the path."""
+    import torch
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{option}={path}: no such checkpoint file")
+    checkpoint = torch.load(path, map_location="cpu", weights_only=False)
+    if not isinstance(checkpoint, dict) or "state_dict" not in checkpoint:
+        raise ValueError(f"{option}={path}: not a Lightning checkpoint (no 'state_dict')")
+    return checkpoint
+
+
 def build_model(spec: dict) -> LaneDetector:
     """A LaneDetector from a model_config() dict."""
     backbone = instantiate(spec["backbone"])

@@ -9,13 +9,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytorch_lightning as pl
-import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from lanevil_train.data.suites import IllusionSetDataset, SyntheticIllusionSuite
 from lanevil_train.models.detector import LaneDetector
-from lanevil_train.tasks.builders import build_logger, build_model, model_config, output_dir
+from lanevil_train.tasks.builders import build_logger, build_model, model_config, output_dir, read_checkpoint
 from lanevil_train.report.scores import summarise
 from lanevil_train.tasks.results import log_results, write_results
 from lanevil_train.tasks.streaming import read_records, stream_evaluate
@@ -25,10 +24,7 @@ def load_checkpoint(cfg: DictConfig) -> LaneDetector:
     """The checkpoint's network with its weights; decoding overridable with task.decode.*."""
     if cfg.ckpt_path is None:
         raise ValueError("task=evaluate needs ckpt_path=/path/to/checkpoint.ckpt")
-    path = Path(cfg.ckpt_path)
-    if not path.is_file():
-        raise FileNotFoundError(f"ckpt_path={path}: no such checkpoint file")
-    checkpoint = torch.load(path, map_location="cpu", weights_only=False)
+    checkpoint = read_checkpoint(cfg.ckpt_path, "ckpt_path")
     spec = checkpoint.get("lanevil_model") or model_config(cfg)
     model = build_model(spec)
     model.load_state_dict(checkpoint["state_dict"])

@@ -9,7 +9,7 @@ import pytorch_lightning as pl
 from omegaconf import DictConfig
 
 from lanevil_train.tasks.builders import (build_datamodule, build_defense, build_model, build_trainer, model_config,
-                                          output_dir)
+                                          output_dir, read_checkpoint)
 from lanevil_train.tasks.scoring import score_test_set
 
 
@@ -46,13 +46,7 @@ def train(cfg: DictConfig) -> float | None:
 
 def init_weights(model, path: Path) -> None:
     """Start from a trained checkpoint's weights (not its optimizer or step): fine-tuning with a defense."""
-    import torch
-
-    if not path.is_file():
-        raise FileNotFoundError(f"task.init_from={path}: no such checkpoint file")
-    state = torch.load(path, map_location="cpu", weights_only=False)
-    if "state_dict" not in state:
-        raise ValueError(f"task.init_from={path}: not a Lightning checkpoint (no 'state_dict')")
+    state = read_checkpoint(path, "task.init_from")
     try:
         model.load_state_dict(state["state_dict"])
     except RuntimeError as error:
@@ -73,7 +67,6 @@ def score_robustness(cfg: DictConfig, model, out: Path) -> float:
     from lanevil_train.tasks.evaluate import stream_dataset, test_dataset
     from lanevil_train.tasks.results import write_results
 
-    model.score_train_batches = False
     dataset, dataset_name = test_dataset(cfg)
     results = stream_dataset(cfg, model, dataset, dataset_name, out, run_label(cfg))
     summary = write_results([results], out, baseline=cfg.task.get("baseline"))
