@@ -11,7 +11,7 @@ import time
 
 import numpy as np
 
-from lanevil_train.metrics.culane import culane_image_counts, culane_summary
+from lanevil_train.metrics import culane_image_counts, culane_summary
 
 
 def make_images(n: int, seed: int) -> list[tuple[list[np.ndarray], list[np.ndarray]]]:

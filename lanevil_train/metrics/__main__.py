@@ -1,7 +1,9 @@
 """Command line scoring: ``python -m lanevil_train.metrics tusimple --pred P.json --gt G.json``.
 
 Each benchmark is one ``_add_<name>(subparsers)`` function that registers its subcommand and
-sets ``func`` (args -> result dict); add it to ``_SUBCOMMANDS`` to expose it.
+sets ``func`` (args -> result dict); add it to ``_SUBCOMMANDS`` to expose it. ``func`` imports its scorer
+when it runs, and the package exports lazily, so a command loads what its scorer needs (numpy; OpenCV for
+CULane) and never torch (tests/metrics/test_commands.py checks this in a fresh process).
 """
 
 from __future__ import annotations
@@ -38,12 +40,14 @@ def _add_culane(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--height", type=int, default=590, help="canvas height (official: 590)")
     p.add_argument("--lane-width", type=int, default=30, help="drawn lane width in px (official: 30)")
     p.add_argument("--iou", type=float, default=0.5, help="IoU threshold, strict '>' (official: 0.5)")
+    p.add_argument("--workers", type=int, default=None,
+                   help="processes (default: one per CPU for long lists, >= 250 images each; 1: no extra process)")
 
     def run(args: argparse.Namespace) -> dict:
-        from lanevil_train.metrics.culane import evaluate_culane_dirs
+        from lanevil_train.metrics.culane_files import evaluate_culane_dirs
 
         return evaluate_culane_dirs(
-            args.pred_dir, args.gt_dir, args.list, args.width, args.height, args.lane_width, args.iou
+            args.pred_dir, args.gt_dir, args.list, args.width, args.height, args.lane_width, args.iou, args.workers
         )
 
     p.set_defaults(func=run)

@@ -13,7 +13,11 @@ normalised by max(min(4, #gt), 1), #pred and max(min(#gt, 4), 1). An image with 
 "Format of lanes error". The official run-time penalty (run_time > 200 ms scores (0, 0, 1))
 is deliberately NOT applied: run time is measured elsewhere and is not comparable across
 machines. The official fit uses sklearn's LinearRegression; here the same least-squares slope
-is computed in closed form with numpy (equal up to float rounding).
+is computed in closed form with numpy (equal up to float rounding). The file-level sum runs in the
+prediction file's order, as the official loop does, so equal per-image values give bit-equal means.
+
+This module needs numpy only (the ``tusimple`` command imports nothing else); the torchmetrics wrapper
+is ``wrappers.TuSimpleMetric``.
 """
 
 from __future__ import annotations
@@ -23,8 +27,6 @@ from pathlib import Path
 from typing import Sequence
 
 import numpy as np
-import torch
-from torchmetrics import Metric
 
 from lanevil_train.lanes import lanes_to_rows
 
@@ -32,7 +34,6 @@ __all__ = [
     "tusimple_image_scores",
     "tusimple_lane_scores",
     "tusimple_summary",
-    "TuSimpleMetric",
     "evaluate_tusimple_files",
 ]
 
@@ -133,81 +134,12 @@ def tusimple_summary(acc_sum: float, fp_sum: float, fn_sum: float, num_images: i
     return {"Accuracy": float(acc), "FP": float(fp), "FN": float(fn), "F1": float(f1)}
 
 
-def _as_np_lane(lane) -> np.ndarray:
-    if isinstance(lane, torch.Tensor):
-        lane = lane.detach().cpu().numpy()
-    arr = np.asarray(lane, dtype=np.float64)
-    if arr.ndim != 2 or arr.shape[1] != 2:
-        raise ValueError(f"a lane must be an (N, 2) array of (x, y) pixels, got shape {arr.shape}")
-    return arr
-
-
 def tusimple_lane_scores(pred_lanes: Sequence[np.ndarray], gt_lanes: Sequence[np.ndarray], h_samples: np.ndarray,
                          pixel_thresh: float = 20.0, pt_thresh: float = 0.85) -> tuple[float, float, float]:
     """(accuracy, fp, fn) of one image from lanes in pixels, sampled at its h_samples rows."""
     ys = np.asarray(h_samples, dtype=np.float64).reshape(-1)
     return tusimple_image_scores(lanes_to_rows(list(pred_lanes), ys), lanes_to_rows(list(gt_lanes), ys), ys,
                                  pixel_thresh, pt_thresh)
-
-
-class TuSimpleMetric(Metric):
-    """TuSimple Accuracy / FP / FN / F1 over decoded lanes (pixels); DDP-safe sum states.
-
-    Each image's lanes are sampled at its h_samples with ``lanes_to_rows`` (linear
-    interpolation, -2 outside a lane's span); pass the GT file's h_samples to get the official
-    score. With ``h_samples=None`` the rows are the sorted unique y values of that image's GT
-    points. TuSimple GT points already lie on its h_samples, so every GT point is kept exactly,
-    but rows where NO GT lane has a point (often the top rows) are dropped, and the official
-    per-lane accuracy divides by ALL h_samples, so the two differ unless some GT lane spans every
-    row. GT lanes with interior -2 gaps get interpolated across the gap in either mode.
-    """
-
-    full_state_update = False
-    is_differentiable = False
-
-    def __init__(self, pixel_thresh: float = 20, pt_thresh: float = 0.85, **kwargs) -> None:
-        super().__init__(**kwargs)
-        self.pixel_thresh = pixel_thresh
-        self.pt_thresh = pt_thresh
-        for name in ("acc_sum", "fp_sum", "fn_sum", "num_images"):
-            self.add_state(name, default=torch.tensor(0.0, dtype=torch.float64), dist_reduce_fx="sum")
-
-    def update(
-        self,
-        preds: Sequence[Sequence[np.ndarray]],
-        targets: Sequence[Sequence[np.ndarray]],
-        h_samples: Sequence[np.ndarray] | np.ndarray | None = None,
-    ) -> None:
-        """Add a batch: preds[i] and targets[i] are image i's lanes, each an (N, 2) pixel array."""
-        if len(preds) != len(targets):
-            raise ValueError(f"preds has {len(preds)} images but targets has {len(targets)}")
-        if h_samples is not None and isinstance(h_samples, np.ndarray) and h_samples.ndim == 1:
-            h_samples = [h_samples] * len(targets)
-        if h_samples is not None and len(h_samples) != len(targets):
-            raise ValueError(f"h_samples has {len(h_samples)} entries but targets has {len(targets)}")
-        acc = fp = fn = 0.0
-        for i, (pred_lanes, gt_lanes) in enumerate(zip(preds, targets)):
-            gts = [_as_np_lane(lane) for lane in gt_lanes]
-            prs = [_as_np_lane(lane) for lane in pred_lanes]
-            if h_samples is None:
-                ys = np.unique(np.concatenate([g[:, 1] for g in gts])) if gts else np.zeros(0)
-            else:
-                ys = np.asarray(h_samples[i], dtype=np.float64).reshape(-1)
-            a, p, n = tusimple_lane_scores(prs, gts, ys, self.pixel_thresh, self.pt_thresh)
-            acc += a
-            fp += p
-            fn += n
-        self.acc_sum += acc
-        self.fp_sum += fp
-        self.fn_sum += fn
-        self.num_images += len(targets)
-
-    def compute(self) -> dict[str, torch.Tensor]:
-        """{"Accuracy", "FP", "FN", "F1"} as float64 scalar tensors."""
-        out = tusimple_summary(
-            float(self.acc_sum), float(self.fp_sum), float(self.fn_sum), int(round(float(self.num_images)))
-        )
-        return {k: torch.tensor(v, dtype=torch.float64) for k, v in out.items()}
 
 
 def _read_json_lines(path: Path, required: tuple[str, ...]) -> list[tuple[int, dict]]:
@@ -233,12 +165,27 @@ def _read_json_lines(path: Path, required: tuple[str, ...]) -> list[tuple[int, d
     return out
 
 
-def _rows(value, path: Path, lineno: int, what: str) -> np.ndarray:
+def _lane_rows(value: object, n_rows: int, path: Path, lineno: int, raw: str, pred: bool) -> np.ndarray:
+    """A JSON line's lanes as an (L, n_rows) float64 array; a bad lane raises naming file, line and lane."""
     try:
-        lanes = [np.asarray(lane, dtype=np.float64) for lane in value]
-    except (TypeError, ValueError) as e:
-        raise ValueError(f"{path}:{lineno}: {what} must be lists of numbers ({e})") from e
-    return lanes
+        rows = np.asarray(value, dtype=np.float64)  # one conversion for the usual, well-formed line
+    except (TypeError, ValueError):
+        rows = None  # ragged or not numbers: the loop below finds the lane
+    if rows is not None and rows.ndim == 2 and rows.shape[1] == n_rows:
+        return rows
+    if rows is not None and rows.size == 0 and rows.ndim == 1:
+        return np.zeros((0, n_rows))
+    name = "lane" if pred else "GT lane"
+    for j, lane in enumerate(value if isinstance(value, list) else [value]):
+        try:
+            arr = np.asarray(lane, dtype=np.float64)
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"{path}:{lineno}: {name} {j} of {raw!r} must be a list of numbers ({e})") from e
+        if arr.shape != (n_rows,):
+            prefix = "Format of lanes error: " if pred else ""
+            raise ValueError(f"{path}:{lineno}: {prefix}{name} {j} of {raw!r} has {arr.size} x values but "
+                             f"h_samples has {n_rows}")
+    raise ValueError(f"{path}:{lineno}: lanes of {raw!r} must be a list of lists of numbers")
 
 
 def evaluate_tusimple_files(
@@ -268,32 +215,16 @@ def evaluate_tusimple_files(
         preds[raw] = (lineno, obj)
     if not gts:
         raise ValueError(f"GT file {gt_path} has no images")
-    acc = fp = fn = 0.0
-    for raw, (gt_line, gt) in gts.items():
+    for raw, (gt_line, _) in gts.items():
         if raw not in preds:
             raise ValueError(f"no prediction in {pred_path} for GT image raw_file {raw!r} ({gt_path}:{gt_line})")
-        pred_line, pred = preds[raw]
+    acc = fp = fn = 0.0
+    for raw, (pred_line, pred) in preds.items():  # prediction-file order: the official sums in this order
+        gt_line, gt = gts[raw]
         ys = np.asarray(gt["h_samples"], dtype=np.float64).reshape(-1)
-        gt_rows = _rows(gt["lanes"], gt_path, gt_line, "GT lanes")
-        for j, lane in enumerate(gt_rows):
-            if lane.shape != ys.shape:
-                raise ValueError(
-                    f"{gt_path}:{gt_line}: GT lane {j} has {lane.size} x values, h_samples has {ys.size}"
-                )
-        pred_rows = _rows(pred["lanes"], pred_path, pred_line, "predicted lanes")
-        for j, lane in enumerate(pred_rows):
-            if lane.shape != ys.shape:
-                raise ValueError(
-                    f"{pred_path}:{pred_line}: Format of lanes error: lane {j} of {raw!r} has "
-                    f"{lane.size} x values but h_samples has {ys.size}"
-                )
-        a, p, n = tusimple_image_scores(
-            np.stack(pred_rows) if pred_rows else np.zeros((0, ys.size)),
-            np.stack(gt_rows) if gt_rows else np.zeros((0, ys.size)),
-            ys,
-            pixel_thresh,
-            pt_thresh,
-        )
+        gt_rows = _lane_rows(gt["lanes"], ys.size, gt_path, gt_line, raw, pred=False)
+        pred_rows = _lane_rows(pred["lanes"], ys.size, pred_path, pred_line, raw, pred=True)
+        a, p, n = tusimple_image_scores(pred_rows, gt_rows, ys, pixel_thresh, pt_thresh)
         acc += a
         fp += p
         fn += n

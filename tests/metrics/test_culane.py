@@ -10,15 +10,9 @@ import pytest
 import torch
 from scipy.optimize import linear_sum_assignment
 
-from lanevil_train.metrics.culane import (
-    CULaneMetric,
-    _draw,
-    culane_image_counts,
-    culane_summary,
-    lane_polyline,
-    official_km_match,
-    spline_interp_times,
-)
+from lanevil_train.metrics import CULaneMetric, culane_image_counts, culane_summary
+from lanevil_train.metrics import culane
+from lanevil_train.metrics.culane import LaneCanvases, lane_polyline, official_km_match, spline_interp_times
 
 W, H, LW = 1640, 590, 30
 
@@ -205,26 +199,34 @@ def test_counts_equal_literal_reference_on_many_random_images() -> None:
 
 
 def test_drawn_masks_equal_per_segment_cv_line() -> None:
-    """polylines on a crop == the official one-cv::line-per-segment mask, incl. lanes leaving the canvas."""
+    """polylines on a reused plane == the official one-cv::line-per-segment mask, incl. lanes leaving the canvas."""
     rng = np.random.default_rng(1)
-    canvas = np.zeros((H, W), np.uint8)
-    for _ in range(60):
+    canvases = LaneCanvases(H, W)
+    for i in range(60):
         lane = random_lane(rng)
         ref = ref_mask(lane).astype(bool)
-        m = _draw(canvas, lane_polyline(lane.astype(np.float32)), LW)
-        full = np.zeros((H, W), bool)
-        full[m.y0 : m.y0 + m.crop.shape[0], m.x0 : m.x0 + m.crop.shape[1]] = m.crop
-        assert np.array_equal(full, ref)
+        m = canvases.draw(i % 3, lane_polyline(lane.astype(np.float32)), LW)
+        assert np.array_equal(m.pixels(), ref)
+        assert np.array_equal(m.plane.astype(bool), ref)  # nothing drawn outside the box
         assert m.area == int(ref.sum())
-        assert not canvas.any()
+        canvases.clear([m])
+        assert not any(plane.any() for plane in canvases.planes)
     for _ in range(6):  # dense CULane-style lanes: a point every 10 rows, many duplicate rounded samples
         ys = np.arange(589.0, rng.uniform(250, 350), -10.0)
         xs = rng.uniform(100, 1500) + rng.uniform(-1.5, 1.5) * (589 - ys) + rng.normal(0, 0.7, len(ys))
         lane = np.stack([xs, ys], 1)
-        m = _draw(canvas, lane_polyline(lane.astype(np.float32)), LW)
-        full = np.zeros((H, W), bool)
-        full[m.y0 : m.y0 + m.crop.shape[0], m.x0 : m.x0 + m.crop.shape[1]] = m.crop
-        assert np.array_equal(full, ref_mask(lane).astype(bool))
+        m = canvases.draw(0, lane_polyline(lane.astype(np.float32)), LW)
+        assert np.array_equal(m.pixels(), ref_mask(lane).astype(bool))
+        canvases.clear([m])
+
+
+def test_planes_are_clean_after_a_bad_lane() -> None:
+    """A lane that raises mid-image must not leave earlier lanes on the reused planes."""
+    g = np.array([[100.0, 589.0], [200.0, 450.0], [260.0, 300.0]])
+    with pytest.raises(ValueError, match="pred lane 1"):
+        culane_image_counts([g, np.zeros((3, 3))], [g])
+    assert not any(plane.any() for plane in culane._canvases(H, W).planes)
+    assert culane_image_counts([g + [400, 0]], [g]) == (0, 1, 1)
 
 
 def test_spline_matches_reference_and_interpolates() -> None:

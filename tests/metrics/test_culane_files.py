@@ -10,13 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from lanevil_train.metrics import CULaneMetric, culane_image_counts, evaluate_culane_dirs
 from lanevil_train.metrics.__main__ import main
-from lanevil_train.metrics.culane import (
-    CULaneMetric,
-    culane_image_counts,
-    evaluate_culane_dirs,
-    read_lines_file,
-)
+from lanevil_train.metrics.culane_files import read_lines_file
 
 GT_A = [[(100.0, 589.0), (200.0, 450.0), (260.0, 300.0)], [(900.0, 589.0), (850.0, 450.0), (800.0, 300.0)]]
 PRED_A = [[(104.0, 589.0), (204.0, 450.0), (264.0, 300.0)], [(1400.0, 589.0), (1300.0, 300.0)]]

@@ -1,0 +1,126 @@
+"""torchmetrics wrappers of the lane scores: TuSimpleMetric and CULaneMetric (sum states, DDP-safe).
+
+The scoring itself is the plain numpy code of ``tusimple.py`` / ``culane.py``; this module is the only
+one under ``lanevil_train.metrics`` that imports torch, so the file-scoring commands never load it.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+import torch
+from torchmetrics import Metric
+
+from lanevil_train.metrics.culane import culane_image_counts, culane_summary
+from lanevil_train.metrics.tusimple import tusimple_lane_scores, tusimple_summary
+
+__all__ = ["TuSimpleMetric", "CULaneMetric"]
+
+
+def _to_numpy(lane: object) -> object:
+    """A tensor lane (on any device) as a numpy array; anything else unchanged."""
+    if isinstance(lane, torch.Tensor):
+        return lane.detach().cpu().numpy()
+    return lane
+
+
+def _as_np_lane(lane: object) -> np.ndarray:
+    """One (N, 2) float64 pixel lane from an array, list or tensor; raises on another shape."""
+    arr = np.asarray(_to_numpy(lane), dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 2:
+        raise ValueError(f"a lane must be an (N, 2) array of (x, y) pixels, got shape {arr.shape}")
+    return arr
+
+
+class TuSimpleMetric(Metric):
+    """TuSimple Accuracy / FP / FN / F1 over decoded lanes (pixels); DDP-safe sum states.
+
+    Each image's lanes are sampled at its h_samples with ``lanes_to_rows`` (linear
+    interpolation, -2 outside a lane's span); pass the GT file's h_samples to get the official
+    score. With ``h_samples=None`` the rows are the sorted unique y values of that image's GT
+    points. TuSimple GT points already lie on its h_samples, so every GT point is kept exactly,
+    but rows where NO GT lane has a point (often the top rows) are dropped, and the official
+    per-lane accuracy divides by ALL h_samples, so the two differ unless some GT lane spans every
+    row. GT lanes with interior -2 gaps get interpolated across the gap in either mode.
+    """
+
+    full_state_update = False
+    is_differentiable = False
+
+    def __init__(self, pixel_thresh: float = 20, pt_thresh: float = 0.85, **kwargs) -> None:
+        super().__init__(**kwargs)
+        self.pixel_thresh = pixel_thresh
+        self.pt_thresh = pt_thresh
+        for name in ("acc_sum", "fp_sum", "fn_sum", "num_images"):
+            self.add_state(name, default=torch.tensor(0.0, dtype=torch.float64), dist_reduce_fx="sum")
+
+    def update(
+        self,
+        preds: Sequence[Sequence[np.ndarray]],
+        targets: Sequence[Sequence[np.ndarray]],
+        h_samples: Sequence[np.ndarray] | np.ndarray | None = None,
+    ) -> None:
+        """Add a batch: preds[i] and targets[i] are image i's lanes, each an (N, 2) pixel array."""
+        if len(preds) != len(targets):
+            raise ValueError(f"preds has {len(preds)} images but targets has {len(targets)}")
+        if h_samples is not None and isinstance(h_samples, np.ndarray) and h_samples.ndim == 1:
+            h_samples = [h_samples] * len(targets)
+        if h_samples is not None and len(h_samples) != len(targets):
+            raise ValueError(f"h_samples has {len(h_samples)} entries but targets has {len(targets)}")
+        acc = fp = fn = 0.0
+        for i, (pred_lanes, gt_lanes) in enumerate(zip(preds, targets)):
+            gts = [_as_np_lane(lane) for lane in gt_lanes]
+            prs = [_as_np_lane(lane) for lane in pred_lanes]
+            if h_samples is None:
+                ys = np.unique(np.concatenate([g[:, 1] for g in gts])) if gts else np.zeros(0)
+            else:
+                ys = np.asarray(h_samples[i], dtype=np.float64).reshape(-1)
+            a, p, n = tusimple_lane_scores(prs, gts, ys, self.pixel_thresh, self.pt_thresh)
+            acc += a
+            fp += p
+            fn += n
+        self.acc_sum += acc
+        self.fp_sum += fp
+        self.fn_sum += fn
+        self.num_images += len(targets)
+
+    def compute(self) -> dict[str, torch.Tensor]:
+        """{"Accuracy", "FP", "FN", "F1"} as float64 scalar tensors."""
+        out = tusimple_summary(
+            float(self.acc_sum), float(self.fp_sum), float(self.fn_sum), int(round(float(self.num_images)))
+        )
+        return {k: torch.tensor(v, dtype=torch.float64) for k, v in out.items()}
+
+
+
+
+class CULaneMetric(Metric):
+    """Streaming CULane F1: TP/FP/FN summed over images (sum-reduced across processes)."""
+
+    full_state_update = False
+    higher_is_better = True
+
+    def __init__(self, width: int = 1640, height: int = 590, lane_width: int = 30, iou_threshold: float = 0.5,
+                 **kwargs: object) -> None:
+        super().__init__(**kwargs)
+        self.width, self.height, self.lane_width, self.iou_threshold = width, height, lane_width, iou_threshold
+        for name in ("tp", "fp", "fn"):
+            self.add_state(name, default=torch.tensor(0, dtype=torch.long), dist_reduce_fx="sum")
+
+    def update(self, preds: Sequence[Sequence[object]], targets: Sequence[Sequence[object]]) -> None:
+        """Add the counts of a batch: ``preds``/``targets`` are per-image lists of (N, 2) pixel lanes."""
+        if len(preds) != len(targets):
+            raise ValueError(f"preds has {len(preds)} images but targets has {len(targets)}")
+        tp = fp = fn = 0
+        for p, g in zip(preds, targets):
+            a, b, c = culane_image_counts([_to_numpy(lane) for lane in p], [_to_numpy(lane) for lane in g],
+                                          self.width, self.height, self.lane_width, self.iou_threshold)
+            tp, fp, fn = tp + a, fp + b, fn + c
+        self.tp += tp
+        self.fp += fp
+        self.fn += fn
+
+    def compute(self) -> dict:
+        """``culane_summary`` of the accumulated counts."""
+        return culane_summary(int(self.tp), int(self.fp), int(self.fn))
