@@ -150,3 +150,20 @@ def test_error_lane_length_and_missing_key(tmp_path):
         evaluate_tusimple_files(pred, gt)
     with pytest.raises(FileNotFoundError, match="nope.json"):
         evaluate_tusimple_files(tmp_path / "nope.json", gt)
+
+
+def test_file_sum_runs_in_prediction_file_order(tmp_path):
+    """The official loop sums per-image scores in the prediction file's order; float sums depend on it."""
+    ks = next(ks for ks in ((a, b, c) for a in range(1, 56) for b in range(1, 56) for c in range(1, 56))
+              if (ks[0] / 56 + ks[1] / 56) + ks[2] / 56 != (ks[2] / 56 + ks[1] / 56) + ks[0] / 56)
+    gt, pred = [], []
+    for i, k in enumerate(ks):  # one GT lane at x=500; the prediction agrees on its first k rows only
+        raw = f"clips/{i}/20.jpg"
+        gt.append({"lanes": [[500] * 56], "h_samples": YS, "raw_file": raw})
+        pred.append({"lanes": [[500] * k + [900] * (56 - k)], "raw_file": raw, "run_time": 1})
+    gt_path = _write_lines(tmp_path / "g.json", gt)
+    forward = evaluate_tusimple_files(_write_lines(tmp_path / "p.json", pred), gt_path)
+    backward = evaluate_tusimple_files(_write_lines(tmp_path / "r.json", pred[::-1]), gt_path)
+    assert forward["Accuracy"] == ((ks[0] / 56 + ks[1] / 56) + ks[2] / 56) / 3
+    assert backward["Accuracy"] == ((ks[2] / 56 + ks[1] / 56) + ks[0] / 56) / 3
+    assert forward["Accuracy"] != backward["Accuracy"]
