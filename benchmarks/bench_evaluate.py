@@ -41,7 +41,7 @@ def run_one(cases: int, batch: int, workers: int) -> dict:
     with tempfile.TemporaryDirectory() as out:
         t0 = time.perf_counter()
         stream_evaluate(model, suite, Path(out) / "per_image.jsonl", {"model": "bench"}, batch_size=batch,
-                        num_workers=workers, progress=False)
+                        num_workers=workers, progress="none")
         seconds = time.perf_counter() - t0
     return {"cases": cases, "images": len(suite), "seconds": round(seconds, 1),
             "images_per_s": round(len(suite) / seconds, 2),

@@ -24,6 +24,7 @@ from lanevil_train.data.formats.atomic import atomic_write_text
 from lanevil_train.data.formats.manifest import ManifestWriter, read_manifest
 from lanevil_train.illusions import ILLUSIONS, GroundPlaneError, context_from_lanes, context_from_scene, fallback_context
 from lanevil_train.lanes import default_h_samples, lanes_to_rows
+from lanevil_train.progress import progress_counter
 from lanevil_train.sim import build_scene, render_scene, sample_scene_params
 
 
@@ -136,8 +137,9 @@ def render_case(args: tuple[Case, Plan, str, frozenset]) -> list[dict]:
 
 
 def build_illusion_set(cases: list[Case], plan: Plan, root: str | Path, workers: int = 0,
-                       progress: bool = True) -> dict:
-    """Write every case's images, labels and manifest under root; skip what an earlier run finished."""
+                       progress: str = "auto") -> dict:
+    """Write every case's images, labels and manifest under root; skip what an earlier run finished.
+    `progress`: a lanevil_train.progress mode (auto, rich, tqdm, plain, none)."""
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
     for name in plan.illusions:
@@ -149,7 +151,7 @@ def build_illusion_set(cases: list[Case], plan: Plan, root: str | Path, workers:
     total = sum(len(variants(c, plan)) for c in cases)
     skipped = len(done)
     jobs = [(case, plan, str(root), frozenset(done)) for case in cases]
-    bar = _progress(total, skipped, progress)
+    bar = progress_counter(total, skipped, "build", "img", progress)
     written = 0
     with ManifestWriter(manifest_path) as manifest:
         for records in _map(render_case, jobs, workers):
@@ -189,9 +191,3 @@ def _map(fn, jobs: list, workers: int) -> Iterator:
         return
     with get_context("spawn").Pool(workers) as pool:
         yield from pool.imap(fn, jobs)
-
-
-def _progress(total: int, initial: int, enabled: bool):
-    from tqdm import tqdm
-
-    return tqdm(total=total, initial=initial, unit="img", desc="build", disable=not enabled)

@@ -1,4 +1,4 @@
-"""The 14 illusions by name, their categories, and `apply_illusion`.
+"""The 14 illusions by name, each bound to its renderer and levels (names and categories: lanevil_train.taxonomy).
 
 Each category module (road_damage, traffic, shadow, reflection) exposes RENDERERS (name ->
 render(image, ctx, severity, rng)) and LEVELS (name -> five parameter dicts, severity 1..5).
@@ -14,16 +14,7 @@ import numpy as np
 
 from lanevil_train.illusions import reflection, road_damage, shadow, traffic
 from lanevil_train.illusions.context import IllusionContext
-
-SEVERITIES = (1, 2, 3, 4, 5)
-
-# category -> illusion names, in the paper's order (§3.3)
-CATEGORIES = MappingProxyType({
-    "road_damage": ("road_crack", "road_repair", "tire_marks", "guard_rail"),
-    "traffic_obstruction": ("pedestrian", "vehicle", "bicycle"),
-    "shadow": ("streetlight_shadow", "fence_shadow", "rail_shadow", "wire_shadow"),
-    "reflection": ("sunlight_reflection", "streetlight_reflection", "vehicle_reflection"),
-})
+from lanevil_train.taxonomy import CATEGORIES, SEVERITIES
 
 _MODULES = {"road_damage": road_damage, "traffic_obstruction": traffic, "shadow": shadow, "reflection": reflection}
 

@@ -13,7 +13,7 @@ import torch
 from torch import nn
 
 from lanevil_train.lanes import default_h_samples, scale_lanes
-from lanevil_train.metrics.tusimple import TuSimpleMetric, tusimple_lane_scores
+from lanevil_train.metrics import TuSimpleMetric, tusimple_lane_scores
 
 TUSIMPLE_WIDTH = 1280  # the TuSimple 20 px threshold is for images this wide
 
@@ -35,7 +35,6 @@ class LaneDetector(pl.LightningModule):
         self.crop_top = crop_top  # fraction of the original height cut before resizing (data.crop_top)
         self.val_metric = TuSimpleMetric()
         self.test_metric = TuSimpleMetric()
-        self.test_records: list[dict] = []
         # The config that built this model (set by the tasks); saved in checkpoints so that
         # evaluation rebuilds the same network.
         self.build_config: dict | None = None
@@ -102,15 +101,10 @@ class LaneDetector(pl.LightningModule):
     def on_validation_epoch_end(self) -> None:
         self._log_metric("val", self.val_metric)
 
-    def on_test_epoch_start(self) -> None:
-        self.test_records = []
-
-    def test_step(self, batch: dict, batch_idx: int) -> None:
-        preds = self._score_batch(batch, self.test_metric)
-        for pred, gt, meta in zip(preds, batch["lanes"], batch["meta"]):
-            acc, fp, fn = tusimple_lane_scores(pred, gt, meta["h_samples"])
-            self.test_records.append({"case_id": meta["case_id"], "accuracy": acc, "fp": fp, "fn": fn,
-                                      "num_pred": len(pred), "num_gt": len(gt)})
+    def test_step(self, batch: dict, batch_idx: int) -> list[list[np.ndarray]]:
+        """Scores the batch into the test metric; returns the decoded lanes (original pixels) per image, which
+        a callback may turn into per-image records (tasks/scoring.PerImageWriter)."""
+        return self._score_batch(batch, self.test_metric)
 
     def on_test_epoch_end(self) -> None:
         self._log_metric("test", self.test_metric)

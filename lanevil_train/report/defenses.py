@@ -1,8 +1,9 @@
-"""Defense comparison (the paper's Fig. enhance): each defense's perturbed Accuracy / F1 per illusion category
-and on average, its clean (original) scores, and its GAIN over the undefended reference (`none`).
+"""Defense comparison (the paper's Fig. enhance): each defense's perturbed scores (the records' spec: Accuracy and
+F1 for lanes) per illusion category and on average, its clean (original) scores, and its GAIN over the undefended
+reference (`none`).
 
-Input: {defense name: that defense's per-image robustness records} (see report/robustness.py for a record).
-Conventions (all in %, gains in percentage points):
+Input: {defense name: that defense's per-item robustness records} (see report/records.py for a record).
+Conventions (all in the spec's unit, gains in its points; for a lower-is-better score a negative gain is good):
 - per category: the pooled perturbed images of the category (report.robustness.main_table "Perturbed");
 - average: the unweighted mean of the category values (main_table's "average");
 - original: all clean (severity 0) images of the suite, each case once (a defense that costs clean accuracy
@@ -16,67 +17,73 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from lanevil_train.report.robustness import CATEGORIES, _ordered, main_table, scores, validate_records
+from lanevil_train.report.records import AVERAGE, RecordSet, RecordSpec, item_of
+from lanevil_train.report.robustness import main_table
+from lanevil_train.report.specs import spec_for
 from lanevil_train.report.tables import markdown_table, write_table
 
 REFERENCE = "none"
-AVERAGE = "average"
 ORIGINAL = "original"
-METRICS = ("Accuracy", "F1")
 
 
-def _image_keys(recs: list[dict]) -> set[tuple]:
-    """The scored images of validated records: (dataset, case, illusion or None when clean, severity)."""
-    return {(r["dataset"], r["case_id"], r.get("illusion") if r["severity"] else None, r["severity"]) for r in recs}
+def _item_keys(rs: RecordSet) -> set[tuple]:
+    """The scored items of a record set: (dataset, case, [item,] illusion or None when clean, severity)."""
+    return {item_of(r, rs.spec)[1:] + (r.get("illusion") if r["severity"] else None, r["severity"])
+            for r in rs.records}
 
 
-def check_comparable(records_by_defense: dict[str, list[dict]], reference: str = REFERENCE) -> dict[str, list[dict]]:
-    """Validate each defense's records (one model each, perturbed images present, the reference's image set);
-    return them validated. Raises ValueError naming the defense at fault."""
+def check_comparable(records_by_defense: dict[str, list[dict]], reference: str = REFERENCE) -> dict[str, RecordSet]:
+    """Validate each defense's records (one spec, one model each, perturbed items present, the reference's item
+    set); return them as record sets. Raises ValueError naming the defense at fault."""
     if not records_by_defense:
         raise ValueError("no defenses to compare: records_by_defense is empty")
     if reference not in records_by_defense:
         raise ValueError(f"the reference defense {reference!r} is missing (defenses given: "
                          f"{list(records_by_defense)}); gains are measured against it, so it must be compared too")
-    out = {}
+    out: dict[str, RecordSet] = {}
+    spec: RecordSpec | None = None
     for defense, recs in records_by_defense.items():
         try:
-            valid = validate_records(list(recs))
+            spec = spec or spec_for(list(recs))
+            valid = RecordSet(list(recs), spec)
         except (TypeError, ValueError) as err:
             raise ValueError(f"defense {defense!r}: {err}") from err
-        models = sorted({r["model"] for r in valid})
-        if len(models) != 1:
-            raise ValueError(f"defense {defense!r}: expected the records of one model, got {models or 'none'}")
-        if not any(r["severity"] > 0 for r in valid):
+        if len(valid.models) != 1:
+            raise ValueError(f"defense {defense!r}: expected the records of one model, got {valid.models or 'none'}")
+        if not valid.by_model[valid.models[0]].pert:
             raise ValueError(f"defense {defense!r}: no perturbed (severity > 0) records; was it scored on a suite?")
         out[defense] = valid
-    ref_keys = _image_keys(out[reference])
-    for defense, recs in out.items():
-        keys = _image_keys(recs)
+    ref_keys = _item_keys(out[reference])
+    for defense, rs in out.items():
+        keys = _item_keys(rs)
         if keys != ref_keys:
-            raise ValueError(f"defense {defense!r} was scored on different images than {reference!r}: "
-                             f"{len(keys - ref_keys)} image(s) only in {defense!r}, {len(ref_keys - keys)} only in "
+            raise ValueError(f"defense {defense!r} was scored on different items than {reference!r}: "
+                             f"{len(keys - ref_keys)} item(s) only in {defense!r}, {len(ref_keys - keys)} only in "
                              f"{reference!r}; compare runs scored on the same suite (cases, illusions, severities)")
     return out
 
 
 def defense_scores(records_by_defense: dict[str, list[dict]], reference: str = REFERENCE) -> list[dict]:
-    """One row per defense (input order): its model label, clean scores ("original/..."), perturbed Accuracy and
-    F1 per category and on average ("<category>/Accuracy", "average/F1", ...), and the perturbed image count."""
+    """One row per defense (input order): its model label, clean scores ("original/<score>"), every perturbed
+    score per category and on average ("<category>/<score>", "average/<score>"), and the perturbed item count."""
     valid = check_comparable(records_by_defense, reference)
     rows = []
-    for defense, recs in valid.items():
-        main = main_table(recs)[0]
-        cats = _ordered((r["category"] for r in recs if r["severity"] > 0), CATEGORIES)
-        clean_acc, clean_f1 = scores([r for r in recs if r["severity"] == 0])
-        row = {"defense": defense, "model": recs[0]["model"],
-               "images": sum(r["severity"] > 0 for r in recs),
-               f"{ORIGINAL}/Accuracy": clean_acc, f"{ORIGINAL}/F1": clean_f1}
-        for cat in [*cats, AVERAGE]:
-            for metric in METRICS:
-                row[f"{cat}/{metric}"] = main[f"{cat}/{metric}/Perturbed"]
+    for defense, rs in valid.items():
+        main = main_table(rs)[0]
+        index = rs.by_model[rs.models[0]]
+        clean = list(index.clean.values())
+        row = {"defense": defense, "model": rs.models[0], "images": len(index.pert)}
+        row.update({f"{ORIGINAL}/{s.name}": s.aggregate(clean) for s in rs.scores})
+        for cat in [*rs.categories, AVERAGE]:
+            for score in rs.scores:
+                row[f"{cat}/{score.name}"] = main[f"{cat}/{score.name}/Perturbed"]
         rows.append(row)
     return rows
+
+
+def _score_names(score_row: dict) -> list[str]:
+    """The scores of a defense_scores row, in column order."""
+    return list(dict.fromkeys(key.split("/")[1] for key in score_row if key.startswith(f"{ORIGINAL}/")))
 
 
 def _groups(score_row: dict) -> list[str]:
@@ -87,7 +94,7 @@ def _groups(score_row: dict) -> list[str]:
 
 def defense_gain(score_rows: list[dict], reference: str = REFERENCE) -> list[dict]:
     """Long table, one row per (defense other than the reference, category | average | original): the defense's
-    score, the reference's, and the gain (defense - reference, points) for Accuracy and F1."""
+    score, the reference's, and the gain (defense - reference, points) for every score."""
     by_name = {row["defense"]: row for row in score_rows}
     if reference not in by_name:
         raise ValueError(f"the reference defense {reference!r} is not among the scored defenses {list(by_name)}")
@@ -98,7 +105,7 @@ def defense_gain(score_rows: list[dict], reference: str = REFERENCE) -> list[dic
             continue
         for group in _groups(row):
             out = {"defense": row["defense"], "category": group}
-            for metric in METRICS:
+            for metric in _score_names(row):
                 key = f"{group}/{metric}"
                 out[metric] = row[key]
                 out[f"{metric}/{reference}"] = ref.get(key, math.nan)
@@ -115,13 +122,16 @@ def gain_pivot(gain_rows: list[dict], metric: str = "Accuracy") -> list[dict]:
     return list(out.values())
 
 
-def best_defense(score_rows: list[dict]) -> tuple[str, float]:
-    """The defense with the highest average perturbed Accuracy (reference included; NaN rows ignored)."""
-    ranked = [(row["average/Accuracy"], row["defense"]) for row in score_rows
-              if not math.isnan(row["average/Accuracy"])]
+def best_defense(score_rows: list[dict], spec: RecordSpec) -> tuple[str, float]:
+    """The defense with the best average perturbed headline score of `spec` (reference included; NaN rows
+    ignored)."""
+    score = spec.headline
+    ranked = [(row[f"{AVERAGE}/{score.name}"], row["defense"]) for row in score_rows
+              if not math.isnan(row[f"{AVERAGE}/{score.name}"])]
     if not ranked:
-        raise ValueError("no defense has an average perturbed Accuracy")
-    value, name = max(ranked, key=lambda t: t[0])  # max keeps the first of equal values: input order
+        raise ValueError(f"no defense has an average perturbed {score.name}")
+    pick = max if score.higher_is_better else min
+    value, name = pick(ranked, key=lambda t: t[0])  # keeps the first of equal values: input order
     return name, value
 
 
@@ -149,30 +159,36 @@ def gain_plot(gain_rows: list[dict], path: str | Path, metric: str = "Accuracy")
     return save_figure(fig, path)
 
 
-def write_defense_report(score_rows: list[dict], gain_rows: list[dict], out_dir: str | Path,
+def write_defense_report(score_rows: list[dict], gain_rows: list[dict], out_dir: str | Path, spec: RecordSpec,
                          runs: dict[str, str] | None = None) -> dict[str, Path]:
     """defense_scores.{md,csv,json}, defense_gain.{md,csv,json}, defense_gain.png and compare.md in out_dir.
 
-    `runs` (defense -> run directory) is listed in compare.md when given.
+    `spec` is the records' spec (its headline picks the best defense and the plot); `runs` (defense -> run
+    directory) is listed in compare.md when given.
     """
     out_dir = Path(out_dir)
     paths: dict[str, Path] = {}
     for name, rows in (("defense_scores", score_rows), ("defense_gain", gain_rows)):
         for fmt, p in write_table(rows, out_dir, name).items():
             paths[f"{name}_{fmt}"] = p
-    paths["plot"] = gain_plot(gain_rows, out_dir / "defense_gain.png")
-    best, value = best_defense(score_rows)
+    headline = spec.headline.name
+    paths["plot"] = gain_plot(gain_rows, out_dir / "defense_gain.png", headline)
+    best, value = best_defense(score_rows, spec)
+    names = _score_names(score_rows[0]) if score_rows else []
+    lower = [s.name for s in spec.scores if not s.higher_is_better and s.name in names]
+    unit = spec.unit
     parts = ["# Defense comparison", "",
-             "Scores in %, gains in percentage points (defense minus none) on the same illusion suite. Per "
-             "category: all perturbed images of the category; average: mean of the categories; original: the "
-             "suite's clean images (a negative original gain is a cost in clean accuracy).", "",
-             f"Best average perturbed Accuracy: **{best}** ({value:.2f}%).", "",
-             "## Accuracy gain over none (points)", "", markdown_table(gain_pivot(gain_rows, "Accuracy")), "",
-             "## F1 gain over none (points)", "", markdown_table(gain_pivot(gain_rows, "F1")), "",
-             f"![defense gain]({paths['plot'].name})", "",
-             "## Scores per defense (perturbed per category and average; original = clean)", "",
-             markdown_table(score_rows), "",
-             "Long form with each side of every gain: defense_gain.md / .csv / .json.", ""]
+             f"Scores in {unit}, gains in points (defense minus none) on the same illusion suite. Per "
+             "category: all perturbed items of the category; average: mean of the categories; original: the "
+             "suite's clean items (a negative original gain is a cost in clean performance)."
+             + (f" Lower is better for {', '.join(lower)}: there a negative gain is an improvement." if lower else ""),
+             "", f"Best average perturbed {headline}: **{best}** ({value:.2f}{unit}).", ""]
+    for name in names:
+        parts += [f"## {name} gain over none (points)", "", markdown_table(gain_pivot(gain_rows, name)), ""]
+    parts += [f"![defense gain]({paths['plot'].name})", "",
+              "## Scores per defense (perturbed per category and average; original = clean)", "",
+              markdown_table(score_rows), "",
+              "Long form with each side of every gain: defense_gain.md / .csv / .json.", ""]
     if runs:
         parts += ["## Runs", "", markdown_table([{"defense": d, "run": str(r)} for d, r in runs.items()]), ""]
     paths["report"] = out_dir / "compare.md"

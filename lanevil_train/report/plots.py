@@ -1,5 +1,6 @@
-"""Robustness plots from per-image records (see report/robustness.py): accuracy vs severity, a model x illusion
-gap heatmap, and the worst-breaking cases drawn clean | perturbed (GT lanes green, predictions red)."""
+"""Robustness plots from per-item records (report/records.py), on the spec's headline score (Accuracy for lanes):
+score vs severity, a model x illusion gap heatmap, and the worst-breaking cases drawn clean | perturbed (GT lanes
+green, predictions red). Each takes a list of records (the spec is inferred) or a RecordSet."""
 
 from __future__ import annotations
 
@@ -13,9 +14,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from lanevil_train.report.robustness import (  # noqa: E402
-    CATEGORIES, SEVERITIES, _indexes, _ordered, type_table, validate_records,
-)
+from lanevil_train.report.records import item_of  # noqa: E402
+from lanevil_train.report.specs import record_set  # noqa: E402
 
 _STYLES = ("-", "--", ":", "-.")
 
@@ -29,52 +29,54 @@ def save_figure(fig, path: str | Path) -> Path:
     return path
 
 
-def accuracy_vs_severity(records: list[dict], path: str | Path) -> Path:
-    """One panel per model, one line per category: x = severity 0 (same cases' Original) .. 5, y = Accuracy %."""
-    models, recs, idx = _indexes(records)
-    cats = _ordered((r["category"] for r in recs if r["severity"] > 0), CATEGORIES)
-    fig, axes = plt.subplots(1, max(len(models), 1), figsize=(4.5 * max(len(models), 1), 3.6), squeeze=False)
-    for ax, m in zip(axes[0], models):
-        for j, cat in enumerate(cats):
-            pert = [r for r in idx[m].pert if r["category"] == cat]
-            if not pert:
-                continue
-            xs, ys = [0], [idx[m].pog(pert)["Accuracy/Original"]]
-            for s in SEVERITIES:
-                group = [r for r in pert if r["severity"] == s]
+def score_vs_severity(records, path: str | Path) -> Path:
+    """One panel per model, one line per category: x = severity 0 (same items' Original) .. 5, y = the headline
+    score."""
+    rs = record_set(records)
+    score = rs.spec.headline
+    n = max(len(rs.models), 1)
+    fig, axes = plt.subplots(1, n, figsize=(4.5 * n, 3.6), squeeze=False)
+    for ax, m in zip(axes[0], rs.models):
+        index = rs.by_model[m]
+        for j, ((cat,), pert) in enumerate(rs.groups(m, ("category",))):
+            xs, ys = [0], [score.aggregate(index.originals(pert))]
+            for (sev,), group in rs.groups(m, ("severity",)):
+                group = [r for r in group if r["category"] == cat]
                 if group:
-                    xs.append(s)
-                    ys.append(100.0 * float(np.mean([r["accuracy"] for r in group])))
+                    xs.append(sev)
+                    ys.append(score.aggregate(group))
             ax.plot(xs, ys, _STYLES[j % len(_STYLES)], marker="o", label=cat)
         ax.set_title(m)
         ax.set_xlabel("severity (0 = original)")
-        ax.set_ylabel("Accuracy (%)")
+        ax.set_ylabel(f"{score.name} ({rs.spec.unit})")
         ax.set_xticks(range(0, 6))
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
     return save_figure(fig, path)
 
 
-def gap_heatmap(records: list[dict], path: str | Path) -> Path:
-    """Models x illusion types, colour = Accuracy gap (Perturbed - Original, %), each cell annotated."""
-    rows = type_table(records)
-    models = list(dict.fromkeys(r["model"] for r in rows))
-    illusions = _ordered((r["illusion"] for r in rows), [n for names in CATEGORIES.values() for n in names])
-    grid = np.full((len(models), len(illusions)), np.nan)
-    for r in rows:
-        grid[models.index(r["model"]), illusions.index(r["illusion"])] = r["Accuracy/Gap"]
+def gap_heatmap(records, path: str | Path) -> Path:
+    """Models x illusion types, colour = the headline score's Gap (Perturbed - Original), each cell annotated; red
+    is worse than the original whichever way the score points."""
+    rs = record_set(records)
+    score = rs.spec.headline
+    grid = np.full((len(rs.models), len(rs.illusions)), np.nan)
+    for i, m in enumerate(rs.models):
+        for (ill,), pert in rs.groups(m, ("illusion",)):
+            grid[i, rs.illusions.index(ill)] = rs.by_model[m].pog(pert, [score])[f"{score.name}/Gap"]
     lim = float(np.nanmax(np.abs(grid))) if np.isfinite(grid).any() else 1.0
     lim = lim or 1.0
-    fig, ax = plt.subplots(figsize=(1.0 + 0.8 * max(len(illusions), 1), 1.2 + 0.5 * max(len(models), 1)))
-    im = ax.imshow(np.ma.masked_invalid(grid), cmap="RdBu", vmin=-lim, vmax=lim, aspect="auto")
-    for i in range(len(models)):
-        for j in range(len(illusions)):
+    fig, ax = plt.subplots(figsize=(1.0 + 0.8 * max(len(rs.illusions), 1), 1.2 + 0.5 * max(len(rs.models), 1)))
+    cmap = "RdBu" if score.higher_is_better else "RdBu_r"
+    im = ax.imshow(np.ma.masked_invalid(grid), cmap=cmap, vmin=-lim, vmax=lim, aspect="auto")
+    for i in range(len(rs.models)):
+        for j in range(len(rs.illusions)):
             if np.isfinite(grid[i, j]):
                 ax.text(j, i, f"{grid[i, j]:.1f}", ha="center", va="center", fontsize=7)
-    ax.set_xticks(range(len(illusions)), illusions, rotation=60, ha="right", fontsize=8)
-    ax.set_yticks(range(len(models)), models, fontsize=8)
-    fig.colorbar(im, ax=ax, label="Accuracy gap (%)")
-    ax.set_title("Accuracy gap per illusion (Perturbed - Original)")
+    ax.set_xticks(range(len(rs.illusions)), rs.illusions, rotation=60, ha="right", fontsize=8)
+    ax.set_yticks(range(len(rs.models)), rs.models, fontsize=8)
+    fig.colorbar(im, ax=ax, label=f"{score.name} gap ({rs.spec.unit})")
+    ax.set_title(f"{score.name} gap per illusion (Perturbed - Original)")
     return save_figure(fig, path)
 
 
@@ -92,43 +94,49 @@ def _draw(image_path: str, gt, pred) -> np.ndarray:
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
-def worst_case_pairs(records: list[dict], k: int = 6) -> list[tuple[dict, dict]]:
-    """The k (clean, perturbed) record pairs with the largest accuracy drop, one per (model, dataset, case_id),
+def worst_case_pairs(records, k: int = 6) -> list[tuple[dict, dict]]:
+    """The k (clean, perturbed) record pairs whose headline score drops most, one per (model, dataset, case_id),
     among pairs whose both image files exist; ties broken by key so the choice is deterministic."""
-    recs = validate_records(records)
-    clean = {(r["model"], r["dataset"], r["case_id"]): r for r in recs if r["severity"] == 0}
+    rs = record_set(records)
+    score = rs.spec.headline
+    sign = 1.0 if score.higher_is_better else -1.0
     best: dict[tuple, tuple] = {}
     missing = 0
-    for r in recs:
-        key = (r["model"], r["dataset"], r["case_id"])
-        c = clean.get(key)
-        if r["severity"] == 0 or c is None or not r.get("image") or not c.get("image"):
-            continue
-        if not (Path(r["image"]).is_file() and Path(c["image"]).is_file()):
-            missing += 1
-            continue
-        drop = c["accuracy"] - r["accuracy"]
-        cand = (-drop, key, r["illusion"], r["severity"])
-        if key not in best or cand < best[key][0]:
-            best[key] = (cand, c, r)
+    for m in rs.models:
+        index = rs.by_model[m]
+        for r in index.pert:
+            c = index.clean.get(item_of(r, rs.spec))
+            if c is None or not r.get("image") or not c.get("image"):
+                continue
+            if not (Path(r["image"]).is_file() and Path(c["image"]).is_file()):
+                missing += 1
+                continue
+            key = (r["model"], r["dataset"], r["case_id"])
+            drop = sign * (score.aggregate([c]) - score.aggregate([r]))
+            cand = (-drop, key, r["illusion"], r["severity"])
+            if key not in best or cand < best[key][0]:
+                best[key] = (cand, c, r)
     if missing:
         warnings.warn(f"worst_cases: {missing} perturbed record(s) skipped, image file(s) not found")
     chosen = sorted(best.values(), key=lambda t: t[0])[:k]
     return [(c, r) for _, c, r in chosen]
 
 
-def worst_cases(records: list[dict], path: str | Path, k: int = 6) -> Path | None:
-    """Draw the k cases whose accuracy drops most (clean | perturbed, GT green, prediction red); None (no file)
-    when no record pair has readable image paths."""
+def worst_cases(records, path: str | Path, k: int = 6) -> Path | None:
+    """Draw the k cases whose headline score drops most (clean | perturbed, GT green, prediction red); None (no
+    file) when no record pair has readable image paths."""
     if k < 1:
         raise ValueError(f"worst_cases: k must be >= 1, got {k}")
-    pairs = worst_case_pairs(records, k)
+    rs = record_set(records)
+    score = rs.spec.headline
+    pairs = worst_case_pairs(rs, k)
     if not pairs:
         return None
     fig, axes = plt.subplots(len(pairs), 2, figsize=(8, 2.6 * len(pairs)), squeeze=False)
     for (c, r), row in zip(pairs, axes):
         for ax, rec, label in ((row[0], c, "original"), (row[1], r, f"{r['illusion']} s{r['severity']}")):
             ax.imshow(_draw(rec["image"], rec.get("gt_lanes"), rec.get("pred_lanes")))
-            ax.set_title(f"{rec['model']} {rec['case_id']} {label}: acc {100 * rec['accuracy']:.1f}%", fontsize=8)
+            value = score.aggregate([rec])
+            ax.set_title(f"{rec['model']} {rec['case_id']} {label}: {score.name} {value:.1f}{rs.spec.unit}", fontsize=8)
             ax.axis("off")
     return save_figure(fig, path)

@@ -1,28 +1,27 @@
-"""Headline scores from per-image records: TuSimple Accuracy/FP/FN/F1 (and CULane F1) per group."""
+"""Headline scores from per-item records: the spec's summary scores per (model, dataset, original|perturbed)
+group (TuSimple Accuracy/FP/FN/F1, and CULane F1 where counted, for lane detectors)."""
 
 from __future__ import annotations
 
 from collections import defaultdict
 
-from lanevil_train.metrics import tusimple_summary
+from lanevil_train.report.records import available_scores
+from lanevil_train.report.specs import spec_for
 
 
-def summarise(records: list[dict]) -> dict:
-    """Scores (%) of a group of per-image records: images, Accuracy, FP, FN, F1 (+ CULane_F1 if counted)."""
-    n = len(records)
-    tusimple = tusimple_summary(sum(r["accuracy"] for r in records), sum(r["fp"] for r in records),
-                                sum(r["fn"] for r in records), n)
-    row = {"images": n, **{key: 100.0 * float(tusimple[key]) for key in ("Accuracy", "FP", "FN", "F1")}}
-    if records and all("culane_tp" in r for r in records):
-        tp, fp, fn = (sum(r[k] for r in records) for k in ("culane_tp", "culane_fp", "culane_fn"))
-        row["CULane_F1"] = 100.0 * 2 * tp / (2 * tp + fp + fn) if tp + fp + fn else 0.0
+def summarise(records: list[dict], spec=None) -> dict:
+    """Scores of a group of per-item records: the item count, then each summary score the records support."""
+    spec = spec or spec_for(records)
+    row = {"images": len(records)}
+    row.update({s.name: s.aggregate(records) for s in available_scores(records, spec.summary_scores())})
     return row
 
 
-def summary_rows(records: list[dict]) -> list[dict]:
+def summary_rows(records: list[dict], spec=None) -> list[dict]:
     """One row per (model, dataset, original|perturbed) group, in first-seen order."""
+    spec = spec or spec_for(records)
     groups: dict[tuple, list[dict]] = defaultdict(list)
     for record in records:
         kind = "original" if record.get("severity", 0) == 0 else "perturbed"
         groups[(record.get("model", ""), record.get("dataset", ""), kind)].append(record)
-    return [{"model": m, "dataset": d, "images_kind": k, **summarise(rs)} for (m, d, k), rs in groups.items()]
+    return [{"model": m, "dataset": d, "images_kind": k, **summarise(rs, spec)} for (m, d, k), rs in groups.items()]

@@ -44,14 +44,10 @@ def write_table(rows: list[dict], out_dir: str | Path, name: str, digits: int = 
 
 
 def print_table(rows: list[dict], title: str, digits: int = 2) -> None:
-    """Print rows as a table on the console (rich when available)."""
-    try:
-        from rich.console import Console
-        from rich.table import Table
-    except ImportError:  # rich is a dependency, but keep plain output possible
-        print(title)
-        print(markdown_table(rows, digits=digits))
-        return
+    """Print rows as a table on the console (with rich)."""
+    from rich.console import Console
+    from rich.table import Table
+
     table = Table(title=title)
     columns = list(rows[0]) if rows else []
     for column in columns:

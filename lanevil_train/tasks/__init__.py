@@ -1,4 +1,8 @@
-"""Tasks: one function each, a composed config in, results out. Only tasks/ and cli.py see Hydra."""
+"""Tasks: one function each, a composed config in, results out. Only tasks/ and cli.py see Hydra.
+
+Each conf/task/<name>.yaml names its function with `_target_` (a dotted path); a new task is that
+function plus that config (in the package, or in a user's `hydra.searchpath` folder).
+"""
 
 from __future__ import annotations
 
@@ -6,31 +10,15 @@ from omegaconf import DictConfig
 
 
 def run_task(cfg: DictConfig) -> float | None:
-    """Dispatch to the task named by cfg.task.name."""
-    name = cfg.task.name
-    if name == "train":
-        from lanevil_train.tasks.train import train
+    """Call the function cfg.task._target_ names with the whole config; return what it returns."""
+    from hydra.utils import get_method
 
-        return train(cfg)
-    if name == "evaluate":
-        from lanevil_train.tasks.evaluate import evaluate
-
-        return evaluate(cfg)
-    if name == "cross_domain":
-        from lanevil_train.tasks.evaluate import cross_domain
-
-        return cross_domain(cfg)
-    if name == "build":
-        from lanevil_train.tasks.build import build
-
-        return build(cfg)
-    if name == "report":
-        from lanevil_train.tasks.report import report
-
-        return report(cfg)
-    if name == "compare":
-        from lanevil_train.tasks.compare import compare
-
-        return compare(cfg)
-    raise ValueError(f"task.name={name!r}: expected one of 'train', 'evaluate', 'cross_domain', 'build', 'report', "
-                     f"'compare'")
+    target = cfg.task.get("_target_")
+    if not target:
+        raise ValueError(f"task={cfg.task.get('name')}: the task config names no function; add e.g. "
+                         f"`_target_: lanevil_train.tasks.train.train` to it")
+    try:
+        function = get_method(target)
+    except Exception as error:  # Hydra wraps import failures in its own exception types
+        raise ValueError(f"task._target_={target!r}: cannot import that function ({error})") from error
+    return function(cfg)

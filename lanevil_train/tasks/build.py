@@ -27,6 +27,6 @@ def build(cfg: DictConfig) -> None:
     plan = Plan(illusions=names, severities=tuple(task.severities), repeats=task.repeats, size=size,
                 frame_step_m=task.frame_step_m, label_format="culane" if cfg.data.name == "culane" else "tusimple",
                 fallback=task.fallback)
-    summary = build_illusion_set(cases, plan, root, workers=task.workers, progress=cfg.progress != "none")
+    summary = build_illusion_set(cases, plan, root, workers=task.workers, progress=cfg.progress)
     print(f"illusion set: {summary['images']} images in {summary['root']} "
           f"({summary['written']} written now, {summary['skipped']} already there)")

@@ -91,18 +91,37 @@ def build_datamodule(cfg: DictConfig, splits: tuple[str, ...], model: LaneDetect
                           train_transforms=transforms, train_mixer=defense.get("mixer"))
 
 
+def build_callbacks(cfg: DictConfig) -> list[pl.Callback]:
+    """The Lightning callbacks of the `callbacks` config group, one per entry with a _target_ (null entries are
+    skipped). A LearningRateMonitor is left out when there is no logger, since it has nowhere to write."""
+    out = []
+    for name, node in (cfg.get("callbacks") or {}).items():
+        if node is None:
+            continue
+        if not OmegaConf.is_dict(node) or not node.get("_target_"):
+            raise ValueError(f"callbacks.{name}: expected a mapping with a _target_ naming a Lightning callback "
+                             f"class, got {OmegaConf.to_container(node) if OmegaConf.is_config(node) else node!r}")
+        callback = instantiate(node)
+        if not isinstance(callback, pl.Callback):
+            raise ValueError(f"callbacks.{name}: {node._target_} built a {type(callback).__name__}, not a "
+                             f"pytorch_lightning Callback")
+        if isinstance(callback, pl.callbacks.LearningRateMonitor) and not cfg.logger.get("_target_"):
+            continue
+        out.append(callback)
+    return out
+
+
 def build_trainer(cfg: DictConfig, callbacks: list | None = None, logger=True) -> pl.Trainer:
     """A Lightning Trainer from cfg.trainer, with the configured progress display and logger."""
+    from lanevil_train.tasks.trainer_progress import progress_callback
+
     args = OmegaConf.to_container(cfg.trainer, resolve=True)
     callbacks = list(callbacks or [])
-    if cfg.progress == "rich":
-        callbacks.append(pl.callbacks.RichProgressBar())
-    elif cfg.progress == "tqdm":
-        callbacks.append(pl.callbacks.TQDMProgressBar())
-    elif cfg.progress != "none":
-        raise ValueError(f"progress={cfg.progress!r}: expected 'rich', 'tqdm' or 'none'")
+    bar = progress_callback(cfg.progress)
+    if bar is not None:
+        callbacks.append(bar)
     return pl.Trainer(**args, callbacks=callbacks, logger=build_logger(cfg) if logger else False,
-                      enable_progress_bar=cfg.progress != "none", default_root_dir=cfg.output_dir)
+                      enable_progress_bar=bar is not None, default_root_dir=cfg.output_dir)
 
 
 def build_logger(cfg: DictConfig):

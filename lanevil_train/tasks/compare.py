@@ -15,9 +15,10 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from lanevil_train.report.defenses import (REFERENCE, best_defense, defense_gain, defense_scores, gain_pivot,
                                            write_defense_report)
+from lanevil_train.report.specs import spec_for
 from lanevil_train.report.tables import print_table
 from lanevil_train.tasks.builders import output_dir
-from lanevil_train.tasks.streaming import read_records
+from lanevil_train.tasks.scoring import RESULTS, read_records
 
 log = logging.getLogger(__name__)
 
@@ -135,13 +136,20 @@ def _defense_of(run: Path, records: list[dict]) -> str:
     return labels[0].split("+", 1)[1] if "+" in labels[0] else REFERENCE
 
 
-def _run_dirs(path: Path) -> list[tuple[Path, Path]]:
-    """(run directory, per_image.jsonl) for a run, an evaluate output, or a directory of runs one level down."""
-    for results in (path / "robustness" / "per_image.jsonl", path / "per_image.jsonl"):
+def _results_of(run: Path) -> Path | None:
+    """A run's suite results: robustness/per_image.jsonl of a train run, else per_image.jsonl of an evaluate run."""
+    for results in (run / "robustness" / RESULTS, run / RESULTS):
         if results.is_file():
-            return [(path, results)]
-    found = [(p.parent.parent, p) for p in path.glob("*/robustness/per_image.jsonl")]
-    found += [(p.parent, p) for p in path.glob("*/per_image.jsonl")]
+            return results
+    return None
+
+
+def _run_dirs(path: Path) -> list[tuple[Path, Path]]:
+    """(run directory, results file) for a run, an evaluate output, or a directory of runs one level down."""
+    own = _results_of(path)
+    if own is not None:
+        return [(path, own)]
+    found = [(sub, results) for sub in path.iterdir() if sub.is_dir() and (results := _results_of(sub)) is not None]
     if not found:
         raise FileNotFoundError(f"task.runs: no robustness/per_image.jsonl in {path} or its subdirectories")
     key = lambda t: (0, int(t[0].name), "") if t[0].name.isdigit() else (1, 0, t[0].name)  # noqa: E731
@@ -184,14 +192,16 @@ def compare(cfg: DictConfig, overrides: list[str] | None = None) -> float | None
             run_defense(cfg, defense, common, Path(runs[defense]))
         if not _is_rank_zero():
             return None
-        records = {d: read_records(Path(runs[d]) / "robustness" / "per_image.jsonl", keep_lanes=False)
+        records = {d: read_records(Path(runs[d]) / "robustness" / RESULTS, keep_lanes=False)
                    for d in defenses}
-    scores = defense_scores(records)
+    scores = defense_scores(records)  # validates: `none` is there, every defense on the same items
+    spec = spec_for(records[REFERENCE])
     gains = defense_gain(scores)
-    write_defense_report(scores, gains, out, runs)
-    print_table(gain_pivot(gains, "Accuracy"),
-                title=f"Accuracy gain over {REFERENCE} (points) — {out / 'compare.md'}")
-    name, value = best_defense(scores)
-    log.info("compare: best average perturbed Accuracy %.2f%% (defense=%s); report in %s", value, name,
+    write_defense_report(scores, gains, out, spec, runs)
+    headline = spec.headline.name
+    print_table(gain_pivot(gains, headline),
+                title=f"{headline} gain over {REFERENCE} (points) — {out / 'compare.md'}")
+    name, value = best_defense(scores, spec)
+    log.info("compare: best average perturbed %s %.2f (defense=%s); report in %s", headline, value, name,
              out / "compare.md")
     return value

@@ -14,10 +14,11 @@ from omegaconf import DictConfig, OmegaConf
 
 from lanevil_train.data.suites import IllusionSetDataset, SyntheticIllusionSuite
 from lanevil_train.models.detector import LaneDetector
+from lanevil_train.report.specs import LANE_SPEC
 from lanevil_train.tasks.builders import build_logger, build_model, model_config, output_dir, read_checkpoint
-from lanevil_train.report.scores import summarise
 from lanevil_train.tasks.results import log_results, write_results
-from lanevil_train.tasks.streaming import read_records, stream_evaluate
+from lanevil_train.tasks.scoring import RESULTS, read_records
+from lanevil_train.tasks.streaming import stream_evaluate
 
 
 def load_checkpoint(cfg: DictConfig) -> LaneDetector:
@@ -59,9 +60,9 @@ def evaluate(cfg: DictConfig) -> float:
     dataset, dataset_name = test_dataset(cfg)
     out = Path(cfg.task.out_dir) if cfg.task.out_dir else output_dir(cfg)
     results = _stream(cfg, model, dataset, dataset_name, out)
-    summary = write_results([results], out, baseline=cfg.task.baseline)
+    value = write_results([results], out, baseline=cfg.task.baseline)
     log_results(build_logger(cfg), out)
-    return summary["Accuracy"]
+    return value
 
 
 def cross_domain(cfg: DictConfig) -> float:
@@ -74,7 +75,7 @@ def cross_domain(cfg: DictConfig) -> float:
     suite = _stream(cfg, model, synthetic_suite(cfg), "synthetic-illusions", out / "synthetic-illusions")
     write_results([real, suite], out, baseline=cfg.task.baseline)
     log_results(build_logger(cfg), out)
-    return summarise(read_records(real, keep_lanes=False))["Accuracy"]
+    return LANE_SPEC.headline.aggregate(read_records(real, keep_lanes=False))
 
 
 def _stream(cfg: DictConfig, model: LaneDetector, dataset, dataset_name: str, out: Path) -> Path:
@@ -86,5 +87,5 @@ def _stream(cfg: DictConfig, model: LaneDetector, dataset, dataset_name: str, ou
 def stream_dataset(cfg: DictConfig, model: LaneDetector, dataset, dataset_name: str, out: Path, model_label: str) -> Path:
     """Score `model` on `dataset` into out/per_image.jsonl (resumes a partial file); returns that path."""
     label = {"model": model_label, "dataset": dataset_name}
-    return stream_evaluate(model, dataset, out / "per_image.jsonl", label, batch_size=cfg.data.batch_size,
-                           num_workers=cfg.data.num_workers, progress=cfg.progress != "none")
+    return stream_evaluate(model, dataset, out / RESULTS, label, batch_size=cfg.data.batch_size,
+                           num_workers=cfg.data.num_workers, progress=cfg.progress)

@@ -4,48 +4,41 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from lanevil_train.report.scores import summarise, summary_rows
+from lanevil_train.report.scores import summary_rows
+from lanevil_train.report.specs import record_set
 from lanevil_train.report.tables import print_table, write_table
-from lanevil_train.tasks.streaming import read_records
+from lanevil_train.tasks.scoring import read_records
 
 
-def write_results(result_files: list[Path], out_dir: Path, baseline: str | None = None) -> dict:
-    """Tables (and plots) from per-image results files; returns the scores of the perturbed images (all if none).
+def write_results(result_files: list[Path], out_dir: Path, baseline: str | None = None) -> float:
+    """Tables (and plots) from per-image results files; returns the headline score (Accuracy % for lanes) of the
+    perturbed images (of all images if none is perturbed): the value a sweep optimises.
 
     Records are read without their stored lanes, then read again keeping lanes only for the few
     worst cases that get drawn, so memory stays small however many images were scored.
     """
     records = [r for path in result_files for r in read_records(path, keep_lanes=False)]
     if not records:
-        raise ValueError(f"no per-image results to report in {out_dir}")
-    if any(r.get("severity", 0) > 0 for r in records):
+        raise ValueError(f"no per-image results to report in {', '.join(map(str, result_files))}")
+    rs = record_set(records)
+    if any(r["severity"] > 0 for r in rs.records):
         from lanevil_train.report.plots import worst_case_pairs
 
-        drawn = {r["key"] for pair in worst_case_pairs(records) for r in pair}
+        drawn = {r["key"] for pair in worst_case_pairs(rs) for r in pair}
         if drawn:
             records = [r for path in result_files for r in read_records(path, keep_lanes=False, lanes_for=drawn)]
-    rows = summary_rows(records)
+            rs = record_set(records, rs.spec)
+    rows = summary_rows(rs.records, rs.spec)
     write_table(rows, out_dir, "test_scores")
-    print_table(rows, title=f"Scores (%) — {out_dir}")
-    perturbed = [r for r in records if r.get("severity", 0) > 0]
+    print_table(rows, title=f"Scores ({rs.spec.unit}) — {out_dir}")
+    perturbed = [r for r in rs.records if r["severity"] > 0]
     if perturbed:
-        from lanevil_train.report.robustness import main_table, write_report
+        from lanevil_train.report.robustness import main_long, main_table, write_report
 
-        write_report(records, out_dir, baseline=baseline)
-        print_table(_long(main_table(records)), title="Robustness (%): Perturbed / Original / Gap — full table in main.md")
-    return summarise(perturbed or records)
-
-
-def _long(main_rows: list[dict]) -> list[dict]:
-    """The paper-layout table (one wide row per model) as one row per (model, category), for a console."""
-    out = []
-    for row in main_rows:
-        categories = dict.fromkeys(key.split("/")[0] for key in row if key.count("/") == 2)
-        for category in categories:
-            out.append({"model": row["model"], "category": category,
-                        **{f"{metric} {kind}": row[f"{category}/{metric}/{kind}"]
-                           for metric in ("Accuracy", "F1") for kind in ("Perturbed", "Original", "Gap")}})
-    return out
+        write_report(rs, out_dir, baseline=baseline)
+        print_table(main_long(main_table(rs)),
+                    title=f"Robustness ({rs.spec.unit}): Perturbed / Original / Gap — full table in main.md")
+    return rs.spec.headline.aggregate(perturbed or rs.records)
 
 
 def log_results(logger, out_dir: Path) -> None:

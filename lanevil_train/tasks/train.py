@@ -8,16 +8,17 @@ from pathlib import Path
 import pytorch_lightning as pl
 from omegaconf import DictConfig
 
-from lanevil_train.tasks.builders import (build_datamodule, build_defense, build_model, build_trainer, model_config,
-                                          output_dir, read_checkpoint)
-from lanevil_train.tasks.scoring import score_test_set
+from lanevil_train.tasks.builders import (build_callbacks, build_datamodule, build_defense, build_model, build_trainer,
+                                          model_config, output_dir, read_checkpoint)
+from lanevil_train.tasks.scoring import RESULTS, PerImageWriter, score_test_set
 
 
 def train(cfg: DictConfig) -> float | None:
     """Train cfg.model on cfg.data with cfg.defense.
 
     Returns the average Accuracy (%) over the perturbed images of task.suite when one is set, else the
-    clean test Accuracy (%) when the test runs, else None.
+    clean test Accuracy (%) when the test runs, else None. The clean test's per-image records go to
+    per_image.jsonl in the run directory (the suite's to robustness/per_image.jsonl), which task=report reads.
     """
     pl.seed_everything(cfg.seed, workers=True)
     out = output_dir(cfg)
@@ -27,18 +28,16 @@ def train(cfg: DictConfig) -> float | None:
     defense = build_defense(cfg)
     splits = ("train", "val", "test") if cfg.task.test_after_fit else ("train", "val")
     datamodule = build_datamodule(cfg, splits, model, defense)
-    checkpoints = pl.callbacks.ModelCheckpoint(dirpath=out / "checkpoints", filename="epoch{epoch:03d}",
-                                               auto_insert_metric_name=False, save_last=True)
-    callbacks = [checkpoints] + ([pl.callbacks.LearningRateMonitor("step")] if cfg.logger.get("_target_") else [])
+    callbacks = build_callbacks(cfg)
+    writer = PerImageWriter(out / RESULTS, {"model": run_label(cfg), "dataset": cfg.data.name})
+    callbacks.append(writer)
     if defense["callback"] is not None:
         callbacks.append(defense["callback"])
     trainer = build_trainer(cfg, callbacks=callbacks)
     trainer.fit(model, datamodule=datamodule, ckpt_path=cfg.ckpt_path)
     result = None
     if cfg.task.test_after_fit:
-        label = {"model": cfg.model.name, "backbone": cfg.backbone.name, "data": cfg.data.name,
-                 "defense": cfg.defense.name}
-        result = score_test_set(trainer, model, datamodule, out, label)["Accuracy"]
+        result = score_test_set(trainer, model, datamodule, writer)
     if cfg.task.get("suite") is not None and trainer.is_global_zero:
         result = score_robustness(cfg, model, out / "robustness")
     return result
@@ -69,5 +68,4 @@ def score_robustness(cfg: DictConfig, model, out: Path) -> float:
 
     dataset, dataset_name = test_dataset(cfg)
     results = stream_dataset(cfg, model, dataset, dataset_name, out, run_label(cfg))
-    summary = write_results([results], out, baseline=cfg.task.get("baseline"))
-    return summary["Accuracy"]
+    return write_results([results], out, baseline=cfg.task.get("baseline"))

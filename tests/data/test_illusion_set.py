@@ -34,7 +34,7 @@ def test_manifest_round_trip_and_errors(tmp_path):
 
 
 def test_build_writes_originals_variants_labels_and_manifest(tmp_path):
-    summary = build_illusion_set(synthetic_cases(2, 1000, frames=1), PLAN, tmp_path, progress=False)
+    summary = build_illusion_set(synthetic_cases(2, 1000, frames=1), PLAN, tmp_path, progress="none")
     assert summary == {"root": str(tmp_path), "images": 10, "written": 10, "skipped": 0}
     manifest = read_manifest(tmp_path / "manifest.jsonl")
     assert len(manifest) == 10 and all(set(r) == set(MANIFEST_KEYS) for r in manifest)
@@ -51,7 +51,7 @@ def test_build_writes_originals_variants_labels_and_manifest(tmp_path):
 
 def test_resume_after_an_interruption_gives_the_uninterrupted_result(tmp_path, monkeypatch):
     cases = synthetic_cases(3, 2000, frames=1)
-    build_illusion_set(cases, PLAN, tmp_path / "whole", progress=False)
+    build_illusion_set(cases, PLAN, tmp_path / "whole", progress="none")
 
     real = illusion_set.render_case
     calls = {"n": 0}
@@ -64,10 +64,10 @@ def test_resume_after_an_interruption_gives_the_uninterrupted_result(tmp_path, m
 
     monkeypatch.setattr(illusion_set, "render_case", dies_on_third_case)
     with pytest.raises(KeyboardInterrupt):
-        build_illusion_set(cases, PLAN, tmp_path / "resumed", progress=False)
+        build_illusion_set(cases, PLAN, tmp_path / "resumed", progress="none")
     assert len(read_manifest(tmp_path / "resumed" / "manifest.jsonl")) == 10
     monkeypatch.setattr(illusion_set, "render_case", real)
-    summary = build_illusion_set(cases, PLAN, tmp_path / "resumed", progress=False)
+    summary = build_illusion_set(cases, PLAN, tmp_path / "resumed", progress="none")
     assert summary["skipped"] == 10 and summary["written"] == 5
     whole = read_manifest(tmp_path / "whole" / "manifest.jsonl")
     resumed = read_manifest(tmp_path / "resumed" / "manifest.jsonl")
@@ -83,4 +83,4 @@ def test_resume_after_an_interruption_gives_the_uninterrupted_result(tmp_path, m
 
 def test_unknown_illusion_is_rejected_before_any_work(tmp_path):
     with pytest.raises(ValueError, match="unknown illusion 'smoke'"):
-        build_illusion_set(synthetic_cases(1, 0), Plan(illusions=("smoke",)), tmp_path, progress=False)
+        build_illusion_set(synthetic_cases(1, 0), Plan(illusions=("smoke",)), tmp_path, progress="none")

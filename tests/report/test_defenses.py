@@ -7,6 +7,7 @@ import pytest
 
 from lanevil_train.report.defenses import (best_defense, check_comparable, defense_gain, defense_scores, gain_pivot,
                                            write_defense_report)
+from lanevil_train.report.specs import LANE_SPEC
 
 
 def _records(model: str, clean: float, shadow: tuple[float, float], vehicle: float, shadow_fn: float = 0.0) -> list:
@@ -72,14 +73,14 @@ def test_pivot_and_best_defense():
     assert [list(r.values()) for r in pivot] == [pytest.approx(["aam++", 5.0, 20.0, 12.5, -5.0]),
                                                  pytest.approx(["pgd", 0.0, -5.0, -2.5, 0.0])]
     assert list(pivot[0]) == ["defense", "traffic_obstruction", "shadow", "average", "original"]
-    assert best_defense(defense_scores(RECORDS)) == ("aam++", pytest.approx(72.5))
+    assert best_defense(defense_scores(RECORDS), LANE_SPEC) == ("aam++", pytest.approx(72.5))
 
 
 def test_the_reference_must_be_there_and_scored_on_the_same_images():
     with pytest.raises(ValueError, match="reference defense 'none' is missing"):
         defense_scores({"aam++": RECORDS["aam++"]})
     fewer = [r for r in RECORDS["pgd"] if not (r["case_id"] == "c2" and r.get("illusion") == "vehicle")]
-    with pytest.raises(ValueError, match=r"defense 'pgd' was scored on different images.*0 image\(s\) only in 'pgd', "
+    with pytest.raises(ValueError, match=r"defense 'pgd' was scored on different items.*0 item\(s\) only in 'pgd', "
                                          r"1 only in 'none'"):
         check_comparable({"none": RECORDS["none"], "pgd": fewer})
     mixed = RECORDS["pgd"][:3] + [dict(r, model="other") for r in RECORDS["pgd"][3:]]
@@ -95,7 +96,7 @@ def test_the_reference_must_be_there_and_scored_on_the_same_images():
 def test_report_files(tmp_path):
     scores = defense_scores(RECORDS)
     gains = defense_gain(scores)
-    paths = write_defense_report(scores, gains, tmp_path, runs={"none": "/r/none", "aam++": "/r/aam++"})
+    paths = write_defense_report(scores, gains, tmp_path, LANE_SPEC, runs={"none": "/r/none", "aam++": "/r/aam++"})
     for name in ("defense_gain", "defense_scores"):
         for ext in ("md", "csv", "json"):
             assert (tmp_path / f"{name}.{ext}").is_file()

@@ -17,7 +17,7 @@ def _png_shape(path):
 
 
 def test_accuracy_vs_severity_png(tmp_path):
-    p = plots.accuracy_vs_severity(RECORDS, tmp_path / "a" / "acc.png")
+    p = plots.score_vs_severity(RECORDS, tmp_path / "a" / "acc.png")
     assert p.is_file() and p.stat().st_size > 5000
     h, w, _ = _png_shape(p)
     assert w > 600 and h > 200  # two model panels side by side

@@ -7,9 +7,13 @@ import math
 
 import pytest
 
-from lanevil_train.report.robustness import (
-    main_table, relative_table, severity_table, type_table, validate_records, write_report,
-)
+from lanevil_train.report.records import validate_records as validate_with_spec
+from lanevil_train.report.robustness import main_table, relative_table, severity_table, type_table, write_report
+from lanevil_train.report.specs import LANE_SPEC
+
+
+def validate_records(records):
+    return validate_with_spec(records, LANE_SPEC)
 
 
 def rec(model, case, sev, acc, fp, fn, illusion=None):

@@ -24,9 +24,11 @@ TINY = [
 ]
 
 
-def run_cli(args: list[str], run_dir: Path, timeout: int = 600) -> subprocess.CompletedProcess:
+def run_cli(args: list[str], run_dir: Path, timeout: int = 600,
+            pythonpath: list[Path] = ()) -> subprocess.CompletedProcess:
     """`python -m lanevil_train ARGS hydra.run.dir=RUN_DIR`; raises with the output on failure."""
-    env = {**os.environ, "PYTHONPATH": str(REPO), "WANDB_MODE": "offline", "OMP_NUM_THREADS": "1"}
+    path = os.pathsep.join(map(str, [REPO, *pythonpath]))
+    env = {**os.environ, "PYTHONPATH": path, "WANDB_MODE": "offline", "OMP_NUM_THREADS": "1"}
     cmd = [sys.executable, "-m", "lanevil_train", *args, f"hydra.run.dir={run_dir}"]
     proc = subprocess.run(cmd, cwd=run_dir.parent, env=env, capture_output=True, text=True, timeout=timeout)
     if proc.returncode != 0:

@@ -4,14 +4,16 @@ from __future__ import annotations
 
 import json
 
+import pytest
 import torch
 
+from lanevil_train.tasks.scoring import read_records
 from tests.tasks.cli_helpers import TINY, run_cli
 
 
 def test_help_lists_config_groups(tmp_path):
     out = run_cli(["--help"], tmp_path / "run").stdout
-    for group in ("task:", "data:", "model:", "backbone:", "defense:", "trainer:", "logger:", "experiment:"):
+    for group in ("task:", "data:", "model:", "backbone:", "defense:", "trainer:", "callbacks:", "logger:", "experiment:"):
         assert group in out, group
     assert "laneatt" in out and "quickstart" in out and "ddp_spawn" in out
 
@@ -22,12 +24,21 @@ def test_fast_dev_run_trains_and_tests_one_batch(tmp_path):
     scores = json.loads((run_dir / "test_scores.json").read_text())
     assert len(scores) == 1
     row = scores[0]
-    assert row["model"] == "laneatt" and row["data"] == "synthetic"
-    for key in ("Accuracy", "FP", "FN", "F1"):
+    assert (row["model"], row["dataset"], row["images_kind"], row["images"]) == \
+        ("laneatt-resnet18", "synthetic", "original", 2)  # fast_dev_run tests one batch of 2 images
+    for key in ("Accuracy", "FP", "FN", "F1", "CULane_F1"):
         assert 0.0 <= row[key] <= 100.0
-    per_image = (run_dir / "per_image.csv").read_text().splitlines()
-    assert per_image[0].startswith("case_id,accuracy,fp,fn")
-    assert len(per_image) == 1 + 2  # fast_dev_run tests one batch of 2 images
+    records = read_records(run_dir / "per_image.jsonl")  # the record task=evaluate writes, one per image
+    assert [r["case_id"] for r in records] == ["sim-1000000", "sim-1000001"]
+    assert all(r["spec"] == "lane" and r["severity"] == 0 and r["model"] == "laneatt-resnet18" for r in records)
+    assert row["Accuracy"] == pytest.approx(100 * sum(r["accuracy"] for r in records) / 2)
+    assert not list(run_dir.glob("per_image.rank*"))  # the part files were merged and removed
+
+    # task=report reads a training run like any evaluation: the same scores come back
+    report_dir = tmp_path / "report"
+    run_cli(["task=report", f"task.runs=[{run_dir}]", "progress=none"], report_dir)
+    reported = json.loads((report_dir / "test_scores.json").read_text())
+    assert reported == scores
 
 
 def test_train_checkpoint_evaluate_and_resume(tmp_path):
@@ -63,13 +74,42 @@ def test_train_checkpoint_evaluate_and_resume(tmp_path):
     assert resumed["global_step"] == 5
 
 
-def test_unknown_task_is_a_clear_error(tmp_path):
-    try:
-        run_cli(["task.name=nope", *TINY], tmp_path / "run")
-    except AssertionError as err:
-        assert "task.name='nope'" in str(err)
-    else:
-        raise AssertionError("an unknown task must fail")
+def test_unknown_task_function_is_a_clear_error(tmp_path):
+    with pytest.raises(AssertionError, match=r"task._target_='lanevil_train.tasks.nope': cannot import"):
+        run_cli(["task._target_=lanevil_train.tasks.nope", *TINY], tmp_path / "run")
+
+
+def test_a_new_task_is_a_function_and_a_config(tmp_path):
+    """A user's own task: one function in their module, one config in their search path."""
+    (tmp_path / "mytasks.py").write_text("def hello(cfg):\n    print('hello from', cfg.task.name, cfg.task.greeting)\n")
+    (tmp_path / "conf" / "task").mkdir(parents=True)
+    (tmp_path / "conf" / "task" / "hello.yaml").write_text("name: hello\n_target_: mytasks.hello\ngreeting: hi\n")
+    out = run_cli(["task=hello", f"hydra.searchpath=[file://{tmp_path / 'conf'}]"], tmp_path / "run",
+                  pythonpath=[tmp_path]).stdout
+    assert "hello from hello hi" in out
+
+
+def test_progress_auto_prints_plain_lines_without_a_terminal(tmp_path):
+    args = [arg for arg in TINY if not arg.startswith("progress=")]
+    out = run_cli([*args, "progress=auto", "trainer.max_steps=3", "trainer.limit_val_batches=1",
+                   "trainer.max_epochs=-1"], tmp_path / "run").stdout
+    assert "train: 1/3 steps (33%)" in out and "train: 3/3 steps (100%)" in out
+    assert "train/loss" in out and "ETA" in out and "\r" not in out
+    assert "test: 2/2 batches (100%)" in out  # 4 test scenes at batch 2
+
+
+def test_callbacks_come_from_config(tmp_path):
+    without = tmp_path / "without"
+    run_cli([*TINY, "~callbacks.model_checkpoint", "trainer.max_steps=1", "trainer.limit_val_batches=0",
+             "task.test_after_fit=false"], without)
+    assert not (without / "checkpoints").exists()
+    # early stopping on a validation score that no check can improve by 101 points: stops at the first chance
+    stopped = tmp_path / "stopped"
+    run_cli([*TINY, "callbacks=[model_checkpoint,early_stopping]", "callbacks.early_stopping.patience=0",
+             "callbacks.early_stopping.min_delta=101", "trainer.max_epochs=5", "trainer.limit_val_batches=1",
+             "task.test_after_fit=false"], stopped)
+    ckpt = torch.load(stopped / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
+    assert ckpt["epoch"] == 1  # the second validation could not improve: stopped there, not after 5 epochs
 
 
 def test_wandb_logger_works_offline(tmp_path):

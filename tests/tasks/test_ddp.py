@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import csv
 import json
 import os
 import socket
@@ -12,7 +11,8 @@ import torch
 import torch.distributed as dist
 import torch.multiprocessing as mp
 
-from lanevil_train.metrics.tusimple import TuSimpleMetric
+from lanevil_train.metrics import TuSimpleMetric
+from lanevil_train.tasks.scoring import read_records
 from tests.tasks.cli_helpers import TINY, run_cli
 
 
@@ -68,11 +68,10 @@ def test_ddp_cli_run_two_cpu_processes(tmp_path):
              "trainer.limit_val_batches=1"], run_dir)
     ckpt = torch.load(run_dir / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
     assert ckpt["global_step"] == 2
-    rows = []
-    for rank in range(2):
-        with open(run_dir / f"per_image_rank{rank}.csv") as handle:
-            rows += list(csv.DictReader(handle))
-    assert sorted(r["case_id"] for r in rows) == [f"sim-{1000000 + i:07d}" for i in range(4)]
+    records = read_records(run_dir / "per_image.jsonl")  # both ranks' records, merged into one file
+    assert [r["case_id"] for r in records] == [f"sim-{1000000 + i:07d}" for i in range(4)]
+    assert not list(run_dir.glob("per_image.rank*"))
     reported = json.loads((run_dir / "test_scores.json").read_text())[0]
-    assert abs(reported["Accuracy"] - 100 * np.mean([float(r["accuracy"]) for r in rows])) < 1e-6
-    assert abs(reported["FN"] - 100 * np.mean([float(r["fn"]) for r in rows])) < 1e-6
+    assert reported["images"] == 4
+    assert abs(reported["Accuracy"] - 100 * np.mean([r["accuracy"] for r in records])) < 1e-6
+    assert abs(reported["FN"] - 100 * np.mean([r["fn"] for r in records])) < 1e-6

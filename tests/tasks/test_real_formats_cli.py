@@ -9,6 +9,7 @@ import cv2
 from lanevil_train.data.formats import write_culane, write_tusimple
 from lanevil_train.lanes import default_h_samples
 from lanevil_train.sim import render_scene
+from lanevil_train.tasks.scoring import read_records
 from tests.tasks.cli_helpers import run_cli
 
 COMMON = ["data.input_size=[64,160]", "data.batch_size=2", "data.num_workers=0", "trainer.accelerator=cpu",
@@ -36,9 +37,9 @@ def test_train_on_a_tusimple_folder(tmp_path):
     run_cli(["data=tusimple", f"data.root={root}", "data.train.label_files=[train.json]",
              "data.val.label_files=[train.json]", "data.test.label_files=[test.json]", *COMMON], run_dir)
     row = json.loads((run_dir / "test_scores.json").read_text())[0]
-    assert row["data"] == "tusimple" and row["images"] == 2
-    cases = (run_dir / "per_image.csv").read_text()
-    assert "clips/0530/2/20.jpg" in cases and "clips/0530/3/20.jpg" in cases
+    assert row["dataset"] == "tusimple" and row["images"] == 2
+    cases = [r["case_id"] for r in read_records(run_dir / "per_image.jsonl")]
+    assert cases == ["clips/0530/2/20.jpg", "clips/0530/3/20.jpg"]
 
 
 def test_train_on_a_culane_folder(tmp_path):
@@ -50,7 +51,7 @@ def test_train_on_a_culane_folder(tmp_path):
     run_cli(["data=culane", f"data.root={root}", "data.val.list_file=list/train_gt.txt", "data.max_lanes=6",
              *COMMON], run_dir)
     row = json.loads((run_dir / "test_scores.json").read_text())[0]
-    assert row["data"] == "culane" and row["images"] == 2
+    assert row["dataset"] == "culane" and row["images"] == 2
 
 
 def test_missing_label_file_names_it(tmp_path):

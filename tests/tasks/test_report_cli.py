@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 
-from lanevil_train.tasks.streaming import read_records
+from lanevil_train.tasks.scoring import read_records
 from tests.tasks.cli_helpers import TINY, run_cli
 
 
@@ -83,7 +83,7 @@ def test_evaluate_a_built_set_draws_the_worst_cases(tmp_path):
 
     suite = tmp_path / "set"
     build_illusion_set(synthetic_cases(2, 1000000), Plan(illusions=("rail_shadow",), severities=(5,), size=(90, 160)),
-                       suite, progress=False)
+                       suite, progress="none")
     train_dir = tmp_path / "train"
     run_cli([*TINY, "trainer.max_steps=1", "trainer.limit_val_batches=0", "task.test_after_fit=false"], train_dir)
     out = tmp_path / "eval"

@@ -8,7 +8,8 @@ import torch
 
 from lanevil_train.data.suites import SyntheticIllusionSuite
 from lanevil_train.tasks.builders import build_model
-from lanevil_train.tasks.streaming import read_records, stream_evaluate
+from lanevil_train.tasks.scoring import read_records
+from lanevil_train.tasks.streaming import stream_evaluate
 
 SPEC = {
     "model": {"name": "laneatt", "head": {"_target_": "lanevil_train.models.laneatt.LaneATTHead", "max_lanes": 6},
@@ -30,7 +31,7 @@ def _suite():
 
 def test_every_image_gets_one_line_with_its_case_and_severity(tmp_path):
     path = stream_evaluate(_model(), _suite(), tmp_path / "per_image.jsonl", {"model": "m", "dataset": "d"},
-                           batch_size=3, progress=False)
+                           batch_size=3, progress="none")
     records = read_records(path)
     assert len(records) == 10
     assert sorted({r["severity"] for r in records}) == [0, 1, 5]
@@ -43,16 +44,16 @@ def test_every_image_gets_one_line_with_its_case_and_severity(tmp_path):
 def test_resume_after_an_interruption_gives_the_uninterrupted_results(tmp_path):
     model, suite = _model(), _suite()
     whole = read_records(stream_evaluate(model, suite, tmp_path / "a.jsonl", {"model": "m"}, batch_size=4,
-                                         progress=False))
+                                         progress="none"))
     # an interrupted run: four finished lines and a torn fifth
     lines = (tmp_path / "a.jsonl").read_text().splitlines()
     (tmp_path / "b.jsonl").write_text("\n".join(lines[:4]) + "\n" + lines[4][:25])
     resumed = read_records(stream_evaluate(model, suite, tmp_path / "b.jsonl", {"model": "m"}, batch_size=4,
-                                           progress=False))
+                                           progress="none"))
     assert len(resumed) == 10
     key = lambda r: r["key"]  # noqa: E731
     assert sorted(resumed, key=key) == sorted(whole, key=key)
     assert all(json.loads(line) for line in (tmp_path / "b.jsonl").read_text().splitlines())
     # nothing left to do: a third run adds nothing
-    stream_evaluate(model, suite, tmp_path / "b.jsonl", {"model": "m"}, progress=False)
+    stream_evaluate(model, suite, tmp_path / "b.jsonl", {"model": "m"}, progress="none")
     assert len(read_records(tmp_path / "b.jsonl")) == 10

@@ -1,0 +1,75 @@
+"""The record specs the reports know, by name: what each kind of per-item record holds and how its scores
+aggregate. A new kind of model (a VLM's answers, say) is one more spec here, and gets every table and plot.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+from lanevil_train.metrics import tusimple_summary
+from lanevil_train.report.records import NAN, Field, RecordSet, RecordSpec, Score, mean_of
+
+
+def _tusimple_f1(records: Sequence[dict]) -> float:
+    """TuSimple F1 (%) as LaneATT/CLRNet report it, from the mean per-image FP and FN rates."""
+    if not records:
+        return NAN
+    summary = tusimple_summary(sum(r["accuracy"] for r in records), sum(r["fp"] for r in records),
+                               sum(r["fn"] for r in records), len(records))
+    return 100.0 * summary["F1"]
+
+
+def _culane_f1(records: Sequence[dict]) -> float:
+    """CULane F1 (%) from the summed per-image TP / FP / FN counts."""
+    if not records:
+        return NAN
+    tp, fp, fn = (sum(r[k] for r in records) for k in ("culane_tp", "culane_fp", "culane_fn"))
+    return 100.0 * 2 * tp / (2 * tp + fp + fn) if tp + fp + fn else 0.0
+
+
+ACCURACY = Score("Accuracy", mean_of("accuracy"))
+TUSIMPLE_F1 = Score("F1", _tusimple_f1)
+
+# One record per scored image. Ranges of the official TuSimple per-image scores: accuracy can exceed 1 with more
+# than 5 GT lanes (it drops the worst lane but divides by 4: up to 5/4 with the 6 lanes of a simulated 5-lane
+# road), and FP can be negative (one prediction may match several GT lanes, e.g. short ones mostly outside the
+# image).
+LANE_SPEC = RecordSpec(
+    name="lane",
+    fields=(Field("accuracy", 0.0, 1.25), Field("fp", -math.inf, 1.0), Field("fn", 0.0, 1.0),
+            Field("culane_tp", 0.0, required=False), Field("culane_fp", 0.0, required=False),
+            Field("culane_fn", 0.0, required=False)),
+    scores=(ACCURACY, TUSIMPLE_F1),
+    summary=(ACCURACY, Score("FP", mean_of("fp"), higher_is_better=False),
+             Score("FN", mean_of("fn"), higher_is_better=False), TUSIMPLE_F1,
+             Score("CULane_F1", _culane_f1, needs=("culane_tp", "culane_fp", "culane_fn"))),
+)
+
+SPECS: dict[str, RecordSpec] = {LANE_SPEC.name: LANE_SPEC}
+
+
+def spec_for(records: Sequence[dict]) -> RecordSpec:
+    """The spec of a set of records: the one their "spec" field names, else the only known spec whose required
+    fields they all carry. Raises when they name several specs, an unknown one, or none fits."""
+    named = {r["spec"] for r in records if isinstance(r, dict) and r.get("spec") is not None}
+    if len(named) > 1:
+        raise ValueError(f"records of different kinds cannot share a report: specs {sorted(named)}")
+    if named:
+        name = named.pop()
+        if name not in SPECS:
+            raise ValueError(f"records name an unknown spec {name!r}; known: {sorted(SPECS)}")
+        return SPECS[name]
+    fits = [spec for spec in SPECS.values()
+            if all(isinstance(r, dict) and all(f.name in r for f in spec.fields if f.required) for r in records)]
+    if len(fits) != 1:
+        raise ValueError(f"cannot tell which kind of records these are ({len(fits)} specs fit); give each record "
+                         f"a 'spec' field, one of {sorted(SPECS)}")
+    return fits[0]
+
+
+def record_set(records, spec: RecordSpec | None = None) -> RecordSet:
+    """Records as a validated RecordSet (returned as is when already one); the spec is inferred when not given."""
+    if isinstance(records, RecordSet):
+        return records
+    return RecordSet(records, spec or spec_for(records))
