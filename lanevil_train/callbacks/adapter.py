@@ -31,16 +31,25 @@ def _fetch(batch: Any, where: Location, what: str) -> Any:
 class BatchAdapter:
     """Says where a batch keeps its images (B, C, H, W) and its lane ground truth.
 
-    The default fits lanevil_train's own batches: images at "images", lanes at "input_lanes".
-    Give exactly one of `lanes` and `lane_mask`.
+    The default fits lanevil_train's own batches: images at "images", lanes at "input_lanes". Give at most one of
+    `lanes` and `lane_mask`; with neither, lanes are read at "input_lanes":
+
+        BatchAdapter()                                   # lanevil_train batches
+        BatchAdapter(images="img", lanes="lanes")        # a dict batch with per-image lanes
+        BatchAdapter(images="img", lane_mask="seg")      # a dict batch with a lane mask
+        BatchAdapter(images=0, lane_mask=1)              # an (images, mask) tuple batch
+        BatchAdapter(images=lambda b: b.x, lanes=lambda b: b.lanes)   # anything else
     """
 
-    def __init__(self, images: Location = "images", lanes: Location | None = "input_lanes",
+    DEFAULT_LANES = "input_lanes"
+
+    def __init__(self, images: Location = "images", lanes: Location | None = None,
                  lane_mask: Location | None = None):
-        if (lanes is None) == (lane_mask is None):
-            raise ValueError("BatchAdapter: give exactly one of lanes=... and lane_mask=...")
+        if lanes is not None and lane_mask is not None:
+            raise ValueError(f"BatchAdapter: give one of lanes=... and lane_mask=..., not both (got lanes={lanes!r}, "
+                             f"lane_mask={lane_mask!r})")
         self.images_at = images
-        self.lanes_at = lanes
+        self.lanes_at = lanes if lanes is not None or lane_mask is not None else self.DEFAULT_LANES
         self.lane_mask_at = lane_mask
 
     def images(self, batch: Any) -> torch.Tensor:
