@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 
 import lanevil_train.metrics as metrics
+from lanevil_train.metrics import evaluate_culane_dirs
 from lanevil_train.metrics.__main__ import main
-from lanevil_train.metrics.culane_files import evaluate_culane_dirs, lines_file_path, worker_count
+from lanevil_train.metrics.culane_files import lines_file_path, worker_count
 
 REPO = Path(__file__).resolve().parents[2]
 HEAVY = ("torch", "torchmetrics", "torchvision", "pytorch_lightning", "lightning", "timm", "sklearn")
