@@ -41,7 +41,7 @@ def read_lines_file(path: str) -> list[np.ndarray]:
 
 
 def lines_file_path(name: str) -> str:
-    """Relative ``.lines.txt`` path of one list entry: ``/driver_x/v.MP4/00000.jpg`` -> ``driver_x/v.MP4/00000.lines.txt``."""
+    """Relative ``.lines.txt`` path of a list entry: ``/d/v.MP4/00000.jpg`` -> ``d/v.MP4/00000.lines.txt``."""
     stem = name.strip().lstrip("/")
     if "." in os.path.basename(stem):
         stem = stem[: stem.rfind(".")]
