@@ -40,12 +40,6 @@ class IllusionContext:
         d = np.sort(np.asarray(self.lane_offsets, dtype=np.float64))
         return float(np.median(np.diff(d))) if len(d) >= 2 else 3.6
 
-    def ground_pixels(self) -> np.ndarray:
-        """World points (H, W, 3) where each pixel's ray meets the road surface (NaN above the horizon)."""
-        h, w = self.image_size
-        v, u = np.mgrid[0:h, 0:w].astype(np.float64)
-        return self.camera.ground_intersect(u, v, surface=self.road)
-
 
 def context_from_scene(scene: Scene) -> IllusionContext:
     """The exact context of a simulated scene (its own camera, road and weather)."""

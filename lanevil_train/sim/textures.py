@@ -43,7 +43,3 @@ def sample(tex: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         return out.reshape(-1)[:n].reshape(mx.shape)
     return cv2.remap(tex, mx, my, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
 
-
-def table_1d(rng: np.random.Generator, n: int, lo: float, hi: float) -> np.ndarray:
-    """n uniform random values in [lo, hi) as float32 (per-segment heights, colours...)."""
-    return rng.uniform(lo, hi, n).astype(np.float32)
