@@ -3,6 +3,8 @@
 Shapes are projected vertex by vertex (after densifying their edges, so a polygon laid on a
 curved or sloped road bends with it) and filled with OpenCV in image space: a planar polygon
 maps to the image exactly, and filling is far cheaper than inverse-projecting every pixel.
+`RoadLight`, `in_view` and `visible_side` help illusions land where the camera can see them (in
+view, and at night in the light), so that even level 1 is visible (issue 10).
 """
 
 from __future__ import annotations
@@ -62,23 +64,37 @@ def clip_near(poly: np.ndarray, z_min: float = NEAR_Z) -> np.ndarray:
     return np.array(out).reshape(-1, 2)
 
 
+def project_ground_polygon(ctx: IllusionContext, poly_dz: np.ndarray, step: float = 0.5) -> np.ndarray | None:
+    """Pixel outline (K, 2) of a road-frame polygon (d, z), or None when nothing of it is in front.
+
+    Edges are densified every `step` metres. The polygon is clipped to z >= NEAR_Z, and further
+    forward while any of its points is still behind the camera plane (a yawed camera sees the road
+    edges only from some distance on), so no vertex ever projects from behind the camera.
+    """
+    poly = np.asarray(poly_dz, dtype=np.float64)
+    z_min = NEAR_Z
+    for _ in range(6):
+        clipped = clip_near(poly, z_min)
+        if len(clipped) < 3:
+            return None
+        dense = densify(clipped, step)
+        pix, depth = project(ctx, road_points(ctx, dense[:, 0], dense[:, 1]))
+        bad = ~(depth > 0.5 * NEAR_Z) | ~np.all(np.isfinite(pix), axis=1)
+        if not bad.any():
+            return pix
+        z_min = float(dense[bad, 1].max()) + step
+    return None
+
+
 def ground_polygon_mask(ctx: IllusionContext, polygons_dz: list[np.ndarray], step: float = 0.5,
                         mask: np.ndarray | None = None) -> np.ndarray:
     """Fill polygons given in road coordinates (each (K, 2) of (d, z)) into an image mask.
 
-    Edges are densified every `step` metres and the part nearer than NEAR_Z is clipped away.
+    Edges are densified every `step` metres; what lies behind the camera is clipped away
+    (`project_ground_polygon`).
     """
-    h, w = ctx.image_size
-    projected = []
-    for poly in polygons_dz:
-        poly = clip_near(np.asarray(poly, dtype=np.float64))
-        if len(poly) < 3:
-            continue
-        dense = densify(poly, step)
-        pix, depth = project(ctx, road_points(ctx, dense[:, 0], dense[:, 1]))
-        if np.all(depth > 0) and np.all(np.isfinite(pix)):
-            projected.append(pix)
-    return fill_polygons((h, w), projected, mask=mask)
+    projected = [project_ground_polygon(ctx, poly, step) for poly in polygons_dz]
+    return fill_polygons(ctx.image_size, [pix for pix in projected if pix is not None], mask=mask)
 
 
 def soften(mask: np.ndarray, sigma_px: float) -> np.ndarray:
@@ -107,16 +123,96 @@ def overlay(image: np.ndarray, mask: np.ndarray, color, alpha: float = 1.0) -> n
     return np.clip(out + 0.5, 0, 255).astype(np.uint8)
 
 
-def road_mask(ctx: IllusionContext, far: float = 150.0) -> np.ndarray:
-    """Mask of the asphalt between the road's left and right edges, out to `far` metres.
+def road_mask(ctx: IllusionContext, far: float = 150.0, margin: float = 0.0) -> np.ndarray:
+    """Mask of the asphalt between the road's left and right edges (grown by `margin` metres on
+    each side, e.g. to take in the verge), out to `far` metres.
 
     The band starts at the nearest distance where both edges are in front of the camera, so a
     strongly turned (yawed) camera still gets its road.
     """
     zs = np.linspace(NEAR_Z, far, 96)
-    edges = [road_points(ctx, np.full_like(zs, d), zs) for d in (ctx.road.left_edge, ctx.road.right_edge)]
+    sides = (ctx.road.left_edge - margin, ctx.road.right_edge + margin)
+    edges = [road_points(ctx, np.full_like(zs, d), zs) for d in sides]
     (pl, dl), (pr, dr) = (project(ctx, e) for e in edges)
     ok = (dl > NEAR_Z) & (dr > NEAR_Z) & np.all(np.isfinite(pl), 1) & np.all(np.isfinite(pr), 1)
     if ok.sum() < 2:
         return np.zeros(ctx.image_size, np.float32)
     return fill_polygons(ctx.image_size, [np.concatenate([pl[ok], pr[ok][::-1]])])
+
+
+LIT_SUM = 150.0  # RGB sum (0..765) from which a subtle darkening of the road shows (50 per channel)
+DARK_SUM = 60.0  # ground whose darkest tenth is below this RGB sum is dark (night: unlit stretches)
+
+
+class RoadLight:
+    """How bright the image is around road points: lets an illusion land where it can be seen.
+
+    The image is shrunk 5x once (an area average); `at(d, z)` reads the RGB sum (0..765) there, -1
+    for points behind the camera or off the image; `pick(d, z)` chooses among candidate places.
+    """
+
+    def __init__(self, image: np.ndarray, ctx: IllusionContext, cell: int = 5):
+        h, w = ctx.image_size
+        self.ctx = ctx
+        self.scale = (max(1, w // cell) / w, max(1, h // cell) / h)
+        self.small = cv2.resize(image, (max(1, w // cell), max(1, h // cell)),
+                                interpolation=cv2.INTER_AREA).astype(np.float32).sum(axis=2)
+        self._dark: bool | None = None
+
+    def at(self, d, z, lift=0.0) -> np.ndarray:
+        """RGB sum of the image at road points (d, z) (`lift` metres up), -1 where not in view."""
+        d, z = np.broadcast_arrays(np.asarray(d, np.float64), np.asarray(z, np.float64))
+        pix, depth = project(self.ctx, road_points(self.ctx, d.ravel(), z.ravel(), lift))
+        sh, sw = self.small.shape
+        u, v = pix[:, 0] * self.scale[0], pix[:, 1] * self.scale[1]
+        ok = (depth > NEAR_Z) & np.isfinite(u) & np.isfinite(v) & (u >= 0) & (u < sw) & (v >= 0) & (v < sh)
+        out = np.full(d.size, -1.0)
+        out[ok] = self.small[v[ok].astype(int), u[ok].astype(int)]
+        return out.reshape(d.shape)
+
+    def road_is_dark(self) -> bool:
+        """Whether the ground ahead (asphalt and 1 m of verge, 4-40 m) has unlit stretches: night."""
+        road = self.ctx.road
+        d = np.linspace(road.left_edge - 1.0, road.right_edge + 1.0, 11)
+        light = self.at(*np.meshgrid(d, np.geomspace(4.0, 40.0, 9)))
+        light = light[light >= 0]
+        return bool(np.percentile(light, 10) < DARK_SUM) if len(light) else False
+
+    def pick(self, d, z) -> int:
+        """Index of the first candidate place (d[i], z[i]) in view and lit well enough to show a
+        darkening: at least LIT_SUM bright, or 60 % as bright as the brightest candidate (80 % on a
+        dark road, where the light is a small pool). By day that is the first candidate in view (the
+        plain random placement); at night one in the light."""
+        light = self.at(d, z)
+        top = float(light.max())
+        if top < 0:
+            return 0
+        if self._dark is None:
+            self._dark = self.road_is_dark()
+        threshold = 0.8 * top if self._dark else min(LIT_SUM, 0.6 * top)
+        return int(np.flatnonzero(light >= threshold)[0])
+
+
+def row_distance(ctx: IllusionContext) -> np.ndarray:
+    """Forward distance (m) of the road seen on each image row (H,), along the centre column; inf
+    above the horizon. Enough for effects that fade with distance, such as a lamp's reach."""
+    h, w = ctx.image_size
+    v = np.arange(h, dtype=np.float64)
+    z = ctx.camera.ground_intersect(np.full(h, ctx.camera.cx), v, surface=ctx.road)[:, 2]
+    return np.where(np.isfinite(z) & (z > 0), z, np.inf)
+
+
+def in_view(ctx: IllusionContext, d: float, zs: tuple[float, ...] = (8.0, 12.0)) -> bool:
+    """Whether the road line at lateral offset d shows in the image at any of these distances."""
+    h, w = ctx.image_size
+    pix, depth = project(ctx, road_points(ctx, np.full(len(zs), float(d)), np.asarray(zs, np.float64)))
+    ok = (depth > NEAR_Z) & np.all(np.isfinite(pix), axis=1)
+    return bool(np.any(ok & (pix[:, 0] >= 0) & (pix[:, 0] < w) & (pix[:, 1] >= 0) & (pix[:, 1] < h)))
+
+
+def visible_side(ctx: IllusionContext, first: int, d_of_side) -> int:
+    """`first` (+1 right / -1 left, drawn by the caller), unless only the other side's roadside line
+    `d_of_side(side)` is in view: an object beside the road stands where the camera can see it."""
+    if in_view(ctx, d_of_side(first)) or not in_view(ctx, d_of_side(-first)):
+        return first
+    return -first

@@ -79,10 +79,22 @@ def _check_wet(wet: float) -> float:
 
 
 def _road(center_x: float, offsets: np.ndarray, shoulder: float = SHOULDER_M) -> RoadGeometry:
-    """A straight flat road along world z, centre line at x = center_x, one boundary per offset."""
+    """A straight flat road along world z, centre line at x = center_x, one boundary per offset.
+
+    When the camera (x = 0) drives outside the annotated lanes (its lane's outer line is not
+    annotated, e.g. an unmarked road edge), an unmarked boundary one lane further out keeps the
+    camera's own lane on the asphalt."""
     stripes = MARKING_STRIPES[_MARKING]
-    boundaries = tuple(Boundary(d=float(d), marking=_MARKING, stripes=stripes, color="white") for d in offsets)
-    return RoadGeometry(x0=float(center_x), boundaries=boundaries, shoulder=shoulder)
+    boundaries = [Boundary(d=float(d), marking=_MARKING, stripes=stripes, color="white") for d in offsets]
+    d_cam = -float(center_x)
+    spacing = float(np.median(np.diff(offsets))) if len(offsets) >= 2 else 3.6
+    if d_cam > offsets[-1]:
+        boundaries.append(Boundary(d=max(float(offsets[-1]) + spacing, d_cam + spacing / 2), marking="none",
+                                   stripes=(), color="none"))
+    if d_cam < offsets[0]:
+        boundaries.insert(0, Boundary(d=min(float(offsets[0]) - spacing, d_cam - spacing / 2), marking="none",
+                                      stripes=(), color="none"))
+    return RoadGeometry(x0=float(center_x), boundaries=tuple(boundaries), shoulder=shoulder)
 
 
 # ----------------------------------------------------------------------------- lane fitting

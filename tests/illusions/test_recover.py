@@ -82,6 +82,19 @@ def test_exact_lanes_give_exact_camera():
     np.testing.assert_allclose(ctx.lane_offsets, offsets, atol=1e-6)
 
 
+def test_camera_outside_the_annotated_lanes_keeps_its_lane_on_the_road():
+    # the ego lane's right line is not annotated (an unmarked road edge): the recovered asphalt must
+    # still reach past the camera, so illusions clipped to the road show in the camera's own lane
+    scene = _scene(2.0, 0.0, 1.5, 3.5, 3, 0.0)
+    lanes, _, offsets = scene.lanes()
+    ctx = context_from_lanes(lanes[:2], (720, 1280), lane_width=3.5)  # the two lines left of the camera
+    d_cam = float(ctx.road.lateral(0.0, 0.0))
+    assert d_cam > max(ctx.lane_offsets)
+    assert ctx.road.right_edge > d_cam + 1.5
+    assert [b.d for b in ctx.road.boundaries if b.marking != "none"] == list(ctx.lane_offsets)
+    assert len(ctx.lane_offsets) == 2
+
+
 def test_small_image_and_hfov():
     params = SceneParams(road="straight", pitch_deg=3.0, yaw_deg=-2.0, camera_height=1.6, lane_width=3.5,
                          hfov_deg=60.0, num_lanes=3)
