@@ -5,7 +5,11 @@ projected with the scene camera, so damage foreshortens like the road. Surface d
 asphalt multiplicatively (it keeps the road's own texture and lighting, by day and by night) and is
 clipped to the road mask; the guard rail is an opaque 3D object drawn far to near.
 Randomness: each render draws the layout for the most severe level and keeps the first `count`
-items, so a higher severity contains the damage of a lower one (same seed).
+items, so a higher severity contains the damage of a lower one (same seed); an item is placed by the
+rules of the level that introduced it (level 1's few cracks, patch and skid pair lie near the camera)
+and keeps its place while higher levels enlarge it. Each item draws several candidate places and takes
+the first one in view and lit (`draw.RoadLight.pick`): by day the plain random place, at night one in
+the headlights or under a lamp, where a darkening of the asphalt can be seen at all.
 """
 
 from __future__ import annotations
@@ -21,48 +25,49 @@ from lanevil_train.illusions.context import IllusionContext
 Z_NEAR = 3.0    # metres: surface damage starts here
 Z_FAR = 45.0    # and ends here (beyond it, it is sub-pixel)
 RAIL_Z_FAR = 120.0  # metres: guard rails run from z_start_m to here
+CANDIDATES = 16  # places drawn per damage item; the first lit one is used (RoadLight.pick)
 _AA = cv2.LINE_AA
 _SHIFT = 4
 
 LEVELS: dict[str, list[dict]] = {
     "road_crack": [
-        dict(crack_count=3, crack_length_m=1.5, crack_width_m=0.008, branch_prob=0.0, alligator_patches=0,
-             shade_factor=0.70),
-        dict(crack_count=8, crack_length_m=2.0, crack_width_m=0.012, branch_prob=0.2, alligator_patches=0,
-             shade_factor=0.62),
-        dict(crack_count=16, crack_length_m=3.0, crack_width_m=0.016, branch_prob=0.4, alligator_patches=1,
-             shade_factor=0.55),
+        dict(crack_count=14, crack_length_m=2.5, crack_width_m=0.012, branch_prob=0.2, alligator_patches=0,
+             shade_factor=0.62, z_far_m=15.0),
+        dict(crack_count=17, crack_length_m=3.0, crack_width_m=0.014, branch_prob=0.3, alligator_patches=0,
+             shade_factor=0.58, z_far_m=18.0),
+        dict(crack_count=20, crack_length_m=3.5, crack_width_m=0.017, branch_prob=0.45, alligator_patches=1,
+             shade_factor=0.53, z_far_m=32.0),
         dict(crack_count=26, crack_length_m=4.0, crack_width_m=0.020, branch_prob=0.6, alligator_patches=2,
-             shade_factor=0.48),
+             shade_factor=0.48, z_far_m=45.0),
         dict(crack_count=40, crack_length_m=5.0, crack_width_m=0.025, branch_prob=0.8, alligator_patches=4,
-             shade_factor=0.42),
+             shade_factor=0.42, z_far_m=45.0),
     ],
     "road_repair": [
-        dict(strip_count=0, strip_length_m=10.0, strip_width_m=0.15, strip_offset_from_line_m=1.2,
-             patch_count=1, patch_length_m=1.2, tar_shade_factor=0.75, gloss_factor=1.00),
-        dict(strip_count=1, strip_length_m=14.0, strip_width_m=0.18, strip_offset_from_line_m=1.0,
-             patch_count=1, patch_length_m=1.6, tar_shade_factor=0.66, gloss_factor=1.05),
+        dict(strip_count=1, strip_length_m=12.0, strip_width_m=0.15, strip_offset_from_line_m=1.2,
+             patch_count=1, patch_length_m=2.0, tar_shade_factor=0.72, gloss_factor=1.00, patch_z_far_m=10.0),
+        dict(strip_count=1, strip_length_m=14.0, strip_width_m=0.17, strip_offset_from_line_m=1.0,
+             patch_count=1, patch_length_m=2.2, tar_shade_factor=0.65, gloss_factor=1.05, patch_z_far_m=10.0),
         dict(strip_count=1, strip_length_m=20.0, strip_width_m=0.20, strip_offset_from_line_m=0.8,
-             patch_count=2, patch_length_m=2.0, tar_shade_factor=0.58, gloss_factor=1.10),
+             patch_count=2, patch_length_m=2.4, tar_shade_factor=0.58, gloss_factor=1.10, patch_z_far_m=14.0),
         dict(strip_count=2, strip_length_m=28.0, strip_width_m=0.24, strip_offset_from_line_m=0.6,
-             patch_count=2, patch_length_m=2.5, tar_shade_factor=0.50, gloss_factor=1.15),
+             patch_count=2, patch_length_m=2.5, tar_shade_factor=0.50, gloss_factor=1.15, patch_z_far_m=16.0),
         dict(strip_count=3, strip_length_m=36.0, strip_width_m=0.28, strip_offset_from_line_m=0.45,
-             patch_count=3, patch_length_m=3.0, tar_shade_factor=0.44, gloss_factor=1.20),
+             patch_count=3, patch_length_m=3.0, tar_shade_factor=0.44, gloss_factor=1.20, patch_z_far_m=16.0),
     ],
     "tire_marks": [
-        dict(pair_count=1, mark_length_m=8.0, lateral_sweep_m=0.5, tire_width_m=0.18, track_width_m=1.6,
-             shade_factor=0.82),
-        dict(pair_count=1, mark_length_m=12.0, lateral_sweep_m=1.2, tire_width_m=0.20, track_width_m=1.6,
-             shade_factor=0.72),
-        dict(pair_count=2, mark_length_m=16.0, lateral_sweep_m=2.0, tire_width_m=0.20, track_width_m=1.6,
-             shade_factor=0.62),
+        dict(pair_count=1, mark_length_m=13.0, lateral_sweep_m=0.5, tire_width_m=0.22, track_width_m=1.6,
+             shade_factor=0.70, start_z_far_m=8.0),
+        dict(pair_count=1, mark_length_m=15.0, lateral_sweep_m=1.2, tire_width_m=0.22, track_width_m=1.6,
+             shade_factor=0.64, start_z_far_m=10.0),
+        dict(pair_count=2, mark_length_m=17.0, lateral_sweep_m=2.0, tire_width_m=0.22, track_width_m=1.6,
+             shade_factor=0.58, start_z_far_m=12.0),
         dict(pair_count=3, mark_length_m=20.0, lateral_sweep_m=3.0, tire_width_m=0.22, track_width_m=1.6,
-             shade_factor=0.52),
+             shade_factor=0.52, start_z_far_m=14.0),
         dict(pair_count=4, mark_length_m=25.0, lateral_sweep_m=4.0, tire_width_m=0.24, track_width_m=1.6,
-             shade_factor=0.45),
+             shade_factor=0.45, start_z_far_m=14.0),
     ],
     "guard_rail": [
-        dict(sides=1, offset_from_edge_line_m=2.4, z_start_m=14.0, post_spacing_m=4.0, beam_height_m=0.70,
+        dict(sides=1, offset_from_edge_line_m=2.0, z_start_m=11.0, post_spacing_m=4.0, beam_height_m=0.70,
              beam_depth_m=0.31, post_height_m=0.80),
         dict(sides=1, offset_from_edge_line_m=1.6, z_start_m=9.0, post_spacing_m=3.5, beam_height_m=0.70,
              beam_depth_m=0.31, post_height_m=0.80),
@@ -113,6 +118,12 @@ def _darken_road(image: np.ndarray, ctx: IllusionContext, layers: list[tuple[np.
         gain *= 1.0 + np.clip(m, 0.0, 1.0) * (float(factor) - 1.0)
     out[crop] = np.clip(image[crop].astype(np.float32) * gain[..., None] + 0.5, 0, 255).astype(np.uint8)
     return out
+
+
+def _first_level(levels: list[dict], count_key: str, i: int) -> dict:
+    """The lowest level that has item i (levels[k][count_key] > i): an item is placed by the rules of
+    the level that introduced it, so it stays put while higher levels enlarge it and add more."""
+    return next((lv for lv in levels if lv[count_key] > i), levels[-1])
 
 
 def _walk(rng: np.random.Generator, start: np.ndarray, heading: float, length: float,
@@ -179,9 +190,13 @@ def render_road_crack(image: np.ndarray, ctx: IllusionContext, severity: int,
     top = LEVELS["road_crack"][-1]
     lo, hi = _road_span(ctx)
     lines: list[np.ndarray] = []
+    light = draw.RoadLight(image, ctx)
     crack_rngs = [np.random.default_rng(s) for s in rng.integers(0, 2**63, top["crack_count"])]
-    for crng in crack_rngs[:p["crack_count"]]:
-        start = np.array([crng.uniform(lo, hi), Z_NEAR + (Z_FAR - Z_NEAR) * crng.random() ** 1.5])
+    for i, crng in enumerate(crack_rngs[:p["crack_count"]]):
+        z_far = _first_level(LEVELS["road_crack"], "crack_count", i)["z_far_m"]
+        ds, zs = crng.uniform(lo, hi, CANDIDATES), Z_NEAR + (z_far - Z_NEAR) * crng.random(CANDIDATES) ** 1.5
+        k = light.pick(ds, zs)
+        start = np.array([ds[k], zs[k]])
         longitudinal = crng.random() < 0.5
         heading = np.pi / 2 if longitudinal else (0.0 if crng.random() < 0.5 else np.pi)
         heading += crng.normal(0.0, 0.25)
@@ -194,16 +209,17 @@ def render_road_crack(image: np.ndarray, ctx: IllusionContext, severity: int,
                 lines.append(_walk(crng, main[i], heading + turn, p["crack_length_m"] * crng.uniform(0.2, 0.5)))
     patch_rngs = [np.random.default_rng(s) for s in rng.integers(0, 2**63, top["alligator_patches"])]
     for prng in patch_rngs[:p["alligator_patches"]]:
-        lines += _alligator(prng, lo, hi)
+        lines += _alligator(prng, lo, hi, light)
     mask = _draw_ground_lines(ctx, lines, p["crack_width_m"])
     return _darken_road(image, ctx, [(mask, p["shade_factor"], 0.5, 0.25)], rng)
 
 
-def _alligator(rng: np.random.Generator, lo: float, hi: float) -> list[np.ndarray]:
-    """Interconnected cracking: a jittered grid of nodes joined by jagged edges, in one patch."""
+def _alligator(rng: np.random.Generator, lo: float, hi: float, light: draw.RoadLight) -> list[np.ndarray]:
+    """Interconnected cracking: a jittered grid of nodes joined by jagged edges, in one (lit) patch."""
     pw, pl, cell = rng.uniform(1.8, 3.2), rng.uniform(3.0, 6.0), rng.uniform(0.4, 0.6)
-    d0 = rng.uniform(lo, max(lo, hi - pw))
-    z0 = rng.uniform(Z_NEAR + 1.0, 15.0)
+    ds, zs = rng.uniform(lo, max(lo, hi - pw), CANDIDATES), rng.uniform(Z_NEAR + 1.0, 15.0, CANDIDATES)
+    k = light.pick(ds + pw / 2, zs + pl / 2)
+    d0, z0 = ds[k], zs[k]
     nd, nz = int(pw / cell) + 1, int(pl / cell) + 1
     gd, gz = np.meshgrid(np.arange(nd) * cell, np.arange(nz) * cell)
     nodes = np.stack([gd + d0, gz + z0], -1) + rng.uniform(-0.45, 0.45, (nz, nd, 2)) * cell
@@ -230,22 +246,29 @@ def render_road_repair(image: np.ndarray, ctx: IllusionContext, severity: int,
     sheen: list[np.ndarray] = []
     patches: list[np.ndarray] = []
     lanes = np.asarray(ctx.lane_offsets if ctx.lane_offsets else (0.0,), np.float64)
+    light = draw.RoadLight(image, ctx)
+    d_cam = float(ctx.road.lateral(0.0, 0.0))
     strip_rngs = [np.random.default_rng(s) for s in rng.integers(0, 2**63, top["strip_count"])]
     for srng in strip_rngs[:p["strip_count"]]:
-        line_d = float(srng.choice(lanes))
-        side = float(srng.choice([-1.0, 1.0]))
-        d = float(np.clip(line_d + side * p["strip_offset_from_line_m"], lo, hi))
-        z0 = srng.uniform(Z_NEAR, 10.0)
+        line_d = np.resize(srng.permutation(lanes), CANDIDATES)  # every line is a candidate
+        side = srng.choice([-1.0, 1.0], CANDIDATES)
+        z0s = srng.uniform(Z_NEAR, 10.0, CANDIDATES)
+        k = light.pick(line_d, z0s + 2.0)  # beside a line in view (and lit) from near its start
+        d, z0 = float(np.clip(line_d[k] + side[k] * p["strip_offset_from_line_m"], lo, hi)), float(z0s[k])
         zs = np.linspace(z0, min(z0 + p["strip_length_m"], Z_FAR + 5.0), 60)
         ds = d + np.cumsum(srng.normal(0.0, 0.012, len(zs)))  # follows a meandering longitudinal crack
         line = np.stack([ds, zs], 1)
         tar.append(_ribbon(line, p["strip_width_m"]))
         sheen.append(_ribbon(line, p["strip_width_m"] * 0.3))
     patch_rngs = [np.random.default_rng(s) for s in rng.integers(0, 2**63, top["patch_count"])]
-    for prng in patch_rngs[:p["patch_count"]]:
+    for i, prng in enumerate(patch_rngs[:p["patch_count"]]):
         width = prng.uniform(1.5, 3.5)
-        d0 = prng.uniform(lo, max(lo, hi - width))
-        z0 = prng.uniform(Z_NEAR + 1.0, 30.0)
+        z_far = _first_level(LEVELS["road_repair"], "patch_count", i)["patch_z_far_m"]
+        z0s = prng.uniform(Z_NEAR + 1.0, z_far, CANDIDATES)
+        # centred within the view ahead (|lateral| < 0.8 z from the camera), on the asphalt
+        d0s = np.clip(d_cam + prng.uniform(-0.8, 0.8, CANDIDATES) * z0s - width / 2, lo, max(lo, hi - width))
+        k = light.pick(d0s + width / 2, z0s + 1.0)
+        d0, z0 = float(d0s[k]), float(z0s[k])
         skew = prng.normal(0.0, 0.15)
         length = p["patch_length_m"] * prng.uniform(0.8, 1.2)
         rect = np.array([[d0, z0], [d0 + width, z0 + skew], [d0 + width, z0 + skew + length], [d0, z0 + length]])
@@ -273,15 +296,19 @@ def render_tire_marks(image: np.ndarray, ctx: IllusionContext, severity: int,
     h, w = ctx.image_size
     lo, hi = _road_span(ctx)
     mask = np.zeros((h, w), np.uint8)
+    light = draw.RoadLight(image, ctx)
     pair_rngs = [np.random.default_rng(s) for s in rng.integers(0, 2**63, top["pair_count"])]
-    for prng in pair_rngs[:p["pair_count"]]:
+    for i, prng in enumerate(pair_rngs[:p["pair_count"]]):
         direction = float(prng.choice([-1.0, 1.0]))
         length = p["mark_length_m"] * prng.uniform(0.85, 1.15)
         sweep = p["lateral_sweep_m"] * prng.uniform(0.8, 1.2)
-        d0 = prng.uniform(lo + 1.0, hi - 1.0)
         reach = top["lateral_sweep_m"] * 1.2  # placement fits the widest sweep: same start at every level
-        d0 = float(np.clip(d0, lo + reach * (direction < 0), hi - reach * (direction > 0)))
-        z0 = prng.uniform(Z_NEAR + 1.0, 14.0)
+        d0s = np.clip(prng.uniform(lo + 1.0, hi - 1.0, CANDIDATES), lo + reach * (direction < 0),
+                      hi - reach * (direction > 0))
+        z_far = _first_level(LEVELS["tire_marks"], "pair_count", i)["start_z_far_m"]
+        z0s = Z_NEAR + 1.0 + (z_far - Z_NEAR - 1.0) * prng.random(CANDIDATES)
+        k = light.pick(d0s, z0s + 3.0)
+        d0, z0 = float(d0s[k]), float(z0s[k])
         t = np.linspace(0.0, 1.0, 48)
         centre = np.stack([d0 + direction * sweep * t ** 2, z0 + length * t], 1)
         tangent = np.gradient(centre, axis=0)
@@ -318,12 +345,21 @@ def render_guard_rail(image: np.ndarray, ctx: IllusionContext, severity: int,
 
 
 def rail_offsets(ctx: IllusionContext, severity: int, rng: np.random.Generator) -> list[tuple[float, float]]:
-    """(d of the posts, side sign +1 right / -1 left) of each guard rail; draws one number from rng."""
+    """(d of the posts, side sign +1 right / -1 left) of each guard rail; draws one number from rng.
+
+    A rail stands offset_from_edge_line_m outside the road's outermost boundary on its side (a marked
+    edge line, or an unmarked road edge beyond the camera's lane). With one rail, its side is drawn
+    per seed but swapped when only the other side is in view near the camera (same side at every level).
+    """
     p = LEVELS["guard_rail"][severity - 1]
-    lanes = np.sort(np.asarray(ctx.lane_offsets, np.float64)) if ctx.lane_offsets else np.array([-1.8, 1.8])
-    first = 1.0 if rng.random() < 0.5 else -1.0
-    signs = [first, -first][:p["sides"]]
-    return [((lanes[-1] if s > 0 else lanes[0]) + s * p["offset_from_edge_line_m"], s) for s in signs]
+    edges = [b.d for b in ctx.road.boundaries] or list(ctx.lane_offsets) or [-1.8, 1.8]
+    left, right = min(edges), max(edges)
+
+    def edge_line(side: float) -> float:
+        return right if side > 0 else left
+
+    first = draw.visible_side(ctx, 1 if rng.random() < 0.5 else -1, lambda side: edge_line(side) + side * 1.0)
+    return [(edge_line(s) + s * p["offset_from_edge_line_m"], float(s)) for s in (first, -first)[:p["sides"]]]
 
 
 def _rail_light(image: np.ndarray, ctx: IllusionContext) -> np.ndarray:

@@ -103,7 +103,7 @@ def test_crack_level5_is_a_network_level1_is_hairline():
     img, _, s1 = _render("road_crack", 1, w=640, h=360)
     _, _, s5 = _render("road_crack", 5, w=640, h=360)
     c1, c5 = _changed(s1, img).sum(), _changed(s5, img).sum()
-    assert c5 > 10 * c1
+    assert c5 > 4 * c1  # level 1 is visible (issue 10), level 5 is a network several times larger
     # hairlines are faint: the mean darkening of changed pixels is much lower than at level 5
     d1 = _darkening(img, s1) / max(c1, 1)
     d5 = _darkening(img, s5) / max(c5, 1)
