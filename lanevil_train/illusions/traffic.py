@@ -19,29 +19,28 @@ import numpy as np
 from lanevil_train.illusions import draw
 from lanevil_train.illusions.context import IllusionContext
 
-CATEGORY = "traffic_obstruction"
-
 # Per severity: count of participants, forward-distance range (m) they are placed in, and the
-# largest lateral offset (m) of a participant's centre from the lane line it stands on.
+# largest lateral offset (m) of a participant's centre from the lane line it stands on. Level 1's
+# single participant stands near enough (8-24 m) to cover at least 0.2 % of a 1280x720 image.
 LEVELS: dict[str, list[dict]] = {
     "vehicle": [
-        {"count": 1, "z_near_m": 30.0, "z_far_m": 40.0, "line_offset_max_m": 0.8, "truck_prob": 0.0},
-        {"count": 1, "z_near_m": 20.0, "z_far_m": 28.0, "line_offset_max_m": 0.8, "truck_prob": 0.2},
-        {"count": 2, "z_near_m": 14.0, "z_far_m": 30.0, "line_offset_max_m": 0.8, "truck_prob": 0.3},
+        {"count": 1, "z_near_m": 18.0, "z_far_m": 24.0, "line_offset_max_m": 0.8, "truck_prob": 0.0},
+        {"count": 1, "z_near_m": 14.0, "z_far_m": 19.0, "line_offset_max_m": 0.8, "truck_prob": 0.2},
+        {"count": 2, "z_near_m": 12.0, "z_far_m": 26.0, "line_offset_max_m": 0.8, "truck_prob": 0.3},
         {"count": 3, "z_near_m": 10.0, "z_far_m": 26.0, "line_offset_max_m": 0.8, "truck_prob": 0.3},
         {"count": 4, "z_near_m": 6.5, "z_far_m": 20.0, "line_offset_max_m": 0.8, "truck_prob": 0.35},
     ],
     "pedestrian": [
-        {"count": 1, "z_near_m": 20.0, "z_far_m": 26.0, "line_offset_max_m": 0.4},
-        {"count": 2, "z_near_m": 14.0, "z_far_m": 22.0, "line_offset_max_m": 0.4},
-        {"count": 4, "z_near_m": 10.0, "z_far_m": 20.0, "line_offset_max_m": 0.4},
+        {"count": 1, "z_near_m": 7.5, "z_far_m": 10.0, "line_offset_max_m": 0.4},
+        {"count": 2, "z_near_m": 7.0, "z_far_m": 12.5, "line_offset_max_m": 0.4},
+        {"count": 4, "z_near_m": 7.0, "z_far_m": 16.0, "line_offset_max_m": 0.4},
         {"count": 6, "z_near_m": 7.0, "z_far_m": 16.0, "line_offset_max_m": 0.4},
         {"count": 9, "z_near_m": 5.0, "z_far_m": 13.0, "line_offset_max_m": 0.4},
     ],
     "bicycle": [
-        {"count": 1, "z_near_m": 20.0, "z_far_m": 26.0, "line_offset_max_m": 0.4},
-        {"count": 2, "z_near_m": 14.0, "z_far_m": 22.0, "line_offset_max_m": 0.4},
-        {"count": 3, "z_near_m": 10.0, "z_far_m": 20.0, "line_offset_max_m": 0.4},
+        {"count": 1, "z_near_m": 8.0, "z_far_m": 11.0, "line_offset_max_m": 0.4},
+        {"count": 2, "z_near_m": 7.0, "z_far_m": 13.0, "line_offset_max_m": 0.4},
+        {"count": 3, "z_near_m": 7.0, "z_far_m": 16.0, "line_offset_max_m": 0.4},
         {"count": 4, "z_near_m": 7.0, "z_far_m": 16.0, "line_offset_max_m": 0.4},
         {"count": 6, "z_near_m": 5.0, "z_far_m": 13.0, "line_offset_max_m": 0.4},
     ],
