@@ -5,6 +5,9 @@ from below the source towards the camera (the image column under the source), br
 mirror point where the camera sees the source's image. Each streak is laid out in world metres on
 the road surface, projected like the road (so it narrows with distance) and screen-blended, so a
 reflection only ever brightens the image; pixels off its footprint are left byte-identical.
+Placement keeps level 1 in view: the first street lamp stands near (first_lamp_range_m), lamps go on
+a road edge the camera sees, and mirrored vehicles drive in the lanes nearest the camera, the first
+one close (distance_far_m of the level that introduced it).
 """
 
 from __future__ import annotations
@@ -24,28 +27,33 @@ LEVELS: dict[str, list[dict]] = {
         dict(sun_elevation_deg=12.0, azimuth_max_deg=16.0, intensity=0.50, length_m=11.0, half_width_deg=4.0),
         dict(sun_elevation_deg=9.0, azimuth_max_deg=14.0, intensity=0.65, length_m=18.0, half_width_deg=6.0),
         dict(sun_elevation_deg=6.5, azimuth_max_deg=12.0, intensity=0.82, length_m=28.0, half_width_deg=8.5),
-        dict(sun_elevation_deg=4.5, azimuth_max_deg=10.0, intensity=0.97, length_m=42.0, half_width_deg=11.5),
+        dict(sun_elevation_deg=4.5, azimuth_max_deg=10.0, intensity=0.97, length_m=46.0, half_width_deg=11.5),
     ],
     # Street lamps over the road edges; each mirrored as a long lane-like streak.
     "streetlight_reflection": [
-        dict(count=2, spacing_m=24.0, lamp_height_m=8.0, intensity=0.35, streak_length_frac=0.40,
-             width_m=0.30, both_sides=0),
-        dict(count=3, spacing_m=22.0, lamp_height_m=8.0, intensity=0.48, streak_length_frac=0.52,
-             width_m=0.36, both_sides=0),
+        dict(count=2, spacing_m=24.0, lamp_height_m=8.0, intensity=0.40, streak_length_frac=0.45,
+             width_m=0.34, both_sides=0, first_lamp_range_m=8.0),
+        dict(count=3, spacing_m=22.0, lamp_height_m=8.0, intensity=0.52, streak_length_frac=0.55,
+             width_m=0.38, both_sides=0, first_lamp_range_m=10.0),
         dict(count=4, spacing_m=20.0, lamp_height_m=8.0, intensity=0.62, streak_length_frac=0.64,
-             width_m=0.42, both_sides=1),
+             width_m=0.42, both_sides=1, first_lamp_range_m=14.0),
         dict(count=6, spacing_m=18.0, lamp_height_m=8.0, intensity=0.78, streak_length_frac=0.76,
-             width_m=0.50, both_sides=1),
+             width_m=0.50, both_sides=1, first_lamp_range_m=18.0),
         dict(count=8, spacing_m=16.0, lamp_height_m=8.0, intensity=0.92, streak_length_frac=0.88,
-             width_m=0.58, both_sides=1),
+             width_m=0.58, both_sides=1, first_lamp_range_m=16.0),
     ],
     # Vehicles ahead (tail lights, red) and oncoming (headlights, white) mirrored with their body colour.
     "vehicle_reflection": [
-        dict(count=1, intensity=0.35, body_intensity=0.10, streak_length_frac=0.30, light_width_m=0.22),
-        dict(count=2, intensity=0.48, body_intensity=0.14, streak_length_frac=0.40, light_width_m=0.26),
-        dict(count=3, intensity=0.62, body_intensity=0.18, streak_length_frac=0.50, light_width_m=0.30),
-        dict(count=4, intensity=0.78, body_intensity=0.22, streak_length_frac=0.60, light_width_m=0.34),
-        dict(count=5, intensity=0.92, body_intensity=0.26, streak_length_frac=0.70, light_width_m=0.38),
+        dict(count=1, intensity=0.38, body_intensity=0.12, streak_length_frac=0.35, light_width_m=0.24,
+             distance_far_m=17.0),
+        dict(count=2, intensity=0.50, body_intensity=0.15, streak_length_frac=0.42, light_width_m=0.27,
+             distance_far_m=28.0),
+        dict(count=3, intensity=0.62, body_intensity=0.18, streak_length_frac=0.50, light_width_m=0.30,
+             distance_far_m=45.0),
+        dict(count=4, intensity=0.78, body_intensity=0.22, streak_length_frac=0.60, light_width_m=0.34,
+             distance_far_m=45.0),
+        dict(count=5, intensity=0.92, body_intensity=0.26, streak_length_frac=0.70, light_width_m=0.38,
+             distance_far_m=45.0),
     ],
 }
 
@@ -58,6 +66,8 @@ _BODY_COLOURS = np.array([[0.9, 0.9, 0.9], [0.75, 0.1, 0.1], [0.15, 0.25, 0.7], 
                           [0.9, 0.75, 0.2], [0.2, 0.5, 0.3]], np.float32)
 Box = tuple[int, int, int, int]  # (y0, y1, x0, x1) pixel bounds
 _SEGMENTS = 24   # quads along one streak (each filled with its own brightness)
+SUN_FADE_M = 1.5  # metres over which the sun's glitter path fades in and out at its ends
+DIST_NEAR_M = 12.0  # vehicles mirrored in vehicle_reflection stand at least this far ahead
 _MAX_LIGHTS = 8  # rng draws are made for the most lights of any level, so levels share a layout
 
 
@@ -169,10 +179,12 @@ def _check(image: np.ndarray, ctx: IllusionContext) -> None:
         raise ValueError(f"reflection: image size {image.shape[:2]} does not match context {ctx.image_size}")
 
 
-def _bump(t_peak: float, sigma: float, floor: float, t_range: tuple[float, float]) -> Callable:
-    """Brightness along a streak: a bump at the mirror point over a floor, faded at both ends."""
+def _bump(t_peak: float, sigma: float, floor: float, t_range: tuple[float, float],
+          fade: float | None = None) -> Callable:
+    """Brightness along a streak: a bump at the mirror point over a floor, faded at both ends (over
+    `fade` in t, default 6 % of the streak)."""
     lo, hi = t_range
-    fade = max(0.06 * (hi - lo), 1e-6)
+    fade = max(0.06 * (hi - lo) if fade is None else fade, 1e-6)
 
     def profile(t: np.ndarray) -> np.ndarray:
         body = floor + (1.0 - floor) * np.exp(-0.5 * ((t - t_peak) / sigma) ** 2)
@@ -209,9 +221,10 @@ def render_sunlight_reflection(image: np.ndarray, ctx: IllusionContext, severity
     sigma = 0.3 * (1.0 - t_range[0]) + 0.04
     hw_far = far * np.tan(np.radians(p["half_width_deg"]))  # constant angular width, seen from the camera
     # wide soft halo, then the bright core
-    boxes = [_streak(ctx, streaks, base, t_range, hw_far, _bump(t_mirror, 1.5 * sigma, 0.35, t_range),
+    fade = SUN_FADE_M / far  # the path fades in over the same metres at every level
+    boxes = [_streak(ctx, streaks, base, t_range, hw_far, _bump(t_mirror, 1.5 * sigma, 0.35, t_range, fade),
                      _SUN * 0.6 * p["intensity"])]
-    boxes += [_streak(ctx, streaks, base, t_range, 0.45 * hw_far, _bump(t_mirror, sigma, 0.2, t_range),
+    boxes += [_streak(ctx, streaks, base, t_range, 0.45 * hw_far, _bump(t_mirror, sigma, 0.2, t_range, fade),
                       np.minimum(_SUN * 1.4 * p["intensity"], 1.0))]
     return _finish(image, ctx, streaks, boxes, None, [], blur_px=0.012 * w, rng=rng, glitter=0.25)
 
@@ -226,7 +239,8 @@ def render_streetlight_reflection(image: np.ndarray, ctx: IllusionContext, sever
     phase = rng.uniform(0.0, 1.0)
     arm = rng.uniform(0.8, 1.8, size=_MAX_LIGHTS)
     jitter = rng.uniform(-0.08, 0.08, size=_MAX_LIGHTS)
-    first_right = rng.random() < 0.5
+    first_right = draw.visible_side(ctx, 1 if rng.random() < 0.5 else -1,
+                                    lambda sd: ctx.road.right_edge if sd > 0 else ctx.road.left_edge) > 0
     gain = 1.0 if ctx.night else 0.7
     colour = (_SODIUM_LAMP if sodium else _WHITE_LAMP) * p["intensity"] * gain
     h, w = ctx.image_size
@@ -236,7 +250,10 @@ def render_streetlight_reflection(image: np.ndarray, ctx: IllusionContext, sever
     for i in range(p["count"]):
         right = (i % 2 == 0) == first_right if p["both_sides"] else first_right
         k = i // 2 if p["both_sides"] else i
-        z = 10.0 + (phase + k) * p["spacing_m"] * (1.0 + jitter[i])
+        # the first lamp (on each side) stands within first_lamp_range_m of 10 m ahead (a short range
+        # at level 1, so even one faint streak is near and in view), the others spacing_m apart
+        step = p["first_lamp_range_m"] * phase if k == 0 else (phase + k) * p["spacing_m"]
+        z = 10.0 + step * (1.0 + jitter[i])
         d = ctx.road.right_edge - arm[i] if right else ctx.road.left_edge + arm[i]
         lamps.append((z, d))
     hc, hl = ctx.camera.height_m, p["lamp_height_m"]
@@ -262,8 +279,10 @@ def render_vehicle_reflection(image: np.ndarray, ctx: IllusionContext, severity:
     p = LEVELS["vehicle_reflection"][severity - 1]
     offsets = np.sort(np.asarray(ctx.lane_offsets, np.float64))
     centres = 0.5 * (offsets[1:] + offsets[:-1]) if len(offsets) >= 2 else np.array([0.0])
-    lane_pick = rng.integers(0, len(centres), size=_MAX_LIGHTS)
-    dist = rng.uniform(10.0, 45.0, size=_MAX_LIGHTS)
+    # vehicles drive in the (up to) three lanes nearest the camera, which are in view
+    near = np.argsort(np.abs(centres - ctx.road.lateral(0.0, 0.0)))[:3]
+    lane_pick = near[rng.integers(0, len(near), size=_MAX_LIGHTS)]
+    u_dist = rng.random(_MAX_LIGHTS)
     shift = rng.uniform(-0.4, 0.4, size=_MAX_LIGHTS)
     body = rng.integers(0, len(_BODY_COLOURS), size=_MAX_LIGHTS)
     oncoming = rng.random(_MAX_LIGHTS) < 0.3
@@ -274,7 +293,11 @@ def render_vehicle_reflection(image: np.ndarray, ctx: IllusionContext, severity:
     glows = np.zeros((h, w, 3), np.float32)
     hc = ctx.camera.height_m
     boxes, glow_boxes = [], []
-    # vehicles in random lanes and distances (they may overlap); far ones first, near ones drawn over
+    # vehicles in random lanes and distances (they may overlap); far ones first, near ones drawn over.
+    # A vehicle keeps the distance range of the level that introduced it: the first one is near.
+    levels = LEVELS["vehicle_reflection"]
+    far = [next(lv for lv in levels if lv["count"] > i)["distance_far_m"] for i in range(p["count"])]
+    dist = [DIST_NEAR_M + (f - DIST_NEAR_M) * u for f, u in zip(far, u_dist)]
     order = sorted(range(p["count"]), key=lambda i: -dist[i])
     for i in order:
         d, z = centres[lane_pick[i]] + shift[i], dist[i]
