@@ -42,7 +42,8 @@ def build_rate(images: int, workers: int) -> tuple[float, int]:
     cases = synthetic_cases(max(1, round(images / per_case)), 1000000)
     with tempfile.TemporaryDirectory() as root:
         t0 = time.perf_counter()
-        summary = build_illusion_set(cases, Plan(illusions=tuple(ILLUSIONS)), root, workers=workers, progress=False)
+        summary = build_illusion_set(cases, Plan(illusions=tuple(ILLUSIONS)), root, workers=workers,
+                                     progress="none")
         return time.perf_counter() - t0, summary["images"]
 
 
