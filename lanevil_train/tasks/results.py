@@ -35,9 +35,11 @@ def write_results(result_files: list[Path], out_dir: Path, baseline: str | None 
     if perturbed:
         from lanevil_train.report.robustness import main_long, main_table, write_report
 
-        write_report(rs, out_dir, baseline=baseline)
+        paths = write_report(rs, out_dir, baseline=baseline)
         print_table(main_long(main_table(rs)),
                     title=f"Robustness ({rs.spec.unit}): Perturbed / Original / Gap — full table in main.md")
+        plots = ", ".join(p.name for p in paths.values() if p.suffix == ".png")
+        print(f"Robustness report: {paths['report']} (per type, per severity, relative); plots: {plots}")
     return rs.spec.headline.aggregate(perturbed or rs.records)
 
 
