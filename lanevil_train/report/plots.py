@@ -38,13 +38,10 @@ def score_vs_severity(records, path: str | Path) -> Path:
     fig, axes = plt.subplots(1, n, figsize=(4.5 * n, 3.6), squeeze=False)
     for ax, m in zip(axes[0], rs.models):
         index = rs.by_model[m]
+        by_severity = rs.groups(m, ("category", "severity"))
         for j, ((cat,), pert) in enumerate(rs.groups(m, ("category",))):
-            xs, ys = [0], [score.aggregate(index.originals(pert))]
-            for (sev,), group in rs.groups(m, ("severity",)):
-                group = [r for r in group if r["category"] == cat]
-                if group:
-                    xs.append(sev)
-                    ys.append(score.aggregate(group))
+            points = [(sev, score.aggregate(group)) for (c, sev), group in by_severity if c == cat]
+            xs, ys = zip((0, score.aggregate(index.originals(pert))), *points)
             ax.plot(xs, ys, _STYLES[j % len(_STYLES)], marker="o", label=cat)
         ax.set_title(m)
         ax.set_xlabel("severity (0 = original)")
