@@ -33,6 +33,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from typing import Callable
 from pathlib import Path
 
 import numpy as np
@@ -224,6 +225,21 @@ def print_table(title: str, times: dict[str, list[float]], baseline: str | None)
         print(f"| {name} | {best:.3f} | {med:.3f} | {ratio} |")
 
 
+def side_by_side(title: str, commands: dict[str, list[str]], official: str | None,
+                 read_official: Callable[[str], dict], compare: Callable[[dict, dict], str], repeats: int,
+                 cwd: Path) -> dict:
+    """Time our command (the first) beside the `official` one when given, print the table and whether the scores
+    agree (`read_official` gets the official command's stdout); return our scores."""
+    times, outs = time_commands(commands, repeats, cwd)
+    print_table(title, times, official)
+    ours = json.loads(outs[next(iter(commands))])
+    print(f"\nours: {ours}")
+    if official:
+        theirs = read_official(outs[official])
+        print(f"official: {theirs}\nscores: {compare(ours, theirs)}")
+    return ours
+
+
 def main() -> None:
     """Generate the data, time the commands and print the tables."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -252,14 +268,9 @@ def main() -> None:
             if args.official_tusimple:
                 commands["official: evaluate/lane.py"] = [args.official_python, "-c", OFFICIAL_TUSIMPLE_LOADER,
                                                          args.official_tusimple, str(pred), str(gt)]
-            times, outs = time_commands(commands, args.repeats, work)
-            print_table(f"TuSimple, {args.tusimple_images} images", times,
-                        "official: evaluate/lane.py" if args.official_tusimple else None)
-            our_scores = json.loads(outs[next(iter(commands))])
-            print(f"\nours: {our_scores}")
-            if args.official_tusimple:
-                official = parse_official_tusimple(outs["official: evaluate/lane.py"])
-                print(f"official: {official}\nscores: {compare_tusimple(our_scores, official)}")
+            side_by_side(f"TuSimple, {args.tusimple_images} images", commands,
+                         "official: evaluate/lane.py" if args.official_tusimple else None,
+                         parse_official_tusimple, compare_tusimple, args.repeats, work)
 
         if "culane" not in args.skip:
             pred_dir, gt_dir, lst = write_culane(work, args.culane_images, args.seed)
@@ -270,14 +281,10 @@ def main() -> None:
                 commands["official: evaluate (C++, OpenMP)"] = [
                     args.official_culane, "-a", f"{gt_dir}/", "-d", f"{pred_dir}/", "-i", f"{work}/", "-l", str(lst),
                     "-w", "30", "-t", "0.5", "-c", str(CULANE_W), "-r", str(CULANE_H), "-f", "1", "-o", str(out_file)]
-            times, outs = time_commands(commands, args.repeats, work)
-            print_table(f"CULane, {args.culane_images} images at {CULANE_W}x{CULANE_H}", times,
-                        "official: evaluate (C++, OpenMP)" if args.official_culane else None)
-            our_scores = json.loads(outs[next(iter(commands))])
-            print(f"\nours: {our_scores}")
-            if args.official_culane:
-                official = parse_official_culane(out_file)
-                print(f"official: {official}\nscores: {compare_culane(our_scores, official)}")
+            our_scores = side_by_side(f"CULane, {args.culane_images} images at {CULANE_W}x{CULANE_H}", commands,
+                                      "official: evaluate (C++, OpenMP)" if args.official_culane else None,
+                                      lambda _stdout: parse_official_culane(out_file), compare_culane,
+                                      args.repeats, work)
             if not math.isfinite(our_scores["F1"]):
                 raise RuntimeError("our CULane F1 is not finite")
 
