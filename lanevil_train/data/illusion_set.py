@@ -2,15 +2,20 @@
 
 Output (root/): images/<case>/<variant>.png, labels (TuSimple JSON lines `labels.json`, or CULane
 `.lines.txt` beside each image plus `list/test.txt`), and `manifest.jsonl` (data/formats/manifest.py).
-Resumable: images are written atomically (temp file + rename) before their manifest line, so a rerun
-skips every image the manifest lists and an interruption never leaves a half-written image or line.
+
+Safe to kill at any instant, and a rerun with the same root finishes the set as if nothing had happened:
+- every file is written atomically (data/formats/atomic.py), and a rerun first deletes the temporaries a kill
+  left behind;
+- per image, the image (and its .lines.txt) comes first, then its labels.json line, then its manifest line,
+  each durable before the next, so a manifest line promises everything before it;
+- the manifest is a ResultsLog keyed by image: a rerun cuts a torn last line and skips the images it lists,
+  and `_repair_labels` drops label lines of images the manifest does not list (yet).
 """
 
 from __future__ import annotations
 
 import json
 import os
-import tempfile
 from dataclasses import dataclass
 from multiprocessing import get_context
 from pathlib import Path
@@ -20,11 +25,12 @@ import cv2
 import numpy as np
 
 from lanevil_train.data.formats import load_image, write_culane_lanes
-from lanevil_train.data.formats.atomic import atomic_write_text
-from lanevil_train.data.formats.manifest import ManifestWriter, read_manifest
+from lanevil_train.data.formats.atomic import atomic_write_bytes, atomic_write_text, remove_temporaries
+from lanevil_train.data.formats.manifest import manifest_record, read_manifest
 from lanevil_train.illusions import ILLUSIONS, GroundPlaneError, context_from_lanes, context_from_scene, fallback_context
 from lanevil_train.lanes import default_h_samples, lanes_to_rows
 from lanevil_train.progress import progress_counter
+from lanevil_train.results_log import ResultsLog
 from lanevil_train.sim import build_scene, render_scene, sample_scene_params
 
 
@@ -103,16 +109,11 @@ def case_source(case: Case, plan: Plan):
 
 
 def _write_image(path: Path, image: np.ndarray) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-", suffix=path.suffix)
-    os.close(fd)
-    try:
-        if not cv2.imwrite(tmp, cv2.cvtColor(image, cv2.COLOR_RGB2BGR)):
-            raise OSError(f"cv2 could not write {path}")
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    """Encode an RGB image in memory (format from the suffix) and write it atomically."""
+    ok, encoded = cv2.imencode(path.suffix, cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+    if not ok:
+        raise OSError(f"cv2 could not encode {path}")
+    atomic_write_bytes(path, encoded.tobytes())
 
 
 def render_case(args: tuple[Case, Plan, str, frozenset]) -> list[dict]:
@@ -145,32 +146,41 @@ def build_illusion_set(cases: list[Case], plan: Plan, root: str | Path, workers:
     for name in plan.illusions:
         if name not in ILLUSIONS:
             raise ValueError(f"unknown illusion {name!r}; expected one of: {', '.join(ILLUSIONS)}")
-    manifest_path = root / "manifest.jsonl"
-    done = {r["image"] for r in read_manifest(manifest_path)} if manifest_path.exists() else set()
+    remove_temporaries(root)
+    manifest = ResultsLog(root / "manifest.jsonl", key_field="image")
+    done = manifest.resume()
+    manifest.path.touch()  # a set without images still has its (empty) manifest
     _repair_labels(root, plan, done)
     total = sum(len(variants(c, plan)) for c in cases)
     skipped = len(done)
     jobs = [(case, plan, str(root), frozenset(done)) for case in cases]
     bar = progress_counter(total, skipped, "build", "img", progress)
     written = 0
-    with ManifestWriter(manifest_path) as manifest:
-        for records in _map(render_case, jobs, workers):
-            for record in records:
-                if plan.label_format == "tusimple":
-                    with open(root / "labels.json", "a", encoding="utf-8") as labels:
-                        labels.write(json.dumps(record["label"]) + "\n")
-                manifest.write(record)
-                written += 1
-                bar.update(1)
+    for records in _map(render_case, jobs, workers):
+        for record in records:
+            if plan.label_format == "tusimple":
+                _append_line(root / "labels.json", json.dumps(record["label"]))
+            manifest.append([manifest_record(record)])
+            written += 1
+            bar.update(1)
     bar.close()
     if plan.label_format == "culane":
-        images = [r["image"] for r in read_manifest(manifest_path)]
+        images = [r["image"] for r in read_manifest(manifest.path)]
         atomic_write_text(root / "list" / "test.txt", "".join(f"/{image}\n" for image in images))
     return {"root": str(root), "images": total, "written": written, "skipped": skipped}
 
 
+def _append_line(path: Path, line: str) -> None:
+    """Append one line and fsync it, so it is on disk before the manifest line that promises it."""
+    with open(path, "a", encoding="utf-8") as handle:
+        handle.write(line + "\n")
+        handle.flush()
+        os.fsync(handle.fileno())
+
+
 def _repair_labels(root: Path, plan: Plan, done: set[str]) -> None:
-    """Keep only well-formed label lines of images the manifest lists (an interruption may leave others)."""
+    """Keep only well-formed label lines of images the manifest lists: a kill between an image's label line and
+    its manifest line, or in the middle of a label line, leaves a line the rerun writes again."""
     path = root / "labels.json"
     if plan.label_format != "tusimple" or not path.exists():
         return

@@ -10,8 +10,9 @@ import pytest
 
 import lanevil_train.data.illusion_set as illusion_set
 from lanevil_train.data.formats import read_tusimple
-from lanevil_train.data.formats.manifest import MANIFEST_KEYS, ManifestWriter, read_manifest
+from lanevil_train.data.formats.manifest import MANIFEST_KEYS, manifest_record, read_manifest
 from lanevil_train.data.illusion_set import Plan, build_illusion_set, synthetic_cases
+from lanevil_train.results_log import ResultsLog
 from lanevil_train.sim import render_scene, sample_scene_params
 
 PLAN = Plan(illusions=("fence_shadow", "vehicle"), severities=(1, 5), size=(90, 160))
@@ -21,10 +22,12 @@ def test_manifest_round_trip_and_errors(tmp_path):
     records = [{"image": f"images/a/{i}.png", "source_image": "images/a/0.png", "case_id": "a", "illusion": name,
                 "category": cat, "severity": sev, "seed": i} for i, (name, cat, sev) in
                enumerate([(None, None, 0), ("vehicle", "traffic_obstruction", 3)])]
-    with ManifestWriter(tmp_path / "m.jsonl") as writer:
-        for record in records:
-            writer.write({**record, "extra": "not written"})
+    ResultsLog(tmp_path / "m.jsonl", key_field="image").append(
+        manifest_record({**record, "extra": "not written"}) for record in records)
     assert read_manifest(tmp_path / "m.jsonl") == records
+    assert list(read_manifest(tmp_path / "m.jsonl")[1]) == list(MANIFEST_KEYS)
+    with pytest.raises(ValueError, match=r"missing \['seed'\]"):
+        manifest_record({k: v for k, v in records[0].items() if k != "seed"})
     (tmp_path / "bad.jsonl").write_text(json.dumps(records[0]) + "\n{oops\n")
     with pytest.raises(ValueError, match=r"bad.jsonl:2: malformed JSON"):
         read_manifest(tmp_path / "bad.jsonl")
@@ -78,7 +81,7 @@ def test_resume_after_an_interruption_gives_the_uninterrupted_result(tmp_path, m
         assert a == b, record["image"]
     lines = lambda p: sorted((p / "labels.json").read_text().splitlines())  # noqa: E731
     assert lines(tmp_path / "resumed") == lines(tmp_path / "whole")
-    assert not list((tmp_path / "resumed").rglob(".tmp-*"))  # no half-written image left behind
+    assert not list((tmp_path / "resumed").rglob(".*"))  # no temporary left behind
 
 
 def test_unknown_illusion_is_rejected_before_any_work(tmp_path):
