@@ -57,6 +57,14 @@ def _lane_angles(gt: np.ndarray, ys: np.ndarray) -> np.ndarray:
     return np.where(n > 1, np.arctan(k), 0.0)
 
 
+def _first_non_finite(values: np.ndarray) -> tuple[int, ...] | None:
+    """Index of the first NaN / inf in ``values`` (row-major), or None when all are finite."""
+    finite = np.isfinite(values)
+    if finite.all():
+        return None
+    return tuple(int(i) for i in np.argwhere(~finite)[0])
+
+
 def tusimple_image_scores(
     pred_rows: np.ndarray,
     gt_rows: np.ndarray,
@@ -82,8 +90,16 @@ def tusimple_image_scores(
         )
     if gt.ndim != 2 or gt.shape[1] != h:
         raise ValueError(f"gt_rows must be (G, {h}) (one x per h_sample), got shape {gt.shape}")
-    if not (np.all(np.isfinite(pred)) and np.all(np.isfinite(gt))):
-        raise ValueError("pred_rows / gt_rows contain non-finite values (use -2 for 'no point')")
+    for name, rows in (("pred_rows", pred), ("gt_rows", gt)):
+        bad = _first_non_finite(rows)
+        if bad is not None:
+            j, k = bad
+            raise ValueError(f"{name}: lane {j} has a non-finite x ({rows[j, k]}) at h_sample index {k}; "
+                             f"expected a finite x in pixels, or -2 (any x < 0) for 'no point'")
+    bad = _first_non_finite(ys)
+    if bad is not None:
+        raise ValueError(f"h_samples: non-finite y ({ys[bad[0]]}) at index {bad[0]}; expected finite image rows "
+                         f"in pixels")
     n_pred, n_gt = pred.shape[0], gt.shape[0]
     if n_gt + 2 < n_pred:
         return 0.0, 0.0, 1.0
@@ -165,27 +181,49 @@ def _read_json_lines(path: Path, required: tuple[str, ...]) -> list[tuple[int, d
     return out
 
 
-def _lane_rows(value: object, n_rows: int, path: Path, lineno: int, raw: str, pred: bool) -> np.ndarray:
-    """A JSON line's lanes as an (L, n_rows) float64 array; a bad lane raises naming file, line and lane."""
+def _h_samples(value: object, path: Path, lineno: int, raw: str) -> np.ndarray:
+    """A GT line's h_samples as a 1-D float64 array; raises naming file, line and raw_file unless finite numbers."""
+    where = f"{path}:{lineno}: ground truth h_samples of raw_file {raw!r}"
+    try:
+        ys = np.asarray(value, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{where} must be a list of numbers ({e})") from e
+    bad = _first_non_finite(ys)
+    if bad is not None:
+        raise ValueError(f"{where} has a non-finite y ({ys[bad[0]]}) at index {bad[0]}; expected finite image "
+                         f"rows in pixels")
+    return ys
+
+
+def _lane_rows(value: object, ys: np.ndarray, path: Path, lineno: int, raw: str, pred: bool) -> np.ndarray:
+    """A JSON line's lanes as an (L, len(ys)) float64 array; a bad lane raises naming file, line, side and lane."""
+    n_rows = ys.size
+    side = "prediction" if pred else "ground truth"
     try:
         rows = np.asarray(value, dtype=np.float64)  # one conversion for the usual, well-formed line
     except (TypeError, ValueError):
         rows = None  # ragged or not numbers: the loop below finds the lane
-    if rows is not None and rows.ndim == 2 and rows.shape[1] == n_rows:
-        return rows
     if rows is not None and rows.size == 0 and rows.ndim == 1:
         return np.zeros((0, n_rows))
-    name = "lane" if pred else "GT lane"
-    for j, lane in enumerate(value if isinstance(value, list) else [value]):
-        try:
-            arr = np.asarray(lane, dtype=np.float64)
-        except (TypeError, ValueError) as e:
-            raise ValueError(f"{path}:{lineno}: {name} {j} of {raw!r} must be a list of numbers ({e})") from e
-        if arr.shape != (n_rows,):
-            prefix = "Format of lanes error: " if pred else ""
-            raise ValueError(f"{path}:{lineno}: {prefix}{name} {j} of {raw!r} has {arr.size} x values but "
-                             f"h_samples has {n_rows}")
-    raise ValueError(f"{path}:{lineno}: lanes of {raw!r} must be a list of lists of numbers")
+    if rows is None or rows.ndim != 2 or rows.shape[1] != n_rows:
+        for j, lane in enumerate(value if isinstance(value, list) else [value]):
+            try:
+                arr = np.asarray(lane, dtype=np.float64)
+            except (TypeError, ValueError) as e:
+                raise ValueError(f"{path}:{lineno}: {side} lane {j} of raw_file {raw!r} must be a list of numbers "
+                                 f"({e})") from e
+            if arr.shape != (n_rows,):
+                prefix = "Format of lanes error: " if pred else ""
+                raise ValueError(f"{path}:{lineno}: {prefix}{side} lane {j} of raw_file {raw!r} has {arr.size} x "
+                                 f"values but h_samples has {n_rows}")
+        raise ValueError(f"{path}:{lineno}: {side} lanes of raw_file {raw!r} must be a list of lists of numbers")
+    bad = _first_non_finite(rows)
+    if bad is not None:
+        j, k = bad
+        raise ValueError(f"{path}:{lineno}: {side} lane {j} of raw_file {raw!r} has a non-finite x ({rows[j, k]}) "
+                         f"at h_sample index {k} (y = {ys[k]:g}); expected a finite x in pixels, or -2 for "
+                         f"'no point'")
+    return rows
 
 
 def evaluate_tusimple_files(
@@ -221,9 +259,9 @@ def evaluate_tusimple_files(
     acc = fp = fn = 0.0
     for raw, (pred_line, pred) in preds.items():  # prediction-file order: the official sums in this order
         gt_line, gt = gts[raw]
-        ys = np.asarray(gt["h_samples"], dtype=np.float64).reshape(-1)
-        gt_rows = _lane_rows(gt["lanes"], ys.size, gt_path, gt_line, raw, pred=False)
-        pred_rows = _lane_rows(pred["lanes"], ys.size, pred_path, pred_line, raw, pred=True)
+        ys = _h_samples(gt["h_samples"], gt_path, gt_line, raw)
+        gt_rows = _lane_rows(gt["lanes"], ys, gt_path, gt_line, raw, pred=False)
+        pred_rows = _lane_rows(pred["lanes"], ys, pred_path, pred_line, raw, pred=True)
         a, p, n = tusimple_image_scores(pred_rows, gt_rows, ys, pixel_thresh, pt_thresh)
         acc += a
         fp += p

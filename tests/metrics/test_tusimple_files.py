@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from lanevil_train.lanes import TUSIMPLE_H_SAMPLES, rows_to_lane
-from lanevil_train.metrics import TuSimpleMetric, evaluate_tusimple_files
+from lanevil_train.metrics import TuSimpleMetric, evaluate_tusimple_files, tusimple_image_scores
 from lanevil_train.metrics.__main__ import main
 
 REPO = Path(__file__).resolve().parents[2]
@@ -26,6 +26,12 @@ def _write_lines(path: Path, objs) -> Path:
 def _two_images(tmp_path: Path) -> tuple[Path, Path]:
     """Image a: 2 GT, 2 good preds -> (1, 0, 0). Image b: 2 GT, one good + one far pred ->
     acc 0.5, fp 1/2, fn 1/2. Means: Accuracy .75, FP .25, FN .25; F1 = .75 (P = R = .75)."""
+    pred, gt = _two_image_objects()
+    return _write_lines(tmp_path / "pred.json", pred), _write_lines(tmp_path / "gt.json", gt)
+
+
+def _two_image_objects() -> tuple[list[dict], list[dict]]:
+    """(prediction lines, GT lines) of `_two_images`: predictions b then a, GT a then b."""
     l1, l2 = [300] * 56, [-2] * 10 + [700] * 46
     gt = [
         {"lanes": [l1, l2], "h_samples": YS, "raw_file": "clips/a/20.jpg"},
@@ -36,7 +42,7 @@ def _two_images(tmp_path: Path) -> tuple[Path, Path]:
         {"lanes": [[310] * 56, [-2] * 10 + [712] * 46], "raw_file": "clips/a/20.jpg"},
     ]
     pred[0]["lanes"][1] = [1000] * 56
-    return _write_lines(tmp_path / "pred.json", pred), _write_lines(tmp_path / "gt.json", gt)
+    return pred, gt
 
 
 def test_file_level_hand_computed(tmp_path):
@@ -143,7 +149,8 @@ def test_error_lane_length_and_missing_key(tmp_path):
         {"lanes": [], "raw_file": "clips/a/20.jpg"},
         {"lanes": [[1, 2, 3]], "raw_file": "clips/b/20.jpg"},
     ])
-    with pytest.raises(ValueError, match=r"pred.json:2: Format of lanes error: lane 0 .* 3 x values .* 56"):
+    with pytest.raises(ValueError, match=r"pred.json:2: Format of lanes error: prediction lane 0 of raw_file "
+                                         r"'clips/b/20.jpg' has 3 x values .* 56"):
         evaluate_tusimple_files(pred, gt)
     _write_lines(pred, [{"lanes": []}])
     with pytest.raises(ValueError, match=r"pred.json:1: missing key\(s\) \['raw_file'\]"):
@@ -167,3 +174,79 @@ def test_file_sum_runs_in_prediction_file_order(tmp_path):
     assert forward["Accuracy"] == ((ks[0] / 56 + ks[1] / 56) + ks[2] / 56) / 3
     assert backward["Accuracy"] == ((ks[2] / 56 + ks[1] / 56) + ks[0] / 56) / 3
     assert forward["Accuracy"] != backward["Accuracy"]
+
+
+NON_FINITE = [(float("nan"), "nan"), (float("inf"), "inf"), (float("-inf"), "-inf")]  # JSON NaN, Infinity, -Infinity
+
+
+@pytest.mark.parametrize("value, shown", NON_FINITE)
+def test_error_non_finite_prediction_x_names_file_line_raw_file_and_lane(tmp_path, value, shown):
+    pred, gt = _two_image_objects()
+    pred[0]["lanes"][1][5] = value  # clips/b, line 1 of the prediction file, lane 1, row y = 210
+    pred_path, gt_path = _write_lines(tmp_path / "pred.json", pred), _write_lines(tmp_path / "gt.json", gt)
+    assert "NaN" in pred_path.read_text() or "Infinity" in pred_path.read_text()
+    with pytest.raises(ValueError) as err:
+        evaluate_tusimple_files(pred_path, gt_path)
+    assert str(err.value) == (
+        f"{pred_path}:1: prediction lane 1 of raw_file 'clips/b/20.jpg' has a non-finite x ({shown}) at h_sample "
+        f"index 5 (y = 210); expected a finite x in pixels, or -2 for 'no point'")
+
+
+@pytest.mark.parametrize("value, shown", NON_FINITE)
+def test_error_non_finite_gt_x_names_the_ground_truth_side(tmp_path, value, shown):
+    pred, gt = _two_image_objects()
+    gt[1]["lanes"][0][0] = value  # clips/b, line 2 of the GT file, lane 0, row y = 160
+    pred_path, gt_path = _write_lines(tmp_path / "pred.json", pred), _write_lines(tmp_path / "gt.json", gt)
+    with pytest.raises(ValueError) as err:
+        evaluate_tusimple_files(pred_path, gt_path)
+    assert str(err.value) == (
+        f"{gt_path}:2: ground truth lane 0 of raw_file 'clips/b/20.jpg' has a non-finite x ({shown}) at h_sample "
+        f"index 0 (y = 160); expected a finite x in pixels, or -2 for 'no point'")
+
+
+@pytest.mark.parametrize("value, shown", NON_FINITE)
+def test_error_non_finite_gt_h_samples(tmp_path, value, shown):
+    pred, gt = _two_image_objects()
+    gt[0]["h_samples"] = YS[:3] + [value] + YS[4:]  # clips/a, line 1 of the GT file
+    pred_path, gt_path = _write_lines(tmp_path / "pred.json", pred), _write_lines(tmp_path / "gt.json", gt)
+    with pytest.raises(ValueError) as err:
+        evaluate_tusimple_files(pred_path, gt_path)
+    assert str(err.value) == (
+        f"{gt_path}:1: ground truth h_samples of raw_file 'clips/a/20.jpg' has a non-finite y ({shown}) at index 3; "
+        f"expected finite image rows in pixels")
+    gt[0]["h_samples"] = "rows"
+    _write_lines(gt_path, gt)
+    with pytest.raises(ValueError, match=rf"{gt_path}:1: ground truth h_samples of raw_file 'clips/a/20.jpg' must be "
+                                         r"a list of numbers"):
+        evaluate_tusimple_files(pred_path, gt_path)
+
+
+def test_non_finite_error_through_the_command_line(tmp_path, capsys):
+    pred, gt = _two_image_objects()
+    pred[1]["lanes"][0][55] = float("nan")  # clips/a, line 2 of the prediction file
+    pred_path, gt_path = _write_lines(tmp_path / "pred.json", pred), _write_lines(tmp_path / "gt.json", gt)
+    assert main(["tusimple", "--pred", str(pred_path), "--gt", str(gt_path)]) == 1
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    assert captured.err == (
+        f"error: {pred_path}:2: prediction lane 0 of raw_file 'clips/a/20.jpg' has a non-finite x (nan) at h_sample "
+        f"index 55 (y = 710); expected a finite x in pixels, or -2 for 'no point'\n")
+
+
+def test_image_scores_name_the_non_finite_argument():
+    ys = np.asarray(YS, dtype=float)
+    good = np.full((2, 56), 300.0)
+    bad = good.copy()
+    bad[1, 7] = np.nan
+    with pytest.raises(ValueError) as err:
+        tusimple_image_scores(bad, good, ys)
+    assert str(err.value) == ("pred_rows: lane 1 has a non-finite x (nan) at h_sample index 7; expected a finite x "
+                              "in pixels, or -2 (any x < 0) for 'no point'")
+    bad[1, 7] = -np.inf
+    with pytest.raises(ValueError, match=r"^gt_rows: lane 1 has a non-finite x \(-inf\) at h_sample index 7"):
+        tusimple_image_scores(good, bad, ys)
+    ys_bad = ys.copy()
+    ys_bad[2] = np.inf
+    with pytest.raises(ValueError, match=r"^h_samples: non-finite y \(inf\) at index 2"):
+        tusimple_image_scores(good, good, ys_bad)
+    assert tusimple_image_scores(good, good, ys) == (1.0, 0.0, 0.0)  # valid input still scores
