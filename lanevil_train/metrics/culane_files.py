@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import multiprocessing
 import os
 from concurrent.futures import ProcessPoolExecutor
@@ -18,15 +19,17 @@ IMAGES_PER_WORKER = 250  # below this a worker's start-up (~0.2-0.4 s: numpy + O
 CHUNKS_PER_WORKER = 4  # a few chunks per worker even out uneven images without much pickling
 
 
-def read_lines_file(path: str) -> list[np.ndarray]:
+def read_lines_file(path: str, side: str = "") -> list[np.ndarray]:
     """Lanes of a CULane ``.lines.txt`` like the official reader: one lane per line of "x y x y ..." pairs.
 
     A missing file means no lanes (as in evaluate.cpp); an odd trailing number is ignored like ``ss>>x>>y``;
-    a non-numeric token raises ValueError naming file and line. Blank lines are lanes with 0 points (the C++
-    counts them too).
+    a non-numeric or non-finite token (``nan``, ``inf``, which Python's float() accepts) raises ValueError
+    naming file, line, lane and ``side`` (what the file holds: "prediction", "ground truth"). Blank lines are
+    lanes with 0 points (the C++ counts them too).
     """
     if not os.path.exists(path):
         return []
+    lane = f"{side} lane" if side else "lane"
     lanes = []
     with open(path) as f:
         for lineno, line in enumerate(f, 1):
@@ -34,7 +37,12 @@ def read_lines_file(path: str) -> list[np.ndarray]:
             try:
                 vals = [float(t) for t in tokens]
             except ValueError as e:
-                raise ValueError(f"{path}:{lineno}: expected numbers 'x y x y ...', got {line.strip()!r}") from e
+                raise ValueError(f"{path}:{lineno}: {lane} {lineno - 1}: expected numbers 'x y x y ...', "
+                                 f"got {line.strip()!r}") from e
+            if not all(map(math.isfinite, vals)):
+                bad = next(t for t, v in zip(tokens, vals) if not math.isfinite(v))
+                raise ValueError(f"{path}:{lineno}: {lane} {lineno - 1} has a non-finite coordinate {bad!r}; "
+                                 f"expected finite pixel numbers 'x y x y ...'")
             vals = vals[: len(vals) // 2 * 2]
             lanes.append(np.asarray(vals, np.float64).reshape(-1, 2))
     return lanes
@@ -54,8 +62,8 @@ def count_images(pred_dir: str, gt_dir: str, names: Sequence[str], width: int = 
     tp = fp = fn = 0
     for name in names:
         rel = lines_file_path(name)
-        a, b, c = culane_image_counts(read_lines_file(os.path.join(pred_dir, rel)),
-                                      read_lines_file(os.path.join(gt_dir, rel)),
+        a, b, c = culane_image_counts(read_lines_file(os.path.join(pred_dir, rel), "prediction"),
+                                      read_lines_file(os.path.join(gt_dir, rel), "ground truth"),
                                       width, height, lane_width, iou_threshold)
         tp, fp, fn = tp + a, fp + b, fn + c
     return tp, fp, fn

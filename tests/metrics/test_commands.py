@@ -131,3 +131,28 @@ def test_worker_count_and_lines_path() -> None:
     assert lines_file_path("/driver_23_30frame/05151649_0422.MP4/00000.jpg") == \
         "driver_23_30frame/05151649_0422.MP4/00000.lines.txt"
     assert lines_file_path("a/b.MP4/00000\n") == "a/b.MP4/00000.lines.txt"  # no extension: keep the name
+
+
+def test_tusimple_cli_non_finite_ground_truth(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    pred, gt = _tusimple_files(tmp_path)
+    gt.write_text(gt.read_text().replace("[300, 300, 300", "[300, Infinity, 300", 1))
+    assert main(["tusimple", "--pred", str(pred), "--gt", str(gt)]) == 1
+    err = capsys.readouterr().err
+    assert err == (f"error: {gt}:1: ground truth lane 0 of raw_file 'clips/a/20.jpg' has a non-finite x (inf) at "
+                   f"h_sample index 1 (y = 170); expected a finite x in pixels, or -2 for 'no point'\n")
+
+
+@pytest.mark.parametrize("workers", ["1", "2"])
+def test_culane_cli_non_finite_prediction(tmp_path: Path, capsys: pytest.CaptureFixture, workers: str) -> None:
+    """The message names file, line, lane and side, also when a worker process reads the file."""
+    pred, gt, lst = _culane_tree(tmp_path)
+    bad = pred / lines_file_path(lst.read_text().splitlines()[17])
+    lines = bad.read_text().splitlines()
+    lines[2] = lines[2].replace(" ", " nan ", 1)
+    bad.write_text("\n".join(lines) + "\n")
+    args = ["culane", "--pred-dir", str(pred), "--gt-dir", str(gt), "--list", str(lst), "--workers", workers]
+    assert main(args) == 1
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    assert captured.err == (f"error: {bad}:3: prediction lane 2 has a non-finite coordinate 'nan'; "
+                            f"expected finite pixel numbers 'x y x y ...'\n")

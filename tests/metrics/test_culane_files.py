@@ -83,3 +83,34 @@ def test_reader_matches_official_stream_semantics(tmp_path: Path) -> None:
     assert lanes[2][0].tolist() == [10.5, 20.25]
     assert read_lines_file(str(tmp_path / "missing.lines.txt")) == []
     assert culane_image_counts(lanes, lanes) == (2, 1, 1)  # the 0-point lane is an FP and an FN
+
+
+@pytest.mark.parametrize("token", ["nan", "inf", "-inf", "NaN", "Infinity", "1e999"])
+def test_non_finite_prediction_names_file_line_lane_and_side(tree: tuple[Path, Path, Path], token: str) -> None:
+    pred, gt, lst = tree
+    bad = pred / "driver_1/05/a.lines.txt"
+    bad.write_text(f"104 589 204 450 264 300\n1400 589 {token} 300\n")
+    with pytest.raises(ValueError) as err:
+        evaluate_culane_dirs(str(pred), str(gt), str(lst))
+    assert str(err.value) == (f"{bad}:2: prediction lane 1 has a non-finite coordinate {token!r}; "
+                              f"expected finite pixel numbers 'x y x y ...'")
+
+
+@pytest.mark.parametrize("token", ["nan", "inf"])
+def test_non_finite_ground_truth_names_the_ground_truth_side(tree: tuple[Path, Path, Path], token: str) -> None:
+    pred, gt, lst = tree
+    bad = gt / "driver_1/05/b.lines.txt"  # image b has no prediction file: the GT is still read
+    bad.write_text(f"600 {token} 700 300\n")
+    with pytest.raises(ValueError) as err:
+        evaluate_culane_dirs(str(pred), str(gt), str(lst))
+    assert str(err.value) == (f"{bad}:1: ground truth lane 0 has a non-finite coordinate {token!r}; "
+                              f"expected finite pixel numbers 'x y x y ...'")
+
+
+def test_reader_rejects_non_finite_even_in_the_ignored_odd_tail(tmp_path: Path) -> None:
+    f = tmp_path / "x.lines.txt"
+    f.write_text("1 2 3 4 nan\n")
+    with pytest.raises(ValueError, match=rf"^{f}:1: lane 0 has a non-finite coordinate 'nan'"):
+        read_lines_file(str(f))
+    f.write_text("1 2 3 4 5\n")  # a finite odd tail is still ignored, as by the official reader
+    assert read_lines_file(str(f))[0].tolist() == [[1.0, 2.0], [3.0, 4.0]]
