@@ -18,6 +18,7 @@ attribute has it switched on, so it can add per-image accuracy when it is able t
 
 from __future__ import annotations
 
+import numbers
 from collections import deque
 
 import numpy as np
@@ -32,6 +33,14 @@ from lanevil_train.callbacks.regions import (HAA, LAA, blend_region, choose_plac
 
 MODES = {"aam": (HAA,), "aam++": (HAA, LAA)}
 HARDNESS = ("auto", "accuracy", "loss")
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
 class RegionBank:
@@ -86,11 +95,26 @@ class AttentionAreaMixing(pl.Callback):
             raise ValueError(f"AttentionAreaMixing: mode={mode!r}, expected one of {sorted(MODES)}")
         if hardness not in HARDNESS:
             raise ValueError(f"AttentionAreaMixing: hardness={hardness!r}, expected one of {HARDNESS}")
+        if not isinstance(layer, str) or not layer:
+            raise ValueError(f"AttentionAreaMixing: layer must be the dotted name of a module of the model "
+                             f"(e.g. 'backbone.layer4'), got {layer!r}")
+        if not _is_int(output_index):
+            raise ValueError(f"AttentionAreaMixing: output_index must be an integer (which of the layer's outputs, "
+                             f"when it returns a list), got {output_index!r}")
         # t_haa < t_laa is allowed (the paper's sensitivity grid has T_HAA 0.2 with T_LAA 0.4): the masks overlap
         for name, value in (("t_haa", t_haa), ("t_laa", t_laa), ("beta", beta), ("mix_prob", mix_prob), ("overlap_threshold", overlap_threshold),
                             ("min_area", min_area), ("max_region_fraction", max_region_fraction)):
-            if not 0.0 <= value <= 1.0:
-                raise ValueError(f"AttentionAreaMixing: {name}={value} must be in [0, 1]")
+            if not _is_number(value) or not 0.0 <= value <= 1.0:
+                raise ValueError(f"AttentionAreaMixing: {name} must be a number in [0, 1], got {value!r}")
+        if not _is_number(sigma) or sigma < 0:
+            raise ValueError(f"AttentionAreaMixing: sigma must be a number >= 0 (the blur's std in input pixels; "
+                             f"0: no blur), got {sigma!r}")
+        if not _is_number(lane_width) or not 0.0 < lane_width <= 1.0:
+            raise ValueError(f"AttentionAreaMixing: lane_width must be a fraction of the image width in (0, 1], "
+                             f"got {lane_width!r}")
+        for name, value, low in (("bank_size", bank_size, 1), ("start_step", start_step, 0)):
+            if not _is_int(value) or value < low:
+                raise ValueError(f"AttentionAreaMixing: {name} must be an integer >= {low}, got {value!r}")
         self.layer = layer
         self.mode = mode
         self.kinds = MODES[mode]

@@ -9,6 +9,7 @@ so the ball is eps / std wide in the tensor the model sees.
 
 from __future__ import annotations
 
+import numbers
 from contextlib import nullcontext
 from typing import Any, Callable, Sequence
 
@@ -19,6 +20,14 @@ from lanevil_train.callbacks.adapter import BatchAdapter
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
 def default_loss(module: pl.LightningModule, batch: Any) -> torch.Tensor:
@@ -41,11 +50,22 @@ class PGDAdversarialTraining(pl.Callback):
                  fraction: float = 1.0, mean: Sequence[float] = IMAGENET_MEAN, std: Sequence[float] = IMAGENET_STD,
                  adapter: BatchAdapter | None = None,
                  loss_fn: Callable[[pl.LightningModule, Any], torch.Tensor] | None = None, seed: int = 0):
-        if eps < 0 or step_size <= 0 or steps < 1:
-            raise ValueError(f"PGDAdversarialTraining: need eps >= 0, step_size > 0, steps >= 1; got "
-                             f"eps={eps}, step_size={step_size}, steps={steps}")
-        if not 0.0 <= fraction <= 1.0:
-            raise ValueError(f"PGDAdversarialTraining: fraction={fraction} must be in [0, 1]")
+        if not _is_number(eps) or eps < 0:
+            raise ValueError(f"PGDAdversarialTraining: eps must be a number >= 0 (the L-inf radius, in [0, 1] "
+                             f"pixel units: 4/255 = 0.0157), got {eps!r}")
+        if not _is_number(step_size) or step_size <= 0:
+            raise ValueError(f"PGDAdversarialTraining: step_size must be a number > 0 (in [0, 1] pixel units), "
+                             f"got {step_size!r}")
+        if not _is_int(steps) or steps < 1:
+            raise ValueError(f"PGDAdversarialTraining: steps must be an integer >= 1, got {steps!r}")
+        if not _is_number(fraction) or not 0.0 <= fraction <= 1.0:
+            raise ValueError(f"PGDAdversarialTraining: fraction must be a number in [0, 1] (the share of each "
+                             f"batch replaced), got {fraction!r}")
+        if len(mean) != len(std):
+            raise ValueError(f"PGDAdversarialTraining: mean and std must give one value per channel each, got "
+                             f"{len(mean)} and {len(std)} values")
+        if not all(_is_number(s) and s > 0 for s in std):
+            raise ValueError(f"PGDAdversarialTraining: std must be numbers > 0, got {list(std)!r}")
         self.eps, self.step_size, self.steps = eps, step_size, steps
         self.random_start = random_start
         self.fraction = fraction

@@ -7,6 +7,7 @@ workers. Neither moves or removes lane keypoints: the lane is still there under 
 
 from __future__ import annotations
 
+import numbers
 from typing import Any, Sequence
 
 import albumentations as A
@@ -15,6 +16,10 @@ import numpy as np
 # ImageNet mean in uint8 RGB: a hole of this colour is exactly 0 after `normalize_image`,
 # which is what DeVries & Taylor's cutout does on normalised inputs.
 IMAGENET_MEAN_UINT8 = (124, 116, 104)
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
 def _range(value: Any, name: str, kind: type, low: float, high: float | None) -> tuple:
@@ -44,9 +49,9 @@ class LaneCutout(A.ImageOnlyTransform):
     def __init__(self, num_holes: Sequence[int] | int = (1, 3), hole_height: Sequence[float] | float = (0.1, 0.3),
                  hole_width: Sequence[float] | float = (0.1, 0.3), fill: Sequence[float] | float = IMAGENET_MEAN_UINT8,
                  p: float = 0.5):
+        if not _is_number(p) or not 0.0 <= p <= 1.0:
+            raise ValueError(f"LaneCutout: p must be a probability in [0, 1], got {p!r}")
         super().__init__(p=p)
-        if not 0.0 <= p <= 1.0:
-            raise ValueError(f"LaneCutout: p must be a probability in [0, 1], got {p}")
         self.num_holes = _range(num_holes, "num_holes", int, 1, None)
         self.hole_height = _range(hole_height, "hole_height", float, 0.0, 1.0)
         self.hole_width = _range(hole_width, "hole_width", float, 0.0, 1.0)
@@ -105,9 +110,9 @@ def hsv_jitter(hue: float = 20, saturation: float = 40, value: float = 40, p: fl
     p=0.8 jitters most images while leaving some clean ones, as illusions (tints, glare, dusk)
     change colour and brightness far more than the mild default jitter does.
     """
-    for name, limit in (("hue", hue), ("saturation", saturation), ("value", value)):
-        if limit < 0:
-            raise ValueError(f"hsv_jitter: {name} must be a non-negative shift limit, got {limit}")
-    if not 0.0 <= p <= 1.0:
-        raise ValueError(f"hsv_jitter: p must be a probability in [0, 1], got {p}")
+    for name, limit, high in (("hue", hue, 180), ("saturation", saturation, 255), ("value", value, 255)):
+        if not _is_number(limit) or not 0 <= limit <= high:
+            raise ValueError(f"hsv_jitter: {name} must be a shift limit in [0, {high}], got {limit!r}")
+    if not _is_number(p) or not 0.0 <= p <= 1.0:
+        raise ValueError(f"hsv_jitter: p must be a probability in [0, 1], got {p!r}")
     return A.HueSaturationValue(hue_shift_limit=hue, sat_shift_limit=saturation, val_shift_limit=value, p=p)

@@ -9,6 +9,7 @@ Inputs are not modified: changed items are shallow copies with new arrays.
 
 from __future__ import annotations
 
+import numbers
 import os
 
 import cv2
@@ -48,9 +49,13 @@ class _SeededMixer:
         return state
 
 
+def _is_number(value) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
 def _check_probability(p: float, owner: str) -> float:
-    if not 0.0 <= p <= 1.0:
-        raise ValueError(f"{owner}: p must be a probability in [0, 1], got {p}")
+    if not _is_number(p) or not 0.0 <= p <= 1.0:
+        raise ValueError(f"{owner}: p must be a probability in [0, 1], got {p!r}")
     return float(p)
 
 
@@ -79,8 +84,8 @@ class MixUp(_SeededMixer):
 
     def __init__(self, alpha: float = 0.2, p: float = 0.5, seed: int | None = None):
         super().__init__(seed)
-        if not alpha > 0:
-            raise ValueError(f"MixUp: alpha must be > 0 (Beta(alpha, alpha)), got {alpha}")
+        if not _is_number(alpha) or not alpha > 0:
+            raise ValueError(f"MixUp: alpha must be a number > 0 (lambda ~ Beta(alpha, alpha)), got {alpha!r}")
         self.alpha = float(alpha)
         self.p = _check_probability(p, "MixUp")
 
@@ -154,11 +159,15 @@ class LaneCopyPaste(_SeededMixer):
                  max_paste: int = 1, seed: int | None = None):
         super().__init__(seed)
         self.p = _check_probability(p, "LaneCopyPaste")
-        if band < 0 or min_gap < band:
-            raise ValueError(f"LaneCopyPaste: need 0 <= band <= min_gap (a pasted band must not cover a "
+        for name, value in (("band", band), ("min_gap", min_gap)):
+            if not _is_number(value) or value < 0:
+                raise ValueError(f"LaneCopyPaste: {name} must be a number of input pixels >= 0, got {value!r}")
+        if min_gap < band:
+            raise ValueError(f"LaneCopyPaste: need band <= min_gap (a pasted band must not cover a "
                              f"labelled lane), got band={band}, min_gap={min_gap}")
-        if max_lanes < 1 or max_paste < 1:
-            raise ValueError(f"LaneCopyPaste: max_lanes and max_paste must be >= 1, got {max_lanes}, {max_paste}")
+        for name, value in (("max_lanes", max_lanes), ("max_paste", max_paste)):
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
+                raise ValueError(f"LaneCopyPaste: {name} must be an integer >= 1, got {value!r}")
         self.band = float(band)
         self.min_gap = float(min_gap)
         self.max_lanes = int(max_lanes)

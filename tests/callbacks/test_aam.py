@@ -176,6 +176,21 @@ def test_bad_layer_and_bad_parameters_are_named():
         BatchAdapter(images="pixels").images({"images": torch.zeros(1, 3, 4, 4)})
 
 
+@pytest.mark.parametrize("argument, value, expected", [
+    ("layer", "", "layer must be the dotted name of a module"),
+    ("output_index", 0.5, "output_index must be an integer"),
+    ("t_haa", "0.6", r"t_haa must be a number in \[0, 1\], got '0.6'"),
+    ("beta", -0.1, r"beta must be a number in \[0, 1\], got -0.1"),
+    ("sigma", -1.0, "sigma must be a number >= 0"),
+    ("lane_width", 0.0, r"lane_width must be a fraction of the image width in \(0, 1\], got 0.0"),
+    ("bank_size", 0, "bank_size must be an integer >= 1, got 0"),
+    ("start_step", -1, "start_step must be an integer >= 0, got -1"),
+])
+def test_each_bad_argument_is_named_with_its_range(argument, value, expected):
+    with pytest.raises(ValueError, match=f"AttentionAreaMixing: {expected}"):
+        make_callback(**{argument: value})
+
+
 def test_mixed_precision_bf16_still_banks_regions():
     module, callback = TinySegmenter(), make_callback()
     fit(module, callback, steps=4, precision="bf16-mixed")

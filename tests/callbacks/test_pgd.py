@@ -71,6 +71,20 @@ def test_default_loss_uses_the_module_batch_loss_or_training_step():
         PGDAdversarialTraining(eps=-1.0)
 
 
+@pytest.mark.parametrize("arguments, expected", [
+    ({"eps": -1.0}, "eps must be a number >= 0"),
+    ({"step_size": 0.0}, "step_size must be a number > 0 "),
+    ({"steps": 0}, "steps must be an integer >= 1, got 0"),
+    ({"steps": 1.5}, "steps must be an integer >= 1, got 1.5"),
+    ({"fraction": 1.5}, r"fraction must be a number in \[0, 1\]"),
+    ({"mean": (0.5,)}, "mean and std must give one value per channel each, got 1 and 3"),
+    ({"std": (0.2, 0.0, 0.2)}, "std must be numbers > 0"),
+])
+def test_each_bad_argument_is_named_with_its_range(arguments, expected):
+    with pytest.raises(ValueError, match=f"PGDAdversarialTraining: {expected}"):
+        PGDAdversarialTraining(**arguments)
+
+
 def test_pgd_in_a_lightning_fit_under_bf16():
     from torch.utils.data import DataLoader, TensorDataset
 

@@ -93,6 +93,8 @@ def test_cutout_rejects_bad_arguments():
         LaneCutout(num_holes=(3, 1))
     with pytest.raises(ValueError, match="fill"):
         LaneCutout(fill=(1, 2))
+    with pytest.raises(ValueError, match=r"LaneCutout: p must be a probability in \[0, 1\], got 1.5"):
+        LaneCutout(p=1.5)
 
 
 def test_hsv_jitter_changes_colour_deterministically_and_keeps_lanes():
@@ -109,5 +111,7 @@ def test_hsv_jitter_changes_colour_deterministically_and_keeps_lanes():
     assert np.abs(outs[0].astype(int) - image.astype(int)).mean() > 3  # visibly changed
     t = hsv_jitter()
     assert t.hue_shift_limit == (-20, 20) and t.sat_shift_limit == (-40, 40) and t.p == 0.8
-    with pytest.raises(ValueError, match="value"):
+    with pytest.raises(ValueError, match=r"hsv_jitter: value must be a shift limit in \[0, 255\], got -1"):
         hsv_jitter(value=-1)
+    with pytest.raises(ValueError, match=r"hsv_jitter: hue must be a shift limit in \[0, 180\], got 'a'"):
+        hsv_jitter(hue="a")
