@@ -7,6 +7,11 @@ import subprocess
 import sys
 from pathlib import Path
 
+import cv2
+
+from lanevil_train.lanes import default_h_samples
+from lanevil_train.sim import render_scene
+
 REPO = Path(__file__).resolve().parents[2]
 
 TINY = [
@@ -34,3 +39,16 @@ def run_cli(args: list[str], run_dir: Path, timeout: int = 600,
     if proc.returncode != 0:
         raise AssertionError(f"{' '.join(cmd)} failed ({proc.returncode}):\n{proc.stdout[-4000:]}\n{proc.stderr[-6000:]}")
     return proc
+
+
+def write_photo_dataset(root: Path, names: list[str]) -> list[dict]:
+    """Simulated scenes saved as JPEG files at root/<name> (a stand-in for a folder of photos); their records."""
+    records = []
+    for i, name in enumerate(names):
+        sample = render_scene(100 + i, width=320, height=180)
+        path = root / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(path), cv2.cvtColor(sample["image"], cv2.COLOR_RGB2BGR))
+        records.append({"raw_file": name, "rel_path": name, "image_path": path, "lanes": sample["lanes"],
+                        "h_samples": default_h_samples(180)})
+    return records

@@ -4,33 +4,17 @@ from __future__ import annotations
 
 import json
 
-import cv2
-
 from lanevil_train.data.formats import write_culane, write_tusimple
-from lanevil_train.lanes import default_h_samples
-from lanevil_train.sim import render_scene
 from lanevil_train.tasks.scoring import read_records
-from tests.tasks.cli_helpers import run_cli
+from tests.tasks.cli_helpers import run_cli, write_photo_dataset
 
 COMMON = ["data.input_size=[64,160]", "data.batch_size=2", "data.num_workers=0", "trainer.accelerator=cpu",
           "progress=none", "trainer.fast_dev_run=true"]
 
 
-def _write_images(root, names: list[str]) -> list[dict]:
-    records = []
-    for i, name in enumerate(names):
-        sample = render_scene(100 + i, width=320, height=180)
-        path = root / name
-        path.parent.mkdir(parents=True, exist_ok=True)
-        cv2.imwrite(str(path), cv2.cvtColor(sample["image"], cv2.COLOR_RGB2BGR))
-        records.append({"raw_file": name, "rel_path": name, "image_path": path, "lanes": sample["lanes"],
-                        "h_samples": default_h_samples(180)})
-    return records
-
-
 def test_train_on_a_tusimple_folder(tmp_path):
     root = tmp_path / "tusimple"
-    records = _write_images(root, [f"clips/0530/{i}/20.jpg" for i in range(4)])
+    records = write_photo_dataset(root, [f"clips/0530/{i}/20.jpg" for i in range(4)])
     write_tusimple(records[:2], root / "train.json")
     write_tusimple(records[2:], root / "test.json")
     run_dir = tmp_path / "run"
@@ -44,7 +28,7 @@ def test_train_on_a_tusimple_folder(tmp_path):
 
 def test_train_on_a_culane_folder(tmp_path):
     root = tmp_path / "culane"
-    records = _write_images(root, [f"driver_00_01frame/05151640_0419.MP4/{i:05d}.jpg" for i in range(4)])
+    records = write_photo_dataset(root, [f"driver_00_01frame/05151640_0419.MP4/{i:05d}.jpg" for i in range(4)])
     write_culane(records[:2], root, root / "list" / "train_gt.txt")
     write_culane(records[2:], root, root / "list" / "test.txt")
     run_dir = tmp_path / "run"

@@ -17,6 +17,7 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from lanevil_train.data.formats.atomic import atomic_write_text
+from lanevil_train.data.formats.images import image_file_problem
 from lanevil_train.lanes import as_lane
 
 __all__ = ["read_culane", "read_culane_lanes", "write_culane_lanes", "write_culane", "lines_path_for"]
@@ -100,8 +101,10 @@ def read_culane(
                 raise ValueError(f"{where}: lane existence flags must be 0/1, got {tokens[2:]}")
             record["mask_path"] = _join(root, tokens[1])
             record["exist"] = exist
-        if check_images and not record["image_path"].is_file():
-            raise FileNotFoundError(f"{where}: image {record['image_path']} not found")
+        problem = image_file_problem(record["image_path"]) if check_images else None
+        if problem is not None:
+            error = FileNotFoundError if problem == "not found" else ValueError
+            raise error(f"{where}: image {record['image_path']} {problem}")
         lines_path = lines_path_for(record["image_path"])
         record["lines_path"] = lines_path
         if lines_path.is_file():

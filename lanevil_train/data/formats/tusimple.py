@@ -15,6 +15,7 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from lanevil_train.data.formats.atomic import atomic_write_text
+from lanevil_train.data.formats.images import image_file_problem
 from lanevil_train.data.formats.jsonl import read_json_objects
 from lanevil_train.lanes import INVALID_X, TUSIMPLE_H_SAMPLES, as_lane, lane_x_at, rows_to_lane
 
@@ -74,8 +75,10 @@ def read_tusimple(
                 if len(lane) or keep_empty:
                     lanes.append(lane)
             image_path = root / obj["raw_file"]
-            if check_images and not image_path.is_file():
-                raise FileNotFoundError(f"{where}: image {image_path} (raw_file {obj['raw_file']!r}) not found")
+            problem = image_file_problem(image_path) if check_images else None
+            if problem is not None:
+                error = FileNotFoundError if problem == "not found" else ValueError
+                raise error(f"{where}: image {image_path} (raw_file {obj['raw_file']!r}) {problem}")
             records.append(
                 {"raw_file": obj["raw_file"], "image_path": image_path, "lanes": lanes, "h_samples": ys,
                  "source": where}
