@@ -16,6 +16,15 @@ from lanevil_train.lanes import default_h_samples
 from lanevil_train.sim import render_scene
 
 
+class EmptySplitError(ValueError):
+    """A dataset that would hold no samples. `argument` names the dataset argument at fault (label_files,
+    list_file, num_scenes), so a caller that knows the config key (data.train ...) can name the key to change."""
+
+    def __init__(self, message: str, argument: str | None = None):
+        super().__init__(message)
+        self.argument = argument
+
+
 class SyntheticLaneDataset(Dataset):
     """Scenes rendered by the simulator: scene i is seed first_seed + i, so a split is a seed range.
 
@@ -26,7 +35,7 @@ class SyntheticLaneDataset(Dataset):
     def __init__(self, num_scenes: int, first_seed: int = 0, size: tuple[int, int] = (720, 1280),
                  cache: bool = False):
         if num_scenes < 1:
-            raise ValueError(f"num_scenes must be >= 1, got {num_scenes}")
+            raise EmptySplitError(f"a split of simulated scenes needs num_scenes >= 1, got {num_scenes}", "num_scenes")
         if len(size) != 2 or min(size) < 16:
             raise ValueError(f"size must be (H, W) with both >= 16, got {size}")
         self.num_scenes = int(num_scenes)
@@ -61,7 +70,10 @@ class SyntheticLaneDataset(Dataset):
 
 
 class _RecordDataset(Dataset):
-    """Samples from format records {"image_path", "lanes", ...}: the image is read when asked for."""
+    """Samples from format records {"image_path", "lanes", "source", ...}: the image is read when asked for.
+
+    A record's "source" is the label file and line it came from; a bad image is reported with it.
+    """
 
     def __init__(self, records: list[dict]):
         self.records = records
@@ -76,7 +88,10 @@ class _RecordDataset(Dataset):
 
     def __getitem__(self, index: int) -> dict:
         record = self.records[index]
-        image = load_image(record["image_path"])
+        try:
+            image = load_image(record["image_path"])
+        except (FileNotFoundError, ValueError) as error:
+            raise type(error)(f"{record.get('source', 'record %d' % index)}: {error}") from None
         h_samples = record.get("h_samples")
         if h_samples is None:
             h_samples = default_h_samples(image.shape[0])
@@ -91,7 +106,13 @@ class TuSimpleDataset(_RecordDataset):
     def __init__(self, root: str | Path, label_files: list[str] | str, check_images: bool = True):
         root = Path(root)
         files = [label_files] if isinstance(label_files, (str, Path)) else list(label_files)
-        super().__init__(read_tusimple([root / f for f in files], root, check_images=check_images))
+        if not files:
+            raise EmptySplitError("no TuSimple label file given (label_files is an empty list)", "label_files")
+        paths = [root / f for f in files]
+        super().__init__(read_tusimple(paths, root, check_images=check_images))
+        if not self.records:
+            raise EmptySplitError(f"the TuSimple label file(s) {', '.join(map(str, paths))} list no images",
+                                  "label_files")
 
 
 class CULaneDataset(_RecordDataset):
@@ -100,3 +121,5 @@ class CULaneDataset(_RecordDataset):
     def __init__(self, root: str | Path, list_file: str | Path, check_images: bool = True):
         root = Path(root)
         super().__init__(read_culane(root / list_file, root, check_images=check_images))
+        if not self.records:
+            raise EmptySplitError(f"the CULane list file {root / list_file} lists no images", "list_file")

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 from torch.utils.data import Dataset
 
+from lanevil_train.data.datasets import EmptySplitError
 from lanevil_train.data.formats import load_image, read_culane, read_tusimple
 from lanevil_train.data.formats.manifest import read_manifest
 from lanevil_train.data.illusion_set import Plan, case_source, synthetic_cases, variants
@@ -26,6 +27,9 @@ class IllusionSetDataset(Dataset):
     def __init__(self, root: str | Path):
         self.root = Path(root)
         self.manifest = read_manifest(self.root / "manifest.jsonl")
+        if not self.manifest:
+            raise EmptySplitError(f"the illusion set's manifest {self.root / 'manifest.jsonl'} lists no images "
+                                  f"(an empty set; task=build writes one)", "root")
         if (self.root / "labels.json").exists():
             labels = {str(r["raw_file"]): r for r in read_tusimple(self.root / "labels.json", self.root)}
         else:
@@ -44,13 +48,31 @@ class IllusionSetDataset(Dataset):
     def __getitem__(self, index: int) -> dict:
         entry = self.manifest[index]
         label = self.labels[entry["image"]]
-        image = load_image(self.root / entry["image"])
+        try:
+            image = load_image(self.root / entry["image"])
+        except (FileNotFoundError, ValueError) as error:
+            raise type(error)(f"{label['source']}: {error}") from None
         h_samples = label.get("h_samples")
         meta = {k: entry[k] for k in _VARIANT_KEYS}
         meta.update(key=entry["image"], image_path=str(self.root / entry["image"]), height=image.shape[0],
                     width=image.shape[1], h_samples=np.asarray(h_samples if h_samples is not None
                                                                else default_h_samples(image.shape[0]), float))
         return {"image": image, "lanes": label["lanes"], "meta": meta}
+
+
+def _check_suite_arguments(num_cases: int, names: tuple, severities, repeats: int) -> None:
+    """A clear error naming the argument for a suite that would be empty or name what does not exist."""
+    if not isinstance(num_cases, int) or num_cases < 1:
+        raise EmptySplitError(f"num_cases (scenes) must be an integer >= 1, got {num_cases!r}", "num_cases")
+    unknown = [name for name in names if name not in ILLUSIONS]
+    if unknown or not names:
+        raise ValueError(f"illusions: expected 'all' or a non-empty list of illusion names from "
+                         f"{', '.join(ILLUSIONS)}; unknown: {unknown or 'an empty list'}")
+    bad = [s for s in severities if not isinstance(s, int) or not 1 <= s <= 5]
+    if bad or not severities:
+        raise ValueError(f"severities: expected a non-empty list of integers 1..5, got {list(severities)}")
+    if not isinstance(repeats, int) or repeats < 1:
+        raise ValueError(f"repeats: expected an integer >= 1, got {repeats!r}")
 
 
 class SyntheticIllusionSuite(Dataset):
@@ -63,6 +85,7 @@ class SyntheticIllusionSuite(Dataset):
     def __init__(self, num_cases: int, first_seed: int, size: tuple[int, int] = (720, 1280),
                  illusions: str | list[str] = "all", severities: tuple[int, ...] = (1, 2, 3, 4, 5), repeats: int = 1):
         names = tuple(ILLUSIONS) if illusions == "all" else tuple(illusions)
+        _check_suite_arguments(num_cases, names, severities, repeats)
         self.plan = Plan(illusions=names, severities=tuple(severities), repeats=repeats, size=tuple(size))
         self.items = [(case, record) for case in synthetic_cases(num_cases, first_seed)
                       for record in variants(case, self.plan)]

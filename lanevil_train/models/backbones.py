@@ -16,6 +16,8 @@ import timm
 import torch
 from torch import nn
 
+from lanevil_train.checkpoints import load_checkpoint_file
+
 SUPPORTED_BACKBONES: tuple[str, ...] = ("resnet18", "resnet34", "resnet50", "resnet101", "vgg16")
 
 # Prefixes that wrappers put in front of backbone keys (DataParallel, Lightning, our detector).
@@ -52,18 +54,14 @@ def build_backbone(
 
 def _read_state_dict(path: Path) -> dict[str, torch.Tensor]:
     """Read a state dict file: a plain dict of tensors or one wrapped as {"state_dict": ...}."""
-    if not path.is_file():
-        raise FileNotFoundError(f"backbone checkpoint {str(path)!r} does not exist")
-    try:
-        obj = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # noqa: BLE001 - re-raised with the file name
-        raise ValueError(f"backbone checkpoint {str(path)!r} could not be read as a torch state dict: {exc}") from exc
+    obj = load_checkpoint_file(path, "backbone.checkpoint")
     for key in ("state_dict", "model", "model_state_dict"):
         if isinstance(obj, dict) and key in obj and isinstance(obj[key], dict):
             obj = obj[key]
             break
     if not isinstance(obj, dict) or not all(isinstance(v, torch.Tensor) for v in obj.values()):
-        raise ValueError(f"backbone checkpoint {str(path)!r}: expected a dict of tensors (a state dict)")
+        raise ValueError(f"backbone.checkpoint={path}: expected a dict of tensors (a state dict), or one under "
+                         f"'state_dict' / 'model' / 'model_state_dict'")
     return dict(obj)
 
 

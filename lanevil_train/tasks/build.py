@@ -4,12 +4,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from hydra.utils import instantiate
 from omegaconf import DictConfig
 
 from lanevil_train.data.illusion_set import Plan, build_illusion_set, dataset_cases, synthetic_cases
 from lanevil_train.illusions import ILLUSIONS
-from lanevil_train.tasks.builders import output_dir
+from lanevil_train.tasks.builders import build_split, output_dir
 
 
 def build(cfg: DictConfig) -> None:
@@ -18,10 +17,12 @@ def build(cfg: DictConfig) -> None:
     names = tuple(ILLUSIONS) if task.illusions == "all" else tuple(task.illusions)
     root = Path(task.out_dir) if task.out_dir else output_dir(cfg) / "illusion_set"
     if cfg.data.name == "synthetic":
+        if task.cases < 1:
+            raise ValueError(f"task.cases: building from simulated scenes needs task.cases >= 1, got {task.cases}")
         cases = synthetic_cases(task.cases, cfg.data.test.first_seed, task.frames)
         size = tuple(cfg.data.test.size)
     else:
-        records = instantiate(cfg.data.test).records
+        records = build_split(cfg, "test").records  # an empty test split is refused here, naming its files
         cases = dataset_cases(records[: task.cases] if task.cases else records)
         size = (720, 1280)  # unused for photos
     plan = Plan(illusions=names, severities=tuple(task.severities), repeats=task.repeats, size=size,

@@ -5,10 +5,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytorch_lightning as pl
+from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from lanevil_train.data.datamodule import LaneDataModule
+from lanevil_train.data.datasets import EmptySplitError
 from lanevil_train.models.detector import LaneDetector
 
 # The parts of a config that define the network; stored in every checkpoint so that
@@ -24,25 +26,42 @@ def model_config(cfg: DictConfig) -> dict:
     return out
 
 
-def read_checkpoint(path: str | Path, option: str) -> dict:
-    """A Lightning checkpoint from disk (on CPU); errors name the option that gave the path."""
-    import torch
+def instantiate_at(node, key: str, **kwargs):
+    """instantiate(node, **kwargs), where any error names the config key `key` the node came from.
 
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{option}={path}: no such checkpoint file")
-    checkpoint = torch.load(path, map_location="cpu", weights_only=False)
-    if not isinstance(checkpoint, dict) or "state_dict" not in checkpoint:
-        raise ValueError(f"{option}={path}: not a Lightning checkpoint (no 'state_dict')")
-    return checkpoint
+    Hydra wraps a constructor's error in its own exception; the user gets the constructor's message prefixed
+    with the key instead (e.g. "defense.callback: beta must be in [0, 1], got 2.0"), as a FileNotFoundError,
+    ValueError or TypeError like the original. An empty dataset names the argument to change too:
+    "data.test.label_files: the test split is empty: ...".
+    """
+    try:
+        return instantiate(node, **kwargs)
+    except InstantiationException as error:
+        cause = error.__cause__ or error
+        if isinstance(cause, EmptySplitError):
+            split = key.rsplit(".", 1)[-1]
+            raise EmptySplitError(f"{key}.{cause.argument}: the {split} split is empty: {cause}",
+                                  cause.argument) from None
+        if str(cause).startswith(key):  # the message names the key already (e.g. backbone.checkpoint=...)
+            raise cause from None
+        kind = next((t for t in (FileNotFoundError, ValueError, TypeError) if isinstance(cause, t)), RuntimeError)
+        raise kind(f"{key}: {cause}") from cause
+
+
+def build_split(cfg: DictConfig, split: str):
+    """The dataset data.<split> configures, read and checked now (an empty split is an error naming its key)."""
+    node = cfg.data.get(split)
+    if node is None:
+        raise ValueError(f"data.{split}: this run needs a {split} split, and data={cfg.data.name} configures none")
+    return instantiate_at(node, f"data.{split}")
 
 
 def build_model(spec: dict) -> LaneDetector:
     """A LaneDetector from a model_config() dict."""
-    backbone = instantiate(spec["backbone"])
+    backbone = instantiate_at(spec["backbone"], "backbone")
     model = spec["model"]
-    head = instantiate(model["head"], in_channels=backbone.channels[-1], feature_stride=backbone.strides[-1],
-                       image_size=tuple(spec["input_size"]))
+    head = instantiate_at(model["head"], "model.head", in_channels=backbone.channels[-1],
+                          feature_stride=backbone.strides[-1], image_size=tuple(spec["input_size"]))
     opt = model.get("optimizer", {})
     detector = LaneDetector(backbone, head, lr=opt.get("lr", 3e-4), weight_decay=opt.get("weight_decay", 0.0),
                             scheduler=model.get("scheduler", "cosine"), decode=model.get("decode"),
@@ -62,9 +81,9 @@ def build_defense(cfg: DictConfig) -> dict:
     if unknown:
         raise ValueError(f"defense={defense.name}: unknown keys {sorted(unknown)}; a defense config has "
                          f"name, transforms, mixer and callback")
-    transforms = [instantiate(node) for node in (defense.get("transforms") or [])]
-    mixer = instantiate(defense.mixer) if defense.get("mixer") is not None else None
-    callback = instantiate(defense.callback) if defense.get("callback") is not None else None
+    transforms = [instantiate_at(node, f"defense.transforms[{i}]") for i, node in enumerate(defense.get("transforms") or [])]
+    mixer = instantiate_at(defense.mixer, "defense.mixer") if defense.get("mixer") is not None else None
+    callback = instantiate_at(defense.callback, "defense.callback") if defense.get("callback") is not None else None
     return {"transforms": transforms, "mixer": mixer, "callback": callback}
 
 
@@ -78,13 +97,13 @@ def build_datamodule(cfg: DictConfig, splits: tuple[str, ...], model: LaneDetect
     defense = defense or {}
     # data.train_transforms: the user's own training-set transforms (e.g. illusions in the training scenes,
     # as the paper's LanEvil training set has), applied before the defense's
-    transforms = [instantiate(node) for node in (cfg.data.get("train_transforms") or [])]
+    transforms = [instantiate_at(node, f"data.train_transforms[{i}]")
+                  for i, node in enumerate(cfg.data.get("train_transforms") or [])]
     transforms += list(defense.get("transforms") or [])
     spec = model.build_config
-    sets = {}
-    for split in ("train", "val", "test"):
-        node = cfg.data.get(split)
-        sets[split] = instantiate(node) if split in splits and node is not None else None
+    # every split the run uses is read (labels parsed, image files checked) here, before any training step
+    sets = {split: build_split(cfg, split) if split in splits and cfg.data.get(split) is not None else None
+            for split in ("train", "val", "test")}
     return LaneDataModule(sets["train"], sets["val"], sets["test"], input_size=tuple(spec["input_size"]),
                           batch_size=cfg.data.batch_size, num_workers=cfg.data.num_workers,
                           augment=cfg.data.augment, encode=model.head.encode, crop_top=spec.get("crop_top", 0.0),
@@ -101,7 +120,7 @@ def build_callbacks(cfg: DictConfig) -> list[pl.Callback]:
         if not OmegaConf.is_dict(node) or not node.get("_target_"):
             raise ValueError(f"callbacks.{name}: expected a mapping with a _target_ naming a Lightning callback "
                              f"class, got {OmegaConf.to_container(node) if OmegaConf.is_config(node) else node!r}")
-        callback = instantiate(node)
+        callback = instantiate_at(node, f"callbacks.{name}")
         if not isinstance(callback, pl.Callback):
             raise ValueError(f"callbacks.{name}: {node._target_} built a {type(callback).__name__}, not a "
                              f"pytorch_lightning Callback")
@@ -132,7 +151,7 @@ def build_logger(cfg: DictConfig):
         import os
 
         os.environ.setdefault("WANDB_MODE", "offline")
-    return instantiate(cfg.logger)
+    return instantiate_at(cfg.logger, "logger")
 
 
 def output_dir(cfg: DictConfig) -> Path:

@@ -9,13 +9,13 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytorch_lightning as pl
-from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
+from lanevil_train.checkpoints import fit_weights, read_lightning_checkpoint
 from lanevil_train.data.suites import IllusionSetDataset, SyntheticIllusionSuite
 from lanevil_train.models.detector import LaneDetector
 from lanevil_train.report.specs import LANE_SPEC
-from lanevil_train.tasks.builders import build_logger, build_model, model_config, output_dir, read_checkpoint
+from lanevil_train.tasks.builders import build_logger, build_model, build_split, model_config, output_dir
 from lanevil_train.tasks.results import log_results, write_results
 from lanevil_train.tasks.scoring import RESULTS, read_records
 from lanevil_train.tasks.streaming import stream_evaluate
@@ -25,10 +25,10 @@ def load_checkpoint(cfg: DictConfig) -> LaneDetector:
     """The checkpoint's network with its weights; decoding overridable with task.decode.*."""
     if cfg.ckpt_path is None:
         raise ValueError("task=evaluate needs ckpt_path=/path/to/checkpoint.ckpt")
-    checkpoint = read_checkpoint(cfg.ckpt_path, "ckpt_path")
+    checkpoint = read_lightning_checkpoint(cfg.ckpt_path, "ckpt_path")
     spec = checkpoint.get("lanevil_model") or model_config(cfg)
     model = build_model(spec)
-    model.load_state_dict(checkpoint["state_dict"])
+    fit_weights(model, checkpoint["state_dict"], f"ckpt_path={cfg.ckpt_path}")
     # decoding is post-processing, not the network: task.decode.* overrides what the checkpoint used
     overrides = OmegaConf.to_container(cfg.task.decode, resolve=True)
     model.decode_kwargs.update({key: value for key, value in overrides.items() if value is not None})
@@ -40,17 +40,23 @@ def test_dataset(cfg: DictConfig):
     or a set written by task=build (task.suite=/path/to/set)."""
     suite = cfg.task.suite
     if suite is None:
-        return instantiate(cfg.data.test), cfg.data.name
+        return build_split(cfg, "test"), cfg.data.name
     if suite == "synthetic":
         return synthetic_suite(cfg), "synthetic-illusions"
-    return IllusionSetDataset(suite), Path(suite).name
+    try:
+        return IllusionSetDataset(suite), Path(suite).name
+    except (FileNotFoundError, ValueError) as error:
+        raise type(error)(f"task.suite={suite}: {error}") from None
 
 
 def synthetic_suite(cfg: DictConfig) -> SyntheticIllusionSuite:
     """The on-the-fly illusion suite, from data.test's seeds when data=synthetic (else the defaults)."""
     test = cfg.data.test if cfg.data.name == "synthetic" else {"first_seed": 1000000, "size": [720, 1280]}
-    return SyntheticIllusionSuite(cfg.task.cases, test["first_seed"], tuple(test["size"]), cfg.task.illusions,
-                                  tuple(cfg.task.severities), cfg.task.repeats)
+    try:
+        return SyntheticIllusionSuite(cfg.task.cases, test["first_seed"], tuple(test["size"]), cfg.task.illusions,
+                                      tuple(cfg.task.severities), cfg.task.repeats)
+    except ValueError as error:
+        raise ValueError(f"task.suite=synthetic: {error}") from None
 
 
 def evaluate(cfg: DictConfig) -> float:
@@ -71,7 +77,7 @@ def cross_domain(cfg: DictConfig) -> float:
     pl.seed_everything(cfg.seed, workers=True)
     model = load_checkpoint(cfg)
     out = Path(cfg.task.out_dir) if cfg.task.out_dir else output_dir(cfg)
-    real = _stream(cfg, model, instantiate(cfg.data.test), cfg.data.name, out / cfg.data.name)
+    real = _stream(cfg, model, build_split(cfg, "test"), cfg.data.name, out / cfg.data.name)
     suite = _stream(cfg, model, synthetic_suite(cfg), "synthetic-illusions", out / "synthetic-illusions")
     write_results([real, suite], out, baseline=cfg.task.baseline)
     log_results(build_logger(cfg), out)

@@ -8,8 +8,11 @@ from pathlib import Path
 import pytorch_lightning as pl
 from omegaconf import DictConfig
 
+from lanevil_train.checkpoints import load_weights
 from lanevil_train.tasks.builders import (build_callbacks, build_datamodule, build_defense, build_model, build_trainer,
-                                          model_config, output_dir, read_checkpoint)
+                                          model_config, output_dir)
+from lanevil_train.tasks.evaluate import stream_dataset, test_dataset
+from lanevil_train.tasks.results import write_results
 from lanevil_train.tasks.scoring import RESULTS, PerImageWriter, score_test_set
 
 
@@ -23,11 +26,17 @@ def train(cfg: DictConfig) -> float | None:
     pl.seed_everything(cfg.seed, workers=True)
     out = output_dir(cfg)
     model = build_model(model_config(cfg))
-    if cfg.task.get("init_from") and cfg.ckpt_path is None:
-        init_weights(model, Path(cfg.task.init_from))
+    # a checkpoint to resume (ckpt_path) or to start from (task.init_from) is read and fitted to the network now,
+    # so a corrupt file or another network is reported before any data is read or any step runs
+    # (task.init_from: its weights only, to fine-tune; ckpt_path: Lightning then restores the whole training state)
+    if cfg.ckpt_path is not None:
+        load_weights(model, cfg.ckpt_path, "ckpt_path")
+    elif cfg.task.get("init_from"):
+        load_weights(model, cfg.task.init_from, "task.init_from")
     defense = build_defense(cfg)
     splits = ("train", "val", "test") if cfg.task.test_after_fit else ("train", "val")
     datamodule = build_datamodule(cfg, splits, model, defense)
+    suite = test_dataset(cfg) if cfg.task.get("suite") is not None else None  # read and checked before training
     callbacks = build_callbacks(cfg)
     writer = PerImageWriter(out / RESULTS, {"model": run_label(cfg), "dataset": cfg.data.name})
     callbacks.append(writer)
@@ -38,19 +47,9 @@ def train(cfg: DictConfig) -> float | None:
     result = None
     if cfg.task.test_after_fit:
         result = score_test_set(trainer, model, datamodule, writer)
-    if cfg.task.get("suite") is not None and trainer.is_global_zero:
-        result = score_robustness(cfg, model, out / "robustness")
+    if suite is not None and trainer.is_global_zero:
+        result = score_robustness(cfg, model, suite, out / "robustness")
     return result
-
-
-def init_weights(model, path: Path) -> None:
-    """Start from a trained checkpoint's weights (not its optimizer or step): fine-tuning with a defense."""
-    state = read_checkpoint(path, "task.init_from")
-    try:
-        model.load_state_dict(state["state_dict"])
-    except RuntimeError as error:
-        raise ValueError(f"task.init_from={path}: its weights do not fit this run's network "
-                         f"(model/backbone/input size must match the checkpoint's): {error}") from error
 
 
 def run_label(cfg: DictConfig) -> str:
@@ -61,11 +60,8 @@ def run_label(cfg: DictConfig) -> str:
     return name if cfg.defense.name == "none" else f"{name}+{cfg.defense.name}"
 
 
-def score_robustness(cfg: DictConfig, model, out: Path) -> float:
-    """Stream the trained model over task.suite into `out` (resumable); the perturbed Accuracy (%)."""
-    from lanevil_train.tasks.evaluate import stream_dataset, test_dataset
-    from lanevil_train.tasks.results import write_results
-
-    dataset, dataset_name = test_dataset(cfg)
+def score_robustness(cfg: DictConfig, model, suite, out: Path) -> float:
+    """Stream the trained model over the task.suite dataset into `out` (resumable); the perturbed Accuracy (%)."""
+    dataset, dataset_name = suite
     results = stream_dataset(cfg, model, dataset, dataset_name, out, run_label(cfg))
     return write_results([results], out, baseline=cfg.task.get("baseline"))

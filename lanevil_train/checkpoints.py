@@ -1,0 +1,89 @@
+"""Reading checkpoint files safely, with errors that name the option that gave the file.
+
+Every option that takes a checkpoint (`ckpt_path`, `task.init_from`, `backbone.checkpoint`) reads it here.
+Files are loaded with `torch.load(weights_only=True)`: tensors and plain values only, never arbitrary
+pickled objects, since unpickling an untrusted file can run code. A file that is not a readable
+checkpoint (random bytes, empty, truncated, or holding Python objects) is a `CheckpointError` saying what
+is wrong with it; torch's own message is not passed on, because it advises loading the file unsafely.
+"""
+
+from __future__ import annotations
+
+import re
+import zipfile
+from pathlib import Path
+
+_UNSAFE_GLOBAL = re.compile(r"Unsupported global: GLOBAL ([\w.]+)")
+_ZIP_MAGIC = b"PK\x03\x04"  # torch.save (since torch 1.6) writes a zip archive
+
+
+class CheckpointError(ValueError):
+    """A checkpoint option names a file that is not a readable checkpoint."""
+
+
+def load_checkpoint_file(path: str | Path, option: str) -> object:
+    """The object saved in `path` (on the CPU); `option` names where the path came from, e.g. "ckpt_path"."""
+    import torch
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{option}={path}: no such checkpoint file")
+    if path.stat().st_size == 0:
+        raise CheckpointError(f"{option}={path}: not a readable checkpoint: the file is empty (0 bytes)")
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as error:  # noqa: BLE001 - every failure becomes one clear message below
+        raise CheckpointError(f"{option}={path}: not a readable checkpoint: {_reason(path, error)}") from None
+
+
+def _reason(path: Path, error: Exception) -> str:
+    """What is wrong with the file, in words: from its layout (torch.save writes a zip archive) and torch's error."""
+    size = path.stat().st_size
+    unsafe = _UNSAFE_GLOBAL.search(str(error))
+    if unsafe:
+        return (f"it holds a pickled Python object ({unsafe.group(1)}), and only tensors and plain values are "
+                f"loaded from checkpoint files (unpickling objects can run code); save the weights as a state dict "
+                f"(torch.save(model.state_dict(), path)) or a Lightning checkpoint")
+    with open(path, "rb") as handle:
+        starts_like_zip = handle.read(4) == _ZIP_MAGIC
+    if starts_like_zip and not zipfile.is_zipfile(path):
+        return (f"it is truncated ({size} bytes: it starts like a torch.save archive but its end is missing; an "
+                f"interrupted save or copy leaves such a file)")
+    if starts_like_zip:
+        return f"it is corrupt ({size} bytes: a zip archive whose content torch.load cannot read)"
+    return f"its content is not a torch.save file ({size} bytes); expected a Lightning .ckpt or a torch.save file"
+
+
+def read_lightning_checkpoint(path: str | Path, option: str) -> dict:
+    """A Lightning checkpoint (a dict with a 'state_dict'), read safely; errors name `option` and the file."""
+    checkpoint = load_checkpoint_file(path, option)
+    if not isinstance(checkpoint, dict) or "state_dict" not in checkpoint:
+        raise CheckpointError(f"{option}={path}: not a Lightning checkpoint (no 'state_dict'); expected a .ckpt "
+                              f"file written by task=train (e.g. <run>/checkpoints/last.ckpt)")
+    return checkpoint
+
+
+def load_weights(model, path: str | Path, option: str) -> dict:
+    """Read the Lightning checkpoint at `path` and load its weights into `model`; returns the checkpoint."""
+    checkpoint = read_lightning_checkpoint(path, option)
+    fit_weights(model, checkpoint["state_dict"], f"{option}={path}")
+    return checkpoint
+
+
+def fit_weights(model, state_dict: dict, where: str) -> None:
+    """Load `state_dict` into `model`; weights of another network (model, backbone or input size) are an error
+    starting with `where` that counts the missing, unexpected and differently shaped weights."""
+    import torch
+
+    own = model.state_dict()
+    missing = [k for k in own if k not in state_dict]
+    unexpected = [k for k in state_dict if k not in own]
+    reshaped = [f"{k} {tuple(v.shape)} vs {tuple(own[k].shape)}" for k, v in state_dict.items()
+                if k in own and isinstance(v, torch.Tensor) and v.shape != own[k].shape]
+    if missing or unexpected or reshaped:
+        parts = [f"{len(names)} {what} (first: {', '.join(names[:3])})"
+                 for names, what in ((missing, "missing"), (unexpected, "unexpected"), (reshaped, "of another shape"))
+                 if names]
+        raise CheckpointError(f"{where}: its weights do not fit this run's network (model, backbone and input size "
+                              f"must match the checkpoint's): weights {'; '.join(parts)}")
+    model.load_state_dict(state_dict)

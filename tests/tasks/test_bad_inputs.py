@@ -1,0 +1,167 @@
+"""Bad inputs found before any long work: empty splits, unreadable checkpoints, each error naming its key and file.
+
+Every test here fails if `Trainer.fit` is reached: the mistake must be reported before a training step runs.
+"""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+import pytorch_lightning as pl
+import torch
+from hydra import compose, initialize_config_module
+
+from lanevil_train.checkpoints import CheckpointError
+from lanevil_train.data.datasets import EmptySplitError
+from lanevil_train.data.formats import write_culane, write_tusimple
+from lanevil_train.tasks.build import build
+from lanevil_train.tasks.builders import build_model, model_config
+from lanevil_train.tasks.evaluate import evaluate
+from lanevil_train.tasks.train import train
+from tests.tasks.cli_helpers import TINY, write_photo_dataset
+
+
+@pytest.fixture(autouse=True)
+def no_training(monkeypatch):
+    def fit(*args, **kwargs):
+        raise AssertionError("Trainer.fit ran: the bad input was not found before training")
+
+    monkeypatch.setattr(pl.Trainer, "fit", fit)
+
+
+def _config(tmp_path, *overrides):
+    """The tiny test config with `overrides`; the simulated-scene settings only when no other data= is chosen."""
+    tiny = TINY if not any(o.startswith("data=") for o in overrides) else \
+        [o for o in TINY if not o.startswith(("data.train.", "data.val.", "data.test."))]
+    with initialize_config_module(config_module="lanevil_train.conf", version_base="1.3"):
+        return compose(config_name="config",
+                       overrides=[*tiny, "logger=none", f"output_dir={tmp_path / 'run'}", *overrides])
+
+
+def _tusimple(tmp_path, train_lines: int, test_lines: int):
+    root = tmp_path / "tusimple"
+    records = write_photo_dataset(root, [f"clips/{i}/20.jpg" for i in range(4)])
+    write_tusimple(records[:train_lines], root / "train.json")
+    write_tusimple(records[2:2 + test_lines], root / "test.json")
+    return root, ["data=tusimple", f"data.root={root}", "data.num_workers=0", "data.input_size=[64,160]",
+                  "data.train.label_files=[train.json]", "data.val.label_files=[train.json]",
+                  "data.test.label_files=[test.json]"]
+
+
+@pytest.mark.parametrize("split", ["train", "test"])
+def test_an_empty_tusimple_split_is_refused_before_training(tmp_path, split):
+    root, data = _tusimple(tmp_path, train_lines=0 if split == "train" else 2, test_lines=0 if split == "test" else 2)
+    with pytest.raises(EmptySplitError) as error:
+        train(_config(tmp_path, *data))
+    message = str(error.value)
+    assert message.startswith(f"data.{split}.label_files: the {split} split is empty")
+    assert str(root / f"{split}.json") in message and "list no images" in message
+
+
+def test_an_empty_culane_list_is_refused_before_training(tmp_path):
+    root = tmp_path / "culane"
+    records = write_photo_dataset(root, [f"d/v.MP4/{i:05d}.jpg" for i in range(2)])
+    write_culane(records, root, root / "list" / "train_gt.txt")
+    (root / "list" / "test.txt").write_text("\n")  # a blank line only
+    cfg = _config(tmp_path, "data=culane", f"data.root={root}", "data.num_workers=0", "data.input_size=[64,160]",
+                  "data.val.list_file=list/train_gt.txt")
+    with pytest.raises(EmptySplitError, match=r"^data\.test\.list_file: the test split is empty: the CULane list "
+                                              rf"file {root / 'list' / 'test.txt'} lists no images"):
+        train(cfg)
+
+
+def test_zero_simulated_scenes_name_the_key(tmp_path):
+    with pytest.raises(EmptySplitError, match=r"^data\.val\.num_scenes: the val split is empty: .*got 0"):
+        train(_config(tmp_path, "data.val.num_scenes=0"))
+
+
+def test_an_empty_illusion_suite_is_refused_before_training(tmp_path):
+    suite = tmp_path / "set"
+    suite.mkdir()
+    (suite / "manifest.jsonl").write_text("")
+    (suite / "labels.json").write_text("")
+    with pytest.raises(EmptySplitError, match=rf"^task\.suite={suite}: the illusion set's manifest .*lists no images"):
+        train(_config(tmp_path, f"task.suite={suite}"))
+
+
+def test_build_refuses_an_empty_source(tmp_path):
+    root, data = _tusimple(tmp_path, train_lines=2, test_lines=0)
+    out = tmp_path / "set"
+    with pytest.raises(EmptySplitError, match=rf"^data\.test\.label_files: the test split is empty: .*{root / 'test.json'}"):
+        build(_config(tmp_path, "task=build", f"task.out_dir={out}", *data))
+    assert not out.exists()
+    with pytest.raises(ValueError, match=r"^task\.cases: .*>= 1, got 0"):
+        build(_config(tmp_path, "task=build", f"task.out_dir={out}", "task.cases=0"))
+    assert not out.exists()
+
+
+# -- checkpoints ----------------------------------------------------------------------------------------------------
+
+class Unsafe:
+    """A class torch.load(weights_only=True) refuses to unpickle."""
+
+
+def _bad_checkpoint(tmp_path, kind: str):
+    """A file that is not a readable checkpoint: random bytes, a real checkpoint cut in half, or a pickled object."""
+    path = tmp_path / f"{kind}.ckpt"
+    if kind == "random":
+        path.write_bytes(os.urandom(4096))
+    elif kind == "truncated":
+        model = build_model(model_config(_config(tmp_path)))
+        torch.save({"state_dict": model.state_dict(), "global_step": 3}, path)
+        path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    else:  # a checkpoint holding a pickled Python object: refused, never loaded unsafely
+        torch.save({"state_dict": {}, "extra": Unsafe()}, path)
+    return path
+
+
+REASONS = {"random": "its content is not a torch.save file", "truncated": "it is truncated",
+           "object": "it holds a pickled Python object (tests.tasks.test_bad_inputs.Unsafe)"}
+
+
+def _assert_refused(error, option: str, path, kind: str) -> None:
+    message = str(error.value)
+    assert message.startswith(f"{option}={path}: not a readable checkpoint: {REASONS[kind]}"), message
+    assert "weights_only" not in message and error.value.__cause__ is None  # torch's unsafe advice is not passed on
+
+
+@pytest.mark.parametrize("kind", ["random", "truncated", "object"])
+def test_evaluate_ckpt_path_that_is_not_a_checkpoint(tmp_path, kind):
+    path = _bad_checkpoint(tmp_path, kind)
+    with pytest.raises(CheckpointError) as error:
+        evaluate(_config(tmp_path, "task=evaluate", f"ckpt_path={path}"))
+    _assert_refused(error, "ckpt_path", path, kind)
+
+
+@pytest.mark.parametrize("option", ["ckpt_path", "task.init_from"])
+@pytest.mark.parametrize("kind", ["random", "truncated"])
+def test_train_checkpoint_options_that_are_not_checkpoints(tmp_path, option, kind):
+    path = _bad_checkpoint(tmp_path, kind)
+    with pytest.raises(CheckpointError) as error:
+        train(_config(tmp_path, f"{option}={path}"))
+    _assert_refused(error, option, path, kind)
+
+
+@pytest.mark.parametrize("kind", ["random", "truncated"])
+def test_backbone_checkpoint_that_is_not_a_checkpoint(tmp_path, kind):
+    path = _bad_checkpoint(tmp_path, kind)
+    with pytest.raises(CheckpointError) as error:
+        train(_config(tmp_path, f"backbone.checkpoint={path}"))
+    _assert_refused(error, "backbone.checkpoint", path, kind)
+
+
+def test_a_checkpoint_of_another_network_names_the_option(tmp_path):
+    path = tmp_path / "r34.ckpt"
+    model = build_model(model_config(_config(tmp_path, "backbone=resnet34")))
+    torch.save({"state_dict": model.state_dict()}, path)
+    with pytest.raises(CheckpointError, match=rf"^task\.init_from={path}: its weights do not fit this run's network "
+                                              r".*: weights 96 unexpected \(first: backbone\.layer1\.2\.conv1\.weight"):
+        train(_config(tmp_path, f"task.init_from={path}"))
+
+
+def test_an_empty_checkpoint_file(tmp_path):
+    path = tmp_path / "empty.ckpt"
+    path.write_bytes(b"")
+    with pytest.raises(CheckpointError, match=rf"^ckpt_path={path}: not a readable checkpoint: the file is empty"):
+        train(_config(tmp_path, f"ckpt_path={path}"))
