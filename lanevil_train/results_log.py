@@ -28,7 +28,8 @@ class ResultsLog:
             return set()
         data = self.path.read_bytes()
         if data and not data.endswith(b"\n"):
-            self.path.write_bytes(data[: data.rfind(b"\n") + 1])
+            # truncate in place: a kill during this step leaves the file whole or cut at its last full line
+            os.truncate(self.path, data.rfind(b"\n") + 1)
         return {record[self.key_field] for record in self.records()}
 
     def append(self, records: Iterable[dict]) -> None:

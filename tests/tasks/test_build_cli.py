@@ -20,11 +20,11 @@ def test_build_task_writes_and_then_skips(tmp_path):
 
 def test_build_from_tusimple_and_culane_folders(tmp_path):
     from lanevil_train.data.formats import read_culane, read_tusimple, write_culane, write_tusimple
-    from tests.tasks.test_real_formats_cli import _write_images
+    from tests.tasks.cli_helpers import write_photo_dataset
 
     common = ["task=build", "task.illusions=[vehicle]", "task.severities=[2,4]", "task.workers=0", "progress=none"]
     tusimple = tmp_path / "tusimple"
-    write_tusimple(_write_images(tusimple, [f"clips/a/{i}/20.jpg" for i in range(2)]), tusimple / "test.json")
+    write_tusimple(write_photo_dataset(tusimple, [f"clips/a/{i}/20.jpg" for i in range(2)]), tusimple / "test.json")
     out = tmp_path / "tusimple_set"
     run_cli([*common, "data=tusimple", f"data.root={tusimple}", "data.test.label_files=[test.json]",
              f"task.out_dir={out}"], tmp_path / "run1")
@@ -34,7 +34,7 @@ def test_build_from_tusimple_and_culane_folders(tmp_path):
     assert {r["case_id"] for r in manifest} == {"clips/a/0/20.jpg", "clips/a/1/20.jpg"}
 
     culane = tmp_path / "culane"
-    write_culane(_write_images(culane, [f"driver_1/v.MP4/{i:05d}.jpg" for i in range(2)]), culane, culane / "list" / "test.txt")
+    write_culane(write_photo_dataset(culane, [f"driver_1/v.MP4/{i:05d}.jpg" for i in range(2)]), culane, culane / "list" / "test.txt")
     out = tmp_path / "culane_set"
     run_cli([*common, "data=culane", f"data.root={culane}", f"task.out_dir={out}"], tmp_path / "run2")
     records = read_culane(out / "list" / "test.txt", out)

@@ -53,10 +53,10 @@ def test_evaluate_on_the_synthetic_illusion_suite_resumes_in_place(tmp_path):
 
 def test_cross_domain_scores_a_real_folder_beside_the_suite(tmp_path):
     from lanevil_train.data.formats import write_tusimple
-    from tests.tasks.test_real_formats_cli import _write_images
+    from tests.tasks.cli_helpers import write_photo_dataset
 
     root = tmp_path / "tusimple"
-    write_tusimple(_write_images(root, [f"clips/x/{i}/20.jpg" for i in range(2)]), root / "test.json")
+    write_tusimple(write_photo_dataset(root, [f"clips/x/{i}/20.jpg" for i in range(2)]), root / "test.json")
     train_dir = tmp_path / "train"
     run_cli([*TINY, "trainer.max_steps=1", "trainer.limit_val_batches=0", "task.test_after_fit=false"], train_dir)
     out = tmp_path / "xd"
