@@ -9,6 +9,8 @@ import pytest
 
 from lanevil_train.data.datasets import CULaneDataset, TuSimpleDataset
 from lanevil_train.data.formats import load_image, read_culane, read_tusimple, write_culane, write_tusimple
+from lanevil_train.data.illusion_set import Plan, build_illusion_set, synthetic_cases
+from lanevil_train.data.suites import IllusionSetDataset
 from tests.tasks.cli_helpers import write_photo_dataset
 
 SPOILERS = {"empty": (b"", "is empty (0 bytes)"),
@@ -67,3 +69,15 @@ def test_load_image_reads_a_good_file_and_names_a_missing_one(tusimple):
     assert image.dtype == np.uint8 and image.shape == (180, 320, 3) and image.std() > 5
     with pytest.raises(FileNotFoundError, match=rf"^image {tusimple / 'nope.jpg'} not found$"):
         load_image(tusimple / "nope.jpg")
+
+
+def test_an_illusion_set_image_spoilt_after_the_build_is_named_with_its_label_line(tmp_path):
+    plan = Plan(illusions=("vehicle",), severities=(2,), size=(72, 128))
+    build_illusion_set(synthetic_cases(1, 1000), plan, tmp_path, progress="none")
+    dataset = IllusionSetDataset(tmp_path)
+    assert [dataset.item_key(i) for i in range(len(dataset))] == [
+        "images/sim-0001000-f0/original.png", "images/sim-0001000-f0/vehicle_s2_r0.png"]
+    image = tmp_path / "images/sim-0001000-f0/vehicle_s2_r0.png"
+    image.write_text("not a png")
+    with pytest.raises(ValueError, match=rf"^{tmp_path / 'labels.json'}:2: image {image} is not an image"):
+        dataset[1]
