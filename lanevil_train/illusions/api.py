@@ -23,7 +23,9 @@ def apply_illusion(image: np.ndarray, lanes: list[np.ndarray], name: str, severi
 
     The ground plane comes from `context` when given (a simulated scene: `context_from_scene`),
     otherwise it is recovered from the lanes (`context_from_lanes(lanes, image_size, **recover_kwargs)`:
-    lane_width, camera_height, hfov_deg ...). The lanes themselves never change.
+    lane_width, camera_height, hfov_deg ...). The lanes themselves never change. Lanes that give no ground
+    plane raise GroundPlaneError, also a lane outside the image (named as `lanes[i]`, see
+    recover.LANE_X_MARGIN_FRAC); with a `context` the lanes are not used.
     """
     check_image(image)
     illusion = get_illusion(name)

@@ -40,6 +40,14 @@ MIN_ANGLE_DEG = 1.0            # lines closer in image direction than this count
 MAX_PITCH_DEG = 30.0           # |pitch| beyond this is implausible for a road camera
 MAX_YAW_DEG = 45.0             # |yaw| beyond this too (and outside Camera's valid range)
 SHOULDER_M = 1.0               # asphalt beyond the outermost recovered lane
+# How far lane points may lie outside the image, as a fraction of its width / height. CULane's ground
+# truth extends each lane's spline to the bottom row, so x there can be far outside the image
+# (negative at the left, beyond the width at the right; an outer lane several hundred pixels out);
+# y stays within the rows (CULane writes y = 590 on its 590-row images, so the edge itself counts).
+# Beyond these margins, or with no point inside the image at all, a lane is taken as given in other
+# pixel coordinates (another image size, x and y swapped) and rejected.
+LANE_X_MARGIN_FRAC = 1.0       # x in [-width, 2 * width]
+LANE_Y_MARGIN_FRAC = 0.02      # y in [-2 %, 102 %] of the height
 _TRIAL_HEIGHT = 1.0            # camera height used for back-projection before scaling
 _MARKING = "white_solid"       # the marking assumed for every recovered lane (type is unknown)
 
@@ -98,14 +106,44 @@ def _road(center_x: float, offsets: np.ndarray, shoulder: float = SHOULDER_M) ->
 
 
 # ----------------------------------------------------------------------------- lane fitting
-def _usable_lanes(lanes: list[np.ndarray], h: int) -> list[np.ndarray]:
-    """Finite points of each lane, y descending; lanes too short to fit are dropped."""
+def _check_in_image(i: int, pts: np.ndarray, h: int, w: int) -> None:
+    """Raise GroundPlaneError unless lane i's points (N, 2) lie in the h x w image (within the margins)."""
+    if len(pts) == 0:
+        return
+    x, y = pts[:, 0], pts[:, 1]
+    mx, my = LANE_X_MARGIN_FRAC * w, LANE_Y_MARGIN_FRAC * h
+    inside = (x >= 0) & (x <= w) & (y >= 0) & (y <= h)
+    far = (x < -mx) | (x > w + mx) | (y < -my) | (y > h + my)
+    if not inside.any():
+        problem, bad = f"none of its {len(pts)} points lies in the image ({w} wide, {h} high): they", pts
+    elif far.any():
+        problem, bad = (f"{int(far.sum())} of its {len(pts)} points lie too far outside the image ({w} wide, "
+                        f"{h} high): those"), pts[far]
+    else:
+        return
+    raise GroundPlaneError(
+        f"lanes[{i}]: {problem} span x {bad[:, 0].min():.1f}..{bad[:, 0].max():.1f}, y {bad[:, 1].min():.1f}.."
+        f"{bad[:, 1].max():.1f}; expected (x, y) pixels of this image: at least one point in x 0..{w}, y 0..{h} "
+        f"and every point within x {-mx:g}..{w + mx:g}, y {-my:g}..{h + my:g}. Are the lanes for another image "
+        f"size, or (y, x) pairs?")
+
+
+def _usable_lanes(lanes: list[np.ndarray], h: int, w: int) -> list[np.ndarray]:
+    """Points of each lane, y descending; lanes too short to fit are dropped. Raises on a lane with
+    non-finite coordinates or outside the image (see LANE_X_MARGIN_FRAC)."""
     out = []
     for i, lane in enumerate(lanes):
         arr = np.asarray(lane, dtype=np.float64)
         if arr.ndim != 2 or arr.shape[1] != 2:
             raise ValueError(f"lanes[{i}]: expected an (N, 2) array of (x, y) points, got shape {arr.shape}")
-        arr = arr[np.all(np.isfinite(arr), axis=1) & (arr[:, 0] != INVALID_X)]  # drops TuSimple's x = -2
+        finite = np.isfinite(arr)
+        if not finite.all():
+            k = int(np.argmin(finite.all(axis=1)))
+            raise ValueError(f"lanes[{i}]: point {k} is ({arr[k, 0]}, {arr[k, 1]}); expected finite (x, y) pixel "
+                             f"coordinates (leave a row without a point out, or give x = {INVALID_X:g} as TuSimple "
+                             f"does)")
+        arr = arr[arr[:, 0] != INVALID_X]  # drops TuSimple's x = -2 ("no point on this row")
+        _check_in_image(i, arr, h, w)
         arr = arr[np.argsort(-arr[:, 1], kind="stable")]
         if len(arr) >= MIN_LANE_POINTS and arr[0, 1] - arr[-1, 1] >= MIN_LANE_SPAN_FRAC * h:
             out.append(arr)
@@ -189,7 +227,9 @@ def context_from_lanes(lanes: list[np.ndarray], image_size: tuple[int, int], lan
     image_size is (height, width). Pitch and yaw come from the lanes' vanishing point, the lateral
     offsets from back-projection; lane_width fixes the scale (camera height follows), or with
     lane_width=None camera_height does. lane_offsets holds the usable lanes only (too short ones are
-    dropped), sorted left to right. Raises GroundPlaneError when the lanes give no ground plane.
+    dropped), sorted left to right. Raises GroundPlaneError when the lanes give no ground plane, also
+    when a lane lies outside the image (beyond LANE_X_MARGIN_FRAC / LANE_Y_MARGIN_FRAC, or with no point
+    inside it), and ValueError when a lane has non-finite coordinates.
     """
     h, w = _check_size(image_size)
     wet = _check_wet(wet)
@@ -202,7 +242,7 @@ def context_from_lanes(lanes: list[np.ndarray], image_size: tuple[int, int], lan
         raise ValueError(f"camera_height: expected a height in [0.2, 20] metres, got {camera_height!r}")
     if not isinstance(lanes, (list, tuple)):
         raise ValueError(f"lanes: expected a list of (N, 2) arrays, got {type(lanes).__name__}")
-    usable = _usable_lanes(list(lanes), h)
+    usable = _usable_lanes(list(lanes), h, w)
     if len(usable) < 2:
         raise GroundPlaneError(
             f"lanes: need at least 2 usable lanes (>= {MIN_LANE_POINTS} points spanning >= "

@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 from lanevil_train.illusions.context import IllusionContext, context_from_scene
+from lanevil_train.illusions import apply_illusion, apply_illusions
 from lanevil_train.illusions.recover import (
-    GroundPlaneError, context_from_lanes, fallback_context,
+    LANE_X_MARGIN_FRAC, LANE_Y_MARGIN_FRAC, GroundPlaneError, context_from_lanes, fallback_context,
 )
 from lanevil_train.lanes import TUSIMPLE_H_SAMPLES, lanes_to_rows, rows_to_lane
 from lanevil_train.sim import SceneParams, build_scene
@@ -241,3 +242,105 @@ def test_noisy_annotations_stay_close():
     ctx = context_from_lanes(noisy, (720, 1280), lane_width=3.5)
     assert abs(ctx.camera.pitch_deg - 3.0) < 0.3 and abs(ctx.camera.yaw_deg - 2.0) < 0.3
     np.testing.assert_allclose(ctx.lane_offsets, offsets, atol=0.05 * 3.5)
+
+
+# ----------------------------------------------------------------------------- lanes outside the image
+EXPECTED_PIXELS = ("expected (x, y) pixels of this image: at least one point in x 0..1280, y 0..720 and every point "
+                   "within x -1280..2560, y -14.4..734.4. Are the lanes for another image size, or (y, x) pairs?")
+
+
+def _line(slope, ys=np.arange(710.0, 399.0, -10.0)):
+    """A straight lane x = 640 + slope * (y - 300): lines of different slopes meet at (640, 300)."""
+    return np.stack([640.0 + slope * (ys - 300.0), ys], axis=1)
+
+
+def _three_lanes():
+    """Three lanes of 32 points (rows 710..400) inside a 1280x720 image; the first spans x 148..520."""
+    return [_line(s) for s in (-1.2, 0.1, 1.2)]
+
+
+def _raises_everywhere(lanes, message):
+    """context_from_lanes, apply_illusion and apply_illusions all raise GroundPlaneError(message)."""
+    image = np.full((720, 1280, 3), 90, np.uint8)
+    calls = [lambda: context_from_lanes(lanes, (720, 1280)),
+             lambda: apply_illusion(image, lanes, "vehicle", 3),
+             lambda: apply_illusion(image, lanes, "rail_shadow", 5),
+             lambda: apply_illusions(image, lanes, [("fence_shadow", 2), ("vehicle", 2)])]
+    for call in calls:
+        with pytest.raises(GroundPlaneError) as err:
+            call()
+        assert str(err.value) == message
+
+
+def test_the_lanes_of_these_tests_are_fine():
+    ctx = context_from_lanes(_three_lanes(), (720, 1280))
+    assert ctx.camera.pitch_deg == pytest.approx(math.degrees(math.atan2(ctx.camera.cy - 300.0, ctx.camera.fy)))
+    assert len(ctx.lane_offsets) == 3
+
+
+def test_lanes_all_below_the_image_are_rejected():
+    lanes = [lane + [0.0, 720.0] for lane in _three_lanes()]  # rows 1120..1430 of a 720-row image
+    _raises_everywhere(lanes, "lanes[0]: none of its 32 points lies in the image (1280 wide, 720 high): they span "
+                              "x 148.0..520.0, y 1120.0..1430.0; " + EXPECTED_PIXELS)
+
+
+def test_lanes_all_right_of_the_image_are_rejected():
+    lanes = [lane + [1280.0, 0.0] for lane in _three_lanes()]
+    _raises_everywhere(lanes, "lanes[0]: none of its 32 points lies in the image (1280 wide, 720 high): they span "
+                              "x 1428.0..1800.0, y 400.0..710.0; " + EXPECTED_PIXELS)
+
+
+def test_one_lane_outside_is_named_when_the_others_are_fine():
+    lanes = _three_lanes()
+    lanes[2] = lanes[2] * 2.0  # lanes[2] in the pixels of a twice larger image: wholly outside
+    _raises_everywhere(lanes, "lanes[2]: none of its 32 points lies in the image (1280 wide, 720 high): they span "
+                              "x 1520.0..2264.0, y 800.0..1420.0; " + EXPECTED_PIXELS)
+    lanes = _three_lanes()
+    lanes[1] = lanes[1] * [1.0, 1.5]  # starts in the image, ends 700 rows below it
+    _raises_everywhere(lanes, "lanes[1]: 23 of its 32 points lie too far outside the image (1280 wide, 720 high): "
+                              "those span x 659.0..681.0, y 735.0..1065.0; " + EXPECTED_PIXELS)
+
+
+def test_lanes_slightly_outside_within_the_margins_are_accepted():
+    assert (LANE_X_MARGIN_FRAC, LANE_Y_MARGIN_FRAC) == (1.0, 0.02)
+    reference = context_from_lanes(_three_lanes(), (720, 1280))
+    # CULane-like: the left lane's spline runs on to the bottom row (y = 720, the edge), x there -200
+    lanes = _three_lanes()
+    lanes[0] = _line(-2.0, np.arange(720.0, 399.0, -10.0))
+    assert lanes[0][0].tolist() == [-200.0, 720.0]
+    ctx = context_from_lanes(lanes, (720, 1280))
+    assert ctx.camera.pitch_deg == pytest.approx(reference.camera.pitch_deg, abs=1e-9)
+    # right at the margins: x one image width out, y 2 % of the height below
+    lanes = _three_lanes()
+    lanes[2] = np.concatenate([[[2560.0, 734.4]], lanes[2]])
+    lanes[0] = np.concatenate([[[-1280.0, 720.0]], lanes[0]])
+    assert isinstance(context_from_lanes(lanes, (720, 1280)), IllusionContext)
+    image = np.full((720, 1280, 3), 90, np.uint8)
+    assert apply_illusion(image, lanes, "vehicle", 3).shape == image.shape
+    # and just beyond them
+    lanes[2][0, 1] = 734.5
+    with pytest.raises(GroundPlaneError, match=r"^lanes\[2\]: 1 of its 33 points lie too far outside the image "
+                                               r"\(1280 wide, 720 high\): those span x 2560.0..2560.0, y 734.5..734.5"):
+        context_from_lanes(lanes, (720, 1280))
+    # TuSimple's x = -2 rows are "no point", not points left of the image
+    lanes = _three_lanes()
+    lanes[1][:5, 0] = -2.0
+    assert isinstance(context_from_lanes(lanes, (720, 1280)), IllusionContext)
+
+
+@pytest.mark.parametrize("value, shown", [(np.nan, "nan"), (np.inf, "inf"), (-np.inf, "-inf")])
+def test_non_finite_lane_coordinates_name_the_lane(value, shown):
+    lanes = _three_lanes()
+    lanes[1][3, 0] = value
+    message = (f"lanes[1]: point 3 is ({shown}, 680.0); expected finite (x, y) pixel coordinates (leave a row "
+               f"without a point out, or give x = -2 as TuSimple does)")
+    with pytest.raises(ValueError) as err:
+        context_from_lanes(lanes, (720, 1280))
+    assert str(err.value) == message
+    with pytest.raises(ValueError) as err:
+        apply_illusion(np.full((720, 1280, 3), 90, np.uint8), lanes, "vehicle", 3)
+    assert str(err.value) == message
+    lanes = _three_lanes()
+    lanes[2][0, 1] = value
+    with pytest.raises(ValueError, match=rf"^lanes\[2\]: point 0 is \(1132.0, {shown}\); expected finite"):
+        context_from_lanes(lanes, (720, 1280))
