@@ -177,17 +177,24 @@ def _read_json_lines(path: Path, required: tuple[str, ...]) -> list[tuple[int, d
         missing = [k for k in required if k not in obj]
         if missing:
             raise ValueError(f"{path}:{lineno}: missing key(s) {missing}; expected {list(required)}")
+        if not isinstance(obj["raw_file"], str) or not obj["raw_file"]:
+            raise ValueError(f"{path}:{lineno}: raw_file must be a non-empty string (the image's path), "
+                             f"got {obj['raw_file']!r}")
         out.append((lineno, obj))
     return out
+
+
+def _is_number_list(value: object) -> bool:
+    """A JSON list of numbers only (no strings such as "300", no true/false, which numpy would turn into numbers)."""
+    return isinstance(value, list) and all(type(v) in (int, float) for v in value)
 
 
 def _h_samples(value: object, path: Path, lineno: int, raw: str) -> np.ndarray:
     """A GT line's h_samples as a 1-D float64 array; raises naming file, line and raw_file unless finite numbers."""
     where = f"{path}:{lineno}: ground truth h_samples of raw_file {raw!r}"
-    try:
-        ys = np.asarray(value, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError) as e:
-        raise ValueError(f"{where} must be a list of numbers ({e})") from e
+    if not _is_number_list(value):
+        raise ValueError(f"{where} must be a list of numbers, got {str(value)[:80]}")
+    ys = np.asarray(value, dtype=np.float64).reshape(-1)
     bad = _first_non_finite(ys)
     if bad is not None:
         raise ValueError(f"{where} has a non-finite y ({ys[bad[0]]}) at index {bad[0]}; expected finite image "
@@ -199,19 +206,20 @@ def _lane_rows(value: object, ys: np.ndarray, path: Path, lineno: int, raw: str,
     """A JSON line's lanes as an (L, len(ys)) float64 array; a bad lane raises naming file, line, side and lane."""
     n_rows = ys.size
     side = "prediction" if pred else "ground truth"
-    try:
-        rows = np.asarray(value, dtype=np.float64)  # one conversion for the usual, well-formed line
-    except (TypeError, ValueError):
-        rows = None  # ragged or not numbers: the loop below finds the lane
+    rows = None  # ragged or not numbers: the loop below finds the lane
+    if isinstance(value, list) and all(_is_number_list(lane) for lane in value):
+        try:
+            rows = np.asarray(value, dtype=np.float64)  # one conversion for the usual, well-formed line
+        except ValueError:
+            pass
     if rows is not None and rows.size == 0 and rows.ndim == 1:
         return np.zeros((0, n_rows))
     if rows is None or rows.ndim != 2 or rows.shape[1] != n_rows:
         for j, lane in enumerate(value if isinstance(value, list) else [value]):
-            try:
-                arr = np.asarray(lane, dtype=np.float64)
-            except (TypeError, ValueError) as e:
-                raise ValueError(f"{path}:{lineno}: {side} lane {j} of raw_file {raw!r} must be a list of numbers "
-                                 f"({e})") from e
+            if not _is_number_list(lane):
+                raise ValueError(f"{path}:{lineno}: {side} lane {j} of raw_file {raw!r} must be a list of numbers, "
+                                 f"got {str(lane)[:80]}")
+            arr = np.asarray(lane, dtype=np.float64)
             if arr.shape != (n_rows,):
                 prefix = "Format of lanes error: " if pred else ""
                 raise ValueError(f"{path}:{lineno}: {prefix}{side} lane {j} of raw_file {raw!r} has {arr.size} x "

@@ -250,3 +250,22 @@ def test_image_scores_name_the_non_finite_argument():
     with pytest.raises(ValueError, match=r"^h_samples: non-finite y \(inf\) at index 2"):
         tusimple_image_scores(good, good, ys_bad)
     assert tusimple_image_scores(good, good, ys) == (1.0, 0.0, 0.0)  # valid input still scores
+
+
+@pytest.mark.parametrize("value", ["300", True, None])
+def test_error_a_non_number_x_is_not_turned_into_a_number(tmp_path, value):
+    pred, gt = _two_image_objects()
+    pred[0]["lanes"][1][5] = value  # numpy would read "300" as 300.0 and true as 1.0
+    pred_path, gt_path = _write_lines(tmp_path / "pred.json", pred), _write_lines(tmp_path / "gt.json", gt)
+    with pytest.raises(ValueError, match=rf"^{pred_path}:1: prediction lane 1 of raw_file 'clips/b/20.jpg' must be a "
+                                         r"list of numbers, got \["):
+        evaluate_tusimple_files(pred_path, gt_path)
+
+
+def test_error_raw_file_that_is_not_a_string(tmp_path):
+    pred, gt = _two_image_objects()
+    pred[1]["raw_file"] = ["clips/a/20.jpg"]
+    pred_path, gt_path = _write_lines(tmp_path / "pred.json", pred), _write_lines(tmp_path / "gt.json", gt)
+    with pytest.raises(ValueError, match=rf"^{pred_path}:2: raw_file must be a non-empty string \(the image's path\), "
+                                         r"got \['clips/a/20.jpg'\]"):
+        evaluate_tusimple_files(pred_path, gt_path)
