@@ -10,9 +10,13 @@ from omegaconf import DictConfig
 
 
 def run_task(cfg: DictConfig) -> float | None:
-    """Call the function cfg.task._target_ names with the whole config; return what it returns."""
+    """Check the config's values (lanevil_train.tasks.config_check), then call the function cfg.task._target_
+    names with the whole config; return what it returns."""
     from hydra.utils import get_method
 
+    from lanevil_train.tasks.config_check import check_config
+
+    check_config(cfg)  # a bad value fails here, naming its key, before any data is read or a step trained
     target = cfg.task.get("_target_")
     if not target:
         raise ValueError(f"task={cfg.task.get('name')}: the task config names no function; add e.g. "

@@ -1,0 +1,546 @@
+"""Check the user-facing values of a composed config before any long work (dataset reading, rendering, training).
+
+`check_config(cfg)` goes through RULES, a table of dotted key -> rule, then a few checks that look at two keys
+at once (CROSS_CHECKS) and at every `_target_` node (it must import, and its keys must be parameters it
+accepts). Every problem is collected; one ConfigError lists them all, one per line, e.g.
+
+    data.input_size: expected [height, width], two integers >= 16, got [112]
+
+A rule applies only when its key is in the composed config, so a data group without e.g. `root` is fine.
+Only root-level paths are checked for existence (ckpt_path, task.init_from, backbone.checkpoint, data.root,
+task.suite); what is inside a file is for its reader. A defense's own parameters (thresholds, probabilities)
+are checked by its constructor when it is built.
+"""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+import numbers
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+from omegaconf import DictConfig, ListConfig, OmegaConf
+from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
+
+from lanevil_train.illusions import ILLUSIONS, SEVERITIES
+from lanevil_train.progress import MODES
+
+# LaneDetector's learning-rate schedules (models/detector.py).
+SCHEDULERS = ("cosine", "none")
+# The stride of each feature stage timm's features_only backbones return (index = backbone.out_indices entry);
+# tests check it against timm. models/backbones.py SUPPORTED_BACKBONES names the same networks.
+RESNET_STRIDES = (2, 4, 8, 16, 32)
+STAGE_STRIDES = {"resnet18": RESNET_STRIDES, "resnet34": RESNET_STRIDES, "resnet50": RESNET_STRIDES,
+                 "resnet101": RESNET_STRIDES, "vgg16": (1, 2, 4, 8, 16, 32)}
+# Keys of a `_target_` node that Hydra reads itself (not passed to the target).
+HYDRA_KEYS = {"_target_", "_recursive_", "_convert_", "_partial_", "_args_"}
+# Arguments the code passes to a target itself: a config value for them would be ignored.
+SUPPLIED = {"model.head": ("in_channels", "feature_stride", "image_size")}
+DEFENSE_KEYS = ("name", "transforms", "mixer", "callback")
+SPLITS = ("train", "val", "test")
+
+
+class ConfigError(ValueError):
+    """The composed config has bad values: one line per problem, each naming its key."""
+
+    def __init__(self, problems: list[str], where: str = "the config"):
+        self.problems = list(problems)
+        count = f"{len(problems)} problem{'s' if len(problems) > 1 else ''}"
+        super().__init__(f"{where} has {count}:\n" + "\n".join(f"  {p}" for p in self.problems))
+
+
+# ---------------------------------------------------------------------------------------------- rules
+
+@dataclass(frozen=True)
+class Rule:
+    """What a good value is (for the message) and a test: None for a good value, else why not ("" if obvious)."""
+
+    expected: str
+    test: Callable[[Any], str | None]
+
+
+def _show(value: Any) -> str:
+    """A value as it is written on the command line: null, true, 'text', [1, 2]."""
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return str(value).lower()
+    if isinstance(value, str):
+        return repr(value)
+    if isinstance(value, list):
+        return "[" + ", ".join(_show(v) for v in value) + "]"
+    if isinstance(value, dict):
+        return "{" + ", ".join(f"{k}: {_show(v)}" for k, v in value.items()) + "}"
+    return str(value)
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
+def _ok(good: bool) -> str | None:
+    return None if good else ""
+
+
+def integer(low: int | None = None, high: int | None = None) -> Rule:
+    if high is None:
+        expected = "an integer" if low is None else f"an integer >= {low}"
+    else:
+        expected = f"an integer <= {high}" if low is None else f"an integer from {low} to {high}"
+    return Rule(expected, lambda v: _ok(_is_int(v) and (low is None or v >= low) and (high is None or v <= high)))
+
+
+def number(low: float | None = None, high: float | None = None, low_open: bool = False,
+           high_open: bool = False) -> Rule:
+    """A real number within the bounds (closed unless *_open), e.g. number(0, 1, high_open=True) for [0, 1)."""
+    if high is None:
+        expected = f"a number {'>' if low_open else '>='} {low}"
+    else:
+        expected = f"a number in {'(' if low_open else '['}{low}, {high}{')' if high_open else ']'}"
+
+    def test(v):
+        if not _is_number(v):
+            return ""
+        above = v > low if low_open else v >= low
+        below = high is None or (v < high if high_open else v <= high)
+        return _ok(above and below)
+    return Rule(expected, test)
+
+
+def exactly(value: Any) -> Rule:
+    return Rule(_show(value), lambda v: _ok(_is_int(v) and v == value))
+
+
+def boolean() -> Rule:
+    return Rule("true or false", lambda v: _ok(isinstance(v, bool)))
+
+
+def text() -> Rule:
+    return Rule("a non-empty string", lambda v: _ok(isinstance(v, str) and v != ""))
+
+
+def one_of(*choices: str) -> Rule:
+    return Rule(f"one of {', '.join(choices)}", lambda v: _ok(isinstance(v, str) and v in choices))
+
+
+def null_or(rule: Rule) -> Rule:
+    return Rule(f"null or {rule.expected}", lambda v: None if v is None else rule.test(v))
+
+
+def any_of(*rules: Rule) -> Rule:
+    return Rule(" or ".join(r.expected for r in rules),
+                lambda v: None if any(r.test(v) is None for r in rules) else "")
+
+
+def int_pair(low: int, names: str = "height, width") -> Rule:
+    """[a, b], two integers >= low (an image size)."""
+    return Rule(f"[{names}], two integers >= {low}",
+                lambda v: _ok(isinstance(v, list) and len(v) == 2 and all(_is_int(x) and x >= low for x in v)))
+
+
+def int_list(low: int | None = None, high: int | None = None) -> Rule:
+    """A non-empty list of integers in [low, high] (either bound may be left open)."""
+    item = integer(low, high)
+    return Rule(f"a non-empty list of {item.expected.replace('an integer', 'integers')}",
+                lambda v: _ok(isinstance(v, list) and len(v) > 0 and all(item.test(x) is None for x in v)))
+
+
+def string_list() -> Rule:
+    return Rule("a list of strings", lambda v: _ok(isinstance(v, list) and all(isinstance(x, str) for x in v)))
+
+
+def _path_test(kind: str) -> Callable[[Any], str | None]:
+    def test(v):
+        if not isinstance(v, str) or not v:
+            return ""
+        path = Path(v)
+        if not path.exists():
+            return f"no such {kind}"
+        if kind == "file" and not path.is_file():
+            return "a directory, not a file"
+        if kind == "directory" and not path.is_dir():
+            return "a file, not a directory"
+        return None
+    return test
+
+
+def existing_file(what: str = "file") -> Rule:
+    return Rule(f"the path of an existing {what}", _path_test("file"))
+
+
+def existing_dir(what: str = "directory") -> Rule:
+    return Rule(f"the path of an existing {what}", _path_test("directory"))
+
+
+def illusion_names() -> Rule:
+    def test(v):
+        if v == "all":
+            return None
+        if not isinstance(v, list) or not v or not all(isinstance(x, str) for x in v):
+            return ""
+        unknown = [x for x in v if x not in ILLUSIONS]
+        return f"unknown: {', '.join(unknown)}; known: {', '.join(ILLUSIONS)}" if unknown else None
+    return Rule("'all' or a non-empty list of illusion names", test)
+
+
+def illusion_suite() -> Rule:
+    """task.suite: null, synthetic, or a set written by task=build (a directory holding manifest.jsonl)."""
+    def test(v):
+        if v is None or v == "synthetic":
+            return None
+        if not isinstance(v, str) or not v:
+            return ""
+        if not Path(v).is_dir():
+            return "no such directory"
+        return None if (Path(v) / "manifest.jsonl").is_file() else "it holds no manifest.jsonl"
+    return Rule("null, synthetic, or a directory written by task=build (holding manifest.jsonl)", test)
+
+
+def defense_names() -> Rule:
+    """task.defenses of task=compare: names of conf/defense/*.yaml, each once, `none` and at least one other."""
+    import lanevil_train.conf
+
+    known = sorted(p.stem for p in (Path(lanevil_train.conf.__file__).parent / "defense").glob("*.yaml"))
+
+    def test(v):
+        if not isinstance(v, list) or not all(isinstance(x, str) for x in v):
+            return ""
+        unknown = [x for x in v if x not in known]
+        if unknown:
+            return f"unknown: {', '.join(unknown)}"
+        if len(set(v)) < len(v):
+            return "a name is listed twice"
+        if "none" not in v:
+            return "'none' is missing: it is the reference every gain is measured against"
+        return None if len(v) >= 2 else "nothing to compare 'none' with"
+    return Rule(f"a list of defense names from {', '.join(known)}, each once, with none and at least one other",
+                test)
+
+
+def target_node() -> Rule:
+    return Rule("a mapping with a _target_ (the dotted name of a class or function)",
+                lambda v: _ok(isinstance(v, dict) and isinstance(v.get("_target_"), str)))
+
+
+def target_list() -> Rule:
+    return Rule("a list of mappings, each with a _target_ (e.g. [{_target_: lanevil_train.illusions."
+                "IllusionTransform, p: 0.3}])",
+                lambda v: _ok(isinstance(v, list) and all(target_node().test(x) is None for x in v)))
+
+
+def mapping_of(keys: tuple[str, ...]) -> Rule:
+    def test(v):
+        if not isinstance(v, dict):
+            return ""
+        unknown = sorted(set(v) - set(keys))
+        return f"unknown keys: {', '.join(unknown)}" if unknown else None
+    return Rule(f"a mapping with the keys {', '.join(keys)}", test)
+
+
+def _for_splits(key: str, rule: Rule) -> dict[str, Rule]:
+    """The same rule for data.train.<key>, data.val.<key> and data.test.<key>."""
+    return {f"data.{split}.{key}": rule for split in SPLITS}
+
+
+# Every user-facing value, by dotted key; a rule is skipped when its key is not in the composed config.
+RULES: dict[str, Rule] = {
+    # root
+    "seed": integer(0, 2**32 - 1),
+    "ckpt_path": null_or(existing_file("checkpoint file")),
+    "progress": one_of(*MODES),
+    # data
+    "data.name": text(),
+    "data.root": existing_dir("dataset directory"),
+    "data.input_size": int_pair(16),
+    "data.crop_top": number(0, 1, high_open=True),
+    "data.batch_size": integer(1),
+    "data.num_workers": integer(0),
+    "data.augment": boolean(),
+    "data.max_lanes": integer(1),
+    "data.train_transforms": null_or(target_list()),
+    **{f"data.{split}": null_or(target_node()) for split in SPLITS},
+    **_for_splits("num_scenes", integer(1)),
+    **_for_splits("first_seed", integer(0)),
+    **_for_splits("size", int_pair(16)),
+    **_for_splits("cache", boolean()),
+    # model
+    "model.name": text(),
+    "model.attention_layer": text(),
+    "model.head": target_node(),
+    "model.head.n_offsets": integer(2),
+    "model.head.anchor_feat_channels": integer(1),
+    "model.head.max_lanes": integer(1),
+    "model.head.topk_anchors": null_or(integer(2)),
+    "model.head.lateral_n": null_or(integer(1)),
+    "model.head.bottom_n": null_or(integer(1)),
+    "model.head.pos_threshold": number(0),
+    "model.head.neg_threshold": number(0),
+    "model.head.reference_width": number(0, low_open=True),
+    "model.head.cls_loss_weight": number(0),
+    "model.head.focal_alpha": number(0, 1),
+    "model.head.focal_gamma": number(0),
+    "model.optimizer.lr": number(0, low_open=True),
+    "model.optimizer.weight_decay": number(0),
+    "model.scheduler": one_of(*SCHEDULERS),
+    "model.decode.conf_threshold": number(0, 1),
+    "model.decode.nms_threshold": number(0),
+    "model.decode.nms_topk": null_or(integer(1)),
+    # backbone
+    "backbone": target_node(),
+    "backbone.name": one_of(*STAGE_STRIDES),
+    "backbone.pretrained": boolean(),
+    "backbone.checkpoint": null_or(existing_file("state dict file")),
+    "backbone.out_indices": int_list(),  # which stages each backbone has: check_feature_map
+    # defense (its parameters: the constructors)
+    "defense": mapping_of(DEFENSE_KEYS),
+    "defense.name": text(),
+    "defense.transforms": null_or(target_list()),
+    "defense.mixer": null_or(target_node()),
+    "defense.callback": null_or(target_node()),
+    # task (each task has some of these)
+    "task.name": text(),
+    "task.out_dir": null_or(text()),
+    "task.cases": integer(0),
+    "task.frames": integer(1),
+    "task.frame_step_m": number(0, low_open=True),
+    "task.illusions": illusion_names(),
+    "task.severities": int_list(SEVERITIES[0], SEVERITIES[-1]),
+    "task.repeats": integer(1),
+    "task.workers": integer(0),
+    "task.fallback": boolean(),
+    "task.test_after_fit": boolean(),
+    "task.init_from": null_or(existing_file("checkpoint file")),
+    "task.suite": illusion_suite(),
+    "task.label": null_or(text()),
+    "task.baseline": null_or(text()),
+    "task.runs": string_list(),
+    "task.defenses": defense_names(),
+    "task.decode.conf_threshold": null_or(number(0, 1)),
+    "task.decode.nms_threshold": null_or(number(0)),
+    "task.decode.nms_topk": null_or(integer(1)),
+    # trainer (Lightning's Trainer arguments)
+    "trainer.max_steps": any_of(exactly(-1), integer(1)),
+    "trainer.max_epochs": null_or(any_of(exactly(-1), integer(1))),
+    "trainer.min_steps": null_or(integer(0)),
+    "trainer.min_epochs": null_or(integer(0)),
+    "trainer.log_every_n_steps": integer(1),
+    "trainer.check_val_every_n_epoch": null_or(integer(1)),
+    "trainer.val_check_interval": null_or(any_of(integer(1), number(0, 1, low_open=True))),
+    "trainer.limit_train_batches": null_or(any_of(integer(0), number(0, 1))),
+    "trainer.limit_val_batches": null_or(any_of(integer(0), number(0, 1))),
+    "trainer.limit_test_batches": null_or(any_of(integer(0), number(0, 1))),
+    "trainer.num_sanity_val_steps": integer(-1),
+    "trainer.gradient_clip_val": null_or(number(0)),
+    "trainer.fast_dev_run": any_of(boolean(), integer(0)),
+    "trainer.accumulate_grad_batches": integer(1),
+}
+
+
+# ---------------------------------------------------------------------------------------------- values
+
+_ABSENT = object()
+
+
+def _plain(value: Any) -> Any:
+    """A config node as plain Python: lists resolved (their items are values), mappings as they are written."""
+    if isinstance(value, ListConfig):
+        return OmegaConf.to_container(value, resolve=True)
+    if isinstance(value, DictConfig):
+        return OmegaConf.to_container(value, resolve=False)
+    return value
+
+
+def _get(cfg: DictConfig, key: str) -> Any:
+    """The value at a dotted key as plain Python, or _ABSENT (raises MissingMandatoryValue for ???)."""
+    value = OmegaConf.select(cfg, key, default=_ABSENT, throw_on_missing=True)
+    return value if value is _ABSENT else _plain(value)
+
+
+def _problem(key: str, expected: str, value: Any, why: str = "") -> str:
+    return f"{key}: expected {expected}, got {_show(value)}" + (f" ({why})" if why else "")
+
+
+def _apply(cfg: DictConfig, key: str, rule: Rule) -> str | None:
+    try:
+        value = _get(cfg, key)
+    except MissingMandatoryValue:
+        return f"{key}: is not set (??? in the config); set it to {rule.expected}: {key}=..."
+    except OmegaConfBaseException as error:
+        return f"{key}: cannot be read ({type(error).__name__}: {str(error).splitlines()[0]})"
+    if value is _ABSENT:
+        return None
+    why = rule.test(value)
+    return None if why is None else _problem(key, rule.expected, value, why)
+
+
+# ---------------------------------------------------------------------------------------------- cross-key checks
+
+def check_feature_map(cfg: DictConfig) -> list[str]:
+    """backbone.out_indices must be stages the backbone has; data.input_size at least the stride of the last
+    one: the LaneATT head pools its anchors from that feature map (features[-1], ceil(H / stride) rows), which
+    needs at least one row and one column (any size >= the stride works; a multiple of it is not needed)."""
+    name, indices, size = (_get(cfg, k) for k in ("backbone.name", "backbone.out_indices", "data.input_size"))
+    if name not in STAGE_STRIDES or RULES["backbone.out_indices"].test(indices) is not None:
+        return []
+    strides = STAGE_STRIDES[name]
+    n = len(strides)
+    if not all(-n <= i < n for i in indices):
+        return [_problem("backbone.out_indices", f"stage indices of {name} from 0 to {n - 1} (strides "
+                         f"{', '.join(map(str, strides))})", indices)]
+    stride = strides[indices[-1]]
+    if RULES["data.input_size"].test(size) is None and min(size) < stride:
+        return [f"{_problem('data.input_size', f'[height, width], both >= {stride}', size)}: the LaneATT head "
+                f"reads the stride-{stride} feature map of {name} (backbone.out_indices[-1]={indices[-1]}), which "
+                f"must have at least one row and one column"]
+    return []
+
+
+def check_backbone_weights(cfg: DictConfig) -> list[str]:
+    if _get(cfg, "backbone.pretrained") is True and _get(cfg, "backbone.checkpoint") not in (None, _ABSENT):
+        return ["backbone.checkpoint: give either backbone.pretrained=true (timm's download) or "
+                "backbone.checkpoint=/path/to/weights.pth, not both"]
+    return []
+
+
+def check_cases(cfg: DictConfig) -> list[str]:
+    """task.cases=0 means every dataset image, which only task=build on a real dataset has."""
+    if _get(cfg, "task.cases") != 0:
+        return []
+    if _get(cfg, "task.name") == "build" and _get(cfg, "data.name") != "synthetic":
+        return []
+    return [_problem("task.cases", "an integer >= 1, the number of simulated scenes (0, every image, is only "
+                     "for task=build on a real dataset)", 0)]
+
+
+def check_checkpoint_given(cfg: DictConfig) -> list[str]:
+    task = _get(cfg, "task.name")
+    if task in ("evaluate", "cross_domain") and _get(cfg, "ckpt_path") is None:
+        return [f"ckpt_path: task={task} scores a checkpoint; expected the path of a Lightning checkpoint file, "
+                f"got null"]
+    return []
+
+
+def check_training_ends(cfg: DictConfig) -> list[str]:
+    if _get(cfg, "trainer.max_steps") == -1 and _get(cfg, "trainer.max_epochs") == -1:
+        return ["trainer.max_epochs: -1 together with trainer.max_steps=-1 trains forever; set one of them, "
+                "e.g. trainer.max_steps=1000"]
+    return []
+
+
+CROSS_CHECKS = (check_feature_map, check_backbone_weights, check_cases, check_checkpoint_given, check_training_ends)
+
+
+# ---------------------------------------------------------------------------------------------- _target_ nodes
+
+# Where config nodes with a `_target_` are: single nodes, lists of them, and mappings of named ones.
+TARGET_NODES = ("model.head", "backbone", "defense.mixer", "defense.callback", "logger",
+                *(f"data.{split}" for split in SPLITS))
+TARGET_LISTS = ("data.train_transforms", "defense.transforms")
+TARGET_MAPS = ("callbacks",)
+
+
+def _target_nodes(cfg: DictConfig) -> list[tuple[str, DictConfig]]:
+    """(dotted key, node) of every `_target_` node in the places above."""
+    found = []
+    for key in (*TARGET_NODES, *TARGET_LISTS, *TARGET_MAPS):
+        try:
+            node = OmegaConf.select(cfg, key)
+        except OmegaConfBaseException:
+            continue  # reported by its rule
+        if key in TARGET_LISTS and isinstance(node, ListConfig):
+            found += [(f"{key}[{i}]", item) for i, item in enumerate(node)]
+        elif key in TARGET_MAPS and isinstance(node, DictConfig):
+            found += [(f"{key}.{name}", item) for name, item in node.items_ex(resolve=False)]
+        elif key in TARGET_NODES:
+            found.append((key, node))
+    return found
+
+
+def _locate(path: str) -> Any:
+    """The object a dotted path names: the longest importable module prefix, then attributes (as Hydra finds it)."""
+    parts = path.split(".")
+    for split in range(len(parts), 0, -1):
+        module_name = ".".join(parts[:split])
+        try:
+            found = importlib.import_module(module_name)
+        except ModuleNotFoundError as error:
+            if error.name and (module_name == error.name or module_name.startswith(error.name + ".")):
+                continue  # no such module: try a shorter prefix (the rest are attributes)
+            raise  # the module exists but imports something that is not installed
+        for attribute in parts[split:]:
+            found = getattr(found, attribute)
+        return found
+    raise ModuleNotFoundError(f"No module named {parts[0]!r}")
+
+
+def check_target(key: str, node: Any) -> list[str]:
+    """The node's _target_ imports, and each of its keys is a parameter the target accepts."""
+    if node is None or (isinstance(node, DictConfig) and node.get("_target_") is None and "_target_" in node):
+        return []  # nothing to build (e.g. logger=none)
+    if not isinstance(node, DictConfig) or not isinstance(node.get("_target_"), str):
+        return [_problem(key, "null or a mapping with a _target_ (the dotted name of a class or function)",
+                         _plain(node))]
+    target = node._target_
+    try:
+        built = _locate(target)
+    except Exception as error:  # a missing module or attribute, or an error while importing the module
+        return [f"{key}._target_: cannot import {target!r} ({type(error).__name__}: {error})"]
+    try:
+        parameters = inspect.signature(built).parameters
+    except (TypeError, ValueError):
+        return []  # no signature to check against
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values()):
+        return []
+    accepted = [n for n, p in parameters.items() if p.kind is not inspect.Parameter.VAR_POSITIONAL]
+    problems = []
+    for name in node:
+        if name in SUPPLIED.get(key, ()):
+            problems.append(f"{key}.{name}: is set by the code (from the backbone and data.input_size); remove it "
+                            f"from the config")
+        elif name not in HYDRA_KEYS and name not in accepted:
+            problems.append(f"{key}.{name}: not a parameter of {target}; it accepts {', '.join(accepted)}")
+    return problems
+
+
+# ---------------------------------------------------------------------------------------------- entry point
+
+def _copied_from(cfg: DictConfig, key: str) -> str | None:
+    """The key whose value `key` copies (`${data.max_lanes}`), or None."""
+    parent, _, leaf = key.rpartition(".")
+    node = OmegaConf.select(cfg, parent) if parent else cfg
+    if not isinstance(node, DictConfig) or not OmegaConf.is_interpolation(node, leaf):
+        return None
+    raw = OmegaConf.to_container(node, resolve=False)[leaf]
+    match = re.fullmatch(r"\$\{([\w.]+)\}", raw)
+    return match.group(1) if match else None
+
+
+def check_config(cfg: DictConfig, where: str = "the config") -> None:
+    """Raise ConfigError listing every bad user-facing value of `cfg` (one line each); return if all are good.
+
+    A value copied from another key (`max_lanes: ${data.max_lanes}`) is reported at that key only. `where`
+    names the config in the error's first line."""
+    problems, bad_keys = [], set()
+    for key, rule in RULES.items():
+        problem = _apply(cfg, key, rule)
+        if problem is not None:
+            bad_keys.add(key)
+            if _copied_from(cfg, key) not in bad_keys:
+                problems.append(problem)
+    for check in CROSS_CHECKS:
+        try:
+            problems += [p for p in check(cfg) if p.split(":", 1)[0] not in bad_keys]
+        except OmegaConfBaseException:
+            pass  # a key it reads is unset or unreadable: its rule has said so
+    for key, node in _target_nodes(cfg):
+        if key.split("[")[0] not in bad_keys:  # a list item of a bad list is reported with its list
+            problems += check_target(key, node)
+    if problems:
+        raise ConfigError(problems, where)

@@ -1,0 +1,332 @@
+"""config_check: the user-facing values of every group are checked when the config is composed, each problem
+naming its key, what was expected and what was given; every shipped config passes unchanged."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_module
+from hydra.core.global_hydra import GlobalHydra
+
+import lanevil_train.conf
+from lanevil_train.tasks.config_check import STAGE_STRIDES, ConfigError, check_config
+from tests.tasks.cli_helpers import REPO, TINY
+
+CONF = Path(lanevil_train.conf.__file__).parent
+GROUPS = ("data", "model", "backbone", "defense", "task", "trainer", "callbacks", "logger", "experiment",
+          "hparams_search")
+
+
+@pytest.fixture(scope="module", autouse=True)
+def hydra_conf():
+    """One Hydra initialisation for the module: compose() is then cheap."""
+    GlobalHydra.instance().clear()
+    with initialize_config_module(config_module="lanevil_train.conf", version_base="1.3"):
+        yield
+    GlobalHydra.instance().clear()
+
+
+@pytest.fixture
+def files(tmp_path):
+    """A file, a directory, and an illusion set directory (holding manifest.jsonl), none of them read."""
+    (tmp_path / "model.ckpt").write_bytes(b"")
+    (tmp_path / "dataset").mkdir()
+    (tmp_path / "set").mkdir()
+    (tmp_path / "set" / "manifest.jsonl").write_text("")
+    return tmp_path
+
+
+def problems(*overrides: str) -> list[str]:
+    """check_config's problems on the root config composed with `overrides` (none: [])."""
+    try:
+        check_config(compose(config_name="config", overrides=list(overrides)))
+    except ConfigError as error:
+        assert str(error).splitlines()[1:] == [f"  {p}" for p in error.problems]  # one line each
+        return error.problems
+    return []
+
+
+def only_problem(*overrides: str) -> str:
+    found = problems(*overrides)
+    assert len(found) == 1, found
+    return found[0]
+
+
+# ------------------------------------------------------------------------------------------- shipped configs
+
+def shipped_options() -> list[tuple[str, str]]:
+    return [(group, path.stem) for group in GROUPS for path in sorted((CONF / group).glob("*.yaml"))]
+
+
+def needs(group: str, option: str, files: Path) -> list[str]:
+    """What an option needs from the user by design: a dataset root (???), a checkpoint to score."""
+    if group == "data" and option in ("tusimple", "culane"):
+        return [f"data.root={files / 'dataset'}"]
+    if group == "task" and option in ("evaluate", "cross_domain"):
+        return [f"ckpt_path={files / 'model.ckpt'}"]
+    return []
+
+
+def test_every_group_has_shipped_options():
+    options = shipped_options()
+    assert {group for group, _ in options} == set(GROUPS)
+    assert len(options) > 35
+
+
+@pytest.mark.parametrize("group, option", shipped_options(), ids=lambda value: str(value))
+def test_every_shipped_option_passes(group, option, files):
+    assert problems(f"{group}={option}", *needs(group, option, files)) == []
+
+
+@pytest.mark.parametrize("extra", [[], ["task=compare"], ["task=evaluate", "ckpt_path=FILE"], ["defense=aam++"],
+                                   ["backbone=vgg16"], ["trainer=ddp"], ["hparams_search=aam_optuna"]],
+                         ids=lambda value: " ".join(value) or "alone")
+def test_quickstart_passes_with_other_groups(extra, files):
+    extra = [e.replace("FILE", str(files / "model.ckpt")) for e in extra]
+    assert problems("experiment=quickstart", *extra) == []
+
+
+def test_the_test_suites_tiny_config_passes():
+    assert problems(*TINY) == []
+
+
+def test_build_on_a_real_dataset_may_take_every_image(files):
+    assert problems("task=build", "data=tusimple", f"data.root={files / 'dataset'}", "task.cases=0") == []
+
+
+# ------------------------------------------------------------------------------------------- each group
+DEFENSES = ("task.defenses: expected a list of defense names from aam, aam++, copypaste, cutout, hsv, mixup, none, "
+            "pgd, each once, with none and at least one other")
+
+BAD = [
+    # root
+    (["seed=-1"], "seed: expected an integer from 0 to 4294967295, got -1"),
+    (["seed=abc"], "seed: expected an integer from 0 to 4294967295, got 'abc'"),
+    (["ckpt_path=/no/such/last.ckpt"],
+     "ckpt_path: expected null or the path of an existing checkpoint file, got '/no/such/last.ckpt' (no such file)"),
+    (["progress=fancy"], "progress: expected one of auto, rich, tqdm, plain, none, got 'fancy'"),
+    # data
+    (["data.input_size=[112]"], "data.input_size: expected [height, width], two integers >= 16, got [112]"),
+    (["data.input_size=[112,8]"], "data.input_size: expected [height, width], two integers >= 16, got [112, 8]"),
+    (["data.input_size=[112.5,320]"],
+     "data.input_size: expected [height, width], two integers >= 16, got [112.5, 320]"),
+    (["data.input_size=[24,320]"],
+     "data.input_size: expected [height, width], both >= 32, got [24, 320]: the LaneATT head reads the stride-32 "
+     "feature map of resnet18 (backbone.out_indices[-1]=4), which must have at least one row and one column"),
+    (["data.batch_size=-1"], "data.batch_size: expected an integer >= 1, got -1"),
+    (["data.batch_size=2.5"], "data.batch_size: expected an integer >= 1, got 2.5"),
+    (["data.num_workers=-1"], "data.num_workers: expected an integer >= 0, got -1"),
+    (["data.crop_top=1.0"], "data.crop_top: expected a number in [0, 1), got 1.0"),
+    (["data.crop_top=half"], "data.crop_top: expected a number in [0, 1), got 'half'"),
+    (["data.augment=maybe"], "data.augment: expected true or false, got 'maybe'"),
+    (["data.max_lanes=0"], "data.max_lanes: expected an integer >= 1, got 0"),
+    (["data.train.num_scenes=0"], "data.train.num_scenes: expected an integer >= 1, got 0"),
+    (["data.val.first_seed=-5"], "data.val.first_seed: expected an integer >= 0, got -5"),
+    (["data.test.size=[720]"], "data.test.size: expected [height, width], two integers >= 16, got [720]"),
+    (["data.train.cache=1"], "data.train.cache: expected true or false, got 1"),
+    (["data=tusimple", "data.root=/no/such/tusimple"],
+     "data.root: expected the path of an existing dataset directory, got '/no/such/tusimple' (no such directory)"),
+    (["data=culane"], "data.root: is not set (??? in the config); set it to the path of an existing dataset "
+                      "directory: data.root=..."),
+    (["data.train_transforms=[{p: 0.3}]"],
+     "data.train_transforms: expected null or a list of mappings, each with a _target_ (e.g. [{_target_: "
+     "lanevil_train.illusions.IllusionTransform, p: 0.3}]), got [{p: 0.3}]"),
+    (["data.train_transforms=[{_target_: lanevil_train.illusions.NoSuchTransform}]"],
+     "data.train_transforms[0]._target_: cannot import 'lanevil_train.illusions.NoSuchTransform' "
+     "(AttributeError: module 'lanevil_train.illusions' has no attribute 'NoSuchTransform')"),
+    (["data.train._target_=no_such_package.Dataset"],
+     "data.train._target_: cannot import 'no_such_package.Dataset' (ModuleNotFoundError: No module named "
+     "'no_such_package')"),
+    (["+data.train.num_scene=3"],
+     "data.train.num_scene: not a parameter of lanevil_train.data.datasets.SyntheticLaneDataset; it accepts "
+     "num_scenes, first_seed, size, cache"),
+    # model
+    (["model.head.n_offsets=1"], "model.head.n_offsets: expected an integer >= 2, got 1"),
+    (["model.head.topk_anchors=1"], "model.head.topk_anchors: expected null or an integer >= 2, got 1"),
+    (["model.head.lateral_n=0"], "model.head.lateral_n: expected null or an integer >= 1, got 0"),
+    (["model.head.max_lanes=0"], "model.head.max_lanes: expected an integer >= 1, got 0"),
+    (["+model.head.focal_alpha=2"], "model.head.focal_alpha: expected a number in [0, 1], got 2"),
+    (["+model.head.in_channels=3"],
+     "model.head.in_channels: is set by the code (from the backbone and data.input_size); remove it"),
+    (["+model.head.n_offset=3"],
+     "model.head.n_offset: not a parameter of lanevil_train.models.laneatt.LaneATTHead; it accepts in_channels"),
+    (["model.optimizer.lr=0"], "model.optimizer.lr: expected a number > 0, got 0"),
+    (["model.optimizer.lr=1e-3x"], "model.optimizer.lr: expected a number > 0, got '1e-3x'"),
+    (["model.optimizer.weight_decay=-0.1"], "model.optimizer.weight_decay: expected a number >= 0, got -0.1"),
+    (["model.scheduler=step"], "model.scheduler: expected one of cosine, none, got 'step'"),
+    (["model.decode.conf_threshold=1.5"], "model.decode.conf_threshold: expected a number in [0, 1], got 1.5"),
+    (["model.decode.nms_threshold=-1"], "model.decode.nms_threshold: expected a number >= 0, got -1"),
+    (["model.decode.nms_topk=0"], "model.decode.nms_topk: expected null or an integer >= 1, got 0"),
+    # backbone
+    (["backbone.name=resnet9"],
+     "backbone.name: expected one of resnet18, resnet34, resnet50, resnet101, vgg16, got 'resnet9'"),
+    (["backbone.pretrained=yes"], "backbone.pretrained: expected true or false, got 'yes'"),
+    (["backbone.checkpoint=/no/such/weights.pth"],
+     "backbone.checkpoint: expected null or the path of an existing state dict file, got '/no/such/weights.pth' "
+     "(no such file)"),
+    (["backbone.out_indices=[5]"],
+     "backbone.out_indices: expected stage indices of resnet18 from 0 to 4 (strides 2, 4, 8, 16, 32), got [5]"),
+    (["backbone.out_indices=[]"], "backbone.out_indices: expected a non-empty list of integers, got []"),
+    (["backbone=vgg16", "backbone.out_indices=[5]", "data.input_size=[24,320]"],
+     "data.input_size: expected [height, width], both >= 32, got [24, 320]: the LaneATT head reads the stride-32 "
+     "feature map of vgg16 (backbone.out_indices[-1]=5)"),
+    # defense
+    (["+defense.callbacks=[]"],
+     "defense: expected a mapping with the keys name, transforms, mixer, callback, got"),
+    (["defense=aam++", "+defense.callback.t_hha=0.5"],
+     "defense.callback.t_hha: not a parameter of lanevil_train.callbacks.AttentionAreaMixing; it accepts layer, "
+     "mode"),
+    (["defense=mixup", "defense.mixer._target_=lanevil_train.data.mixers.MixDown"],
+     "defense.mixer._target_: cannot import 'lanevil_train.data.mixers.MixDown' (AttributeError"),
+    (["defense=cutout", "defense.transforms=[{p: 0.5}]"],
+     "defense.transforms: expected null or a list of mappings, each with a _target_"),
+    (["defense=cutout", "+defense.transforms.0.holes=2"],
+     "defense.transforms[0].holes: not a parameter of lanevil_train.data.defenses.LaneCutout; it accepts "
+     "num_holes, hole_height, hole_width, fill, p"),
+    (["defense=pgd", "defense.callback=3"],
+     "defense.callback: expected null or a mapping with a _target_ (the dotted name of a class or function), "
+     "got 3"),
+    # task
+    (["task.severities=[0,6]"], "task.severities: expected a non-empty list of integers from 1 to 5, got [0, 6]"),
+    (["task.severities=[]"], "task.severities: expected a non-empty list of integers from 1 to 5, got []"),
+    (["task.illusions=[rain,vehicle]"],
+     "task.illusions: expected 'all' or a non-empty list of illusion names, got ['rain', 'vehicle'] (unknown: "
+     "rain; known: road_crack, road_repair"),
+    (["task.illusions=some"], "task.illusions: expected 'all' or a non-empty list of illusion names, got 'some'"),
+    (["task.repeats=0"], "task.repeats: expected an integer >= 1, got 0"),
+    (["task.cases=-1"], "task.cases: expected an integer >= 0, got -1"),
+    (["task.cases=0"], "task.cases: expected an integer >= 1, the number of simulated scenes (0, every image, is "
+                       "only for task=build on a real dataset), got 0"),
+    (["task.test_after_fit=no"], "task.test_after_fit: expected true or false, got 'no'"),
+    (["task.init_from=/no/such/init.ckpt"],
+     "task.init_from: expected null or the path of an existing checkpoint file, got '/no/such/init.ckpt' "
+     "(no such file)"),
+    (["task.suite=/no/such/set"],
+     "task.suite: expected null, synthetic, or a directory written by task=build (holding manifest.jsonl), got "
+     "'/no/such/set' (no such directory)"),
+    (["task=build", "task.workers=-1"], "task.workers: expected an integer >= 0, got -1"),
+    (["task=build", "task.frames=0"], "task.frames: expected an integer >= 1, got 0"),
+    (["task=build", "task.frame_step_m=0"], "task.frame_step_m: expected a number > 0, got 0"),
+    (["task=build", "task.fallback=1"], "task.fallback: expected true or false, got 1"),
+    (["task=build", "task.cases=0"], "task.cases: expected an integer >= 1, the number of simulated scenes"),
+    (["task=evaluate"],
+     "ckpt_path: task=evaluate scores a checkpoint; expected the path of a Lightning checkpoint file, got null"),
+    (["task=cross_domain"], "ckpt_path: task=cross_domain scores a checkpoint"),
+    (["task=report", "task.runs=[1]"], "task.runs: expected a list of strings, got [1]"),
+    (["task=compare", "task.defenses=[none,aam+]"], f"{DEFENSES}, got ['none', 'aam+'] (unknown: aam+)"),
+    (["task=compare", "task.defenses=[aam,aam++]"],
+     f"{DEFENSES}, got ['aam', 'aam++'] ('none' is missing: it is the reference every gain is measured against)"),
+    (["task=compare", "task.defenses=[none]"], f"{DEFENSES}, got ['none'] (nothing to compare 'none' with)"),
+    (["task=compare", "task.defenses=[none,aam,aam]"],
+     f"{DEFENSES}, got ['none', 'aam', 'aam'] (a name is listed twice)"),
+    (["task=compare", "task.repeats=0"], "task.repeats: expected an integer >= 1, got 0"),
+    # trainer
+    (["trainer.max_steps=0"], "trainer.max_steps: expected -1 or an integer >= 1, got 0"),
+    (["trainer.max_epochs=0"], "trainer.max_epochs: expected null or -1 or an integer >= 1, got 0"),
+    (["trainer.max_epochs=-1"], "trainer.max_epochs: -1 together with trainer.max_steps=-1 trains forever"),
+    (["trainer.limit_val_batches=1.5"],
+     "trainer.limit_val_batches: expected null or an integer >= 0 or a number in [0, 1], got 1.5"),
+    (["trainer.limit_train_batches=-1"],
+     "trainer.limit_train_batches: expected null or an integer >= 0 or a number in [0, 1], got -1"),
+    (["trainer.log_every_n_steps=0"], "trainer.log_every_n_steps: expected an integer >= 1, got 0"),
+    (["+trainer.val_check_interval=0.0"],
+     "trainer.val_check_interval: expected null or an integer >= 1 or a number in (0, 1], got 0.0"),
+    (["trainer.check_val_every_n_epoch=0"],
+     "trainer.check_val_every_n_epoch: expected null or an integer >= 1, got 0"),
+    (["trainer.gradient_clip_val=-1"], "trainer.gradient_clip_val: expected null or a number >= 0, got -1"),
+    # callbacks and logger
+    (["+callbacks.model_checkpoint.save_every=2"],
+     "callbacks.model_checkpoint.save_every: not a parameter of pytorch_lightning.callbacks.ModelCheckpoint; "
+     "it accepts dirpath, filename"),
+    (["+callbacks.swa._target_=pytorch_lightning.callbacks.NoSuchCallback"],
+     "callbacks.swa._target_: cannot import 'pytorch_lightning.callbacks.NoSuchCallback'"),
+    (["+callbacks.broken=3"],
+     "callbacks.broken: expected null or a mapping with a _target_ (the dotted name of a class or function), got 3"),
+    (["+logger.save_every=3"],
+     "logger.save_every: not a parameter of pytorch_lightning.loggers.CSVLogger; it accepts save_dir, name"),
+]
+
+
+@pytest.mark.parametrize("overrides, message", BAD, ids=[" ".join(o) for o, _ in BAD])
+def test_a_bad_value_is_named_with_what_was_expected_and_given(overrides, message):
+    assert only_problem(*overrides).startswith(message)
+
+
+def test_paths_of_the_wrong_kind_are_named(files):
+    assert only_problem(f"ckpt_path={files}") == \
+        f"ckpt_path: expected null or the path of an existing checkpoint file, got '{files}' (a directory, not a file)"
+    assert only_problem("data=tusimple", f"data.root={files / 'model.ckpt'}") == \
+        (f"data.root: expected the path of an existing dataset directory, got '{files / 'model.ckpt'}' "
+         f"(a file, not a directory)")
+    assert only_problem(f"task.suite={files / 'dataset'}").endswith("(it holds no manifest.jsonl)")
+    assert problems(f"task.suite={files / 'set'}", f"task.init_from={files / 'model.ckpt'}",
+                    f"backbone.checkpoint={files / 'model.ckpt'}") == []
+    assert only_problem("backbone.pretrained=true", f"backbone.checkpoint={files / 'model.ckpt'}") == \
+        ("backbone.checkpoint: give either backbone.pretrained=true (timm's download) or "
+         "backbone.checkpoint=/path/to/weights.pth, not both")
+
+
+def test_targets_that_take_any_keyword_accept_any_key():
+    assert problems("logger=wandb", "+logger.entity=me", "+data.train_transforms=[{_target_: "
+                    "lanevil_train.illusions.IllusionTransform, p: 0.3, anything: 1}]") == []
+
+
+def test_every_problem_is_reported_at_once_one_per_line():
+    with pytest.raises(ConfigError) as caught:
+        check_config(compose(config_name="config", overrides=[
+            "data.input_size=[112]", "data.batch_size=-1", "model.optimizer.lr=0", "task.severities=[6]",
+            "trainer.max_steps=0", "+callbacks.model_checkpoint.nope=1"]))
+    lines = str(caught.value).splitlines()
+    assert lines[0] == "the config has 6 problems:"
+    assert [line.split(":")[0].strip() for line in lines[1:]] == [
+        "data.input_size", "data.batch_size", "model.optimizer.lr", "task.severities", "trainer.max_steps",
+        "callbacks.model_checkpoint.nope"]
+    assert isinstance(caught.value, ValueError)
+
+
+def test_stage_strides_are_timms():
+    import timm
+    import torch
+
+    from lanevil_train.models.backbones import SUPPORTED_BACKBONES
+
+    assert set(STAGE_STRIDES) == set(SUPPORTED_BACKBONES)
+    with torch.device("meta"):  # the network's shapes only: no memory, no weights
+        for name, strides in STAGE_STRIDES.items():
+            net = timm.create_model(name, features_only=True, out_indices=tuple(range(len(strides))))
+            assert tuple(net.feature_info.reduction()) == strides, name
+
+
+# ------------------------------------------------------------------------------------------- where it runs
+
+def test_compare_checks_every_runs_config_before_the_first_defense_trains(tmp_path, monkeypatch):
+    import lanevil_train.tasks.compare as compare_task
+
+    def run_defense(*args):
+        raise AssertionError("a defense started training")
+
+    monkeypatch.setattr(compare_task, "run_defense", run_defense)
+    cfg = compose(config_name="config", overrides=["task=compare", "task.defenses=[none,pgd]",
+                                                   f"task.out_dir={tmp_path}"])
+    with pytest.raises(ConfigError, match=r"the config of the defense=none run has 1 problem:\n"
+                                          r"  data.batch_size: expected an integer >= 1, got 0"):
+        compare_task.compare(cfg, overrides=["data.batch_size=0"])
+    run = compare_task.compose_run(cfg, "pgd", [], tmp_path / "pgd")  # a good run config passes its check
+    assert run.defense.name == "pgd"
+
+
+def test_the_command_line_stops_before_any_work(tmp_path):
+    run_dir = tmp_path / "run"
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    proc = subprocess.run([sys.executable, "-m", "lanevil_train", "data.input_size=[112]", "data.batch_size=-1",
+                           "progress=none", f"hydra.run.dir={run_dir}"],
+                          cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode != 0
+    assert "data.input_size: expected [height, width], two integers >= 16, got [112]" in proc.stderr
+    assert "data.batch_size: expected an integer >= 1, got -1" in proc.stderr
+    assert not (run_dir / "checkpoints").exists() and not (run_dir / "csv").exists()
+    assert not (run_dir / "per_image.jsonl").exists()
