@@ -18,6 +18,7 @@ from lanevil_train.report.defenses import (REFERENCE, best_defense, defense_gain
 from lanevil_train.report.specs import spec_for
 from lanevil_train.report.tables import print_table
 from lanevil_train.tasks.builders import output_dir
+from lanevil_train.tasks.config_check import check_config
 from lanevil_train.tasks.scoring import RESULTS, read_records
 
 log = logging.getLogger(__name__)
@@ -72,7 +73,8 @@ def run_overrides(user: list[str]) -> list[str]:
 
 
 def compose_run(cfg: DictConfig, defense: str, overrides: list[str], run_dir: Path) -> DictConfig:
-    """The config of `task=train defense=<defense>` plus `overrides`, with compare's suite keys and run_dir."""
+    """The config of `task=train defense=<defense>` plus `overrides`, with compare's suite keys and run_dir;
+    checked (config_check), so a bad value raises ConfigError naming its key."""
     from hydra import compose
 
     run_cfg = compose(config_name="config", overrides=[*overrides, "task=train", f"defense={defense}"])
@@ -83,6 +85,7 @@ def compose_run(cfg: DictConfig, defense: str, overrides: list[str], run_dir: Pa
         run_cfg.output_dir = str(run_dir)
         last = run_dir / "checkpoints" / "last.ckpt"
         run_cfg.ckpt_path = str(last) if last.is_file() else None
+    check_config(run_cfg, where=f"the config of the defense={defense} run")
     return run_cfg
 
 
@@ -187,6 +190,8 @@ def compare(cfg: DictConfig, overrides: list[str] | None = None) -> float | None
             overrides = list(HydraConfig.get().overrides.task)
         common = run_overrides(overrides)
         runs = {d: str(out / "runs" / d) for d in defenses}
+        for defense in defenses:  # every run's config is checked before the first one trains
+            compose_run(cfg, defense, common, Path(runs[defense]))
         for i, defense in enumerate(defenses, 1):
             log.info("compare: [%d/%d] defense=%s", i, len(defenses), defense)
             run_defense(cfg, defense, common, Path(runs[defense]))
