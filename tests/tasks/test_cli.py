@@ -61,9 +61,10 @@ def test_train_checkpoint_evaluate_and_resume(tmp_path):
     for key in ("Accuracy", "FP", "FN", "F1"):
         assert abs(evaluated[key] - trained[key]) < 1e-6, key
 
-    # decoding is overridable at evaluation: a threshold no score reaches leaves every lane missed
+    # decoding is overridable at evaluation: a threshold no score exceeds (scores are probabilities, kept when
+    # above it) leaves every lane missed
     strict_dir = tmp_path / "strict"
-    run_cli(["task=evaluate", f"ckpt_path={last}", *TINY, "task.decode.conf_threshold=1.01"], strict_dir)
+    run_cli(["task=evaluate", f"ckpt_path={last}", *TINY, "task.decode.conf_threshold=1.0"], strict_dir)
     assert json.loads((strict_dir / "test_scores.json").read_text())[0]["FN"] == 100.0
 
     # resume: continues from step 3 to step 5, not from scratch
