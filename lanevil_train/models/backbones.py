@@ -18,7 +18,13 @@ from torch import nn
 
 from lanevil_train.checkpoints import load_checkpoint_file
 
-SUPPORTED_BACKBONES: tuple[str, ...] = ("resnet18", "resnet34", "resnet50", "resnet101", "vgg16")
+# The stride of each feature stage timm's features_only backbones return (index = an out_indices entry);
+# tests check it against timm. Config checks read it to validate out_indices and the input size.
+_RESNET_STRIDES = (2, 4, 8, 16, 32)
+STAGE_STRIDES: dict[str, tuple[int, ...]] = {"resnet18": _RESNET_STRIDES, "resnet34": _RESNET_STRIDES,
+                                             "resnet50": _RESNET_STRIDES, "resnet101": _RESNET_STRIDES,
+                                             "vgg16": (1, 2, 4, 8, 16, 32)}
+SUPPORTED_BACKBONES: tuple[str, ...] = tuple(STAGE_STRIDES)
 
 # Prefixes that wrappers put in front of backbone keys (DataParallel, Lightning, our detector).
 _WRAPPER_PREFIXES = ("module.", "model.", "backbone.", "encoder.", "body.", "net.")

@@ -18,14 +18,18 @@ from lanevil_train.metrics import TuSimpleMetric, tusimple_lane_scores
 TUSIMPLE_WIDTH = 1280  # the TuSimple 20 px threshold is for images this wide
 
 
+# The learning-rate schedules LaneDetector knows (model.scheduler).
+SCHEDULERS = ("cosine", "none")
+
+
 class LaneDetector(pl.LightningModule):
     """A lane detector = backbone (list of feature maps) + head (forward/loss/decode/encode)."""
 
     def __init__(self, backbone: nn.Module, head: nn.Module, lr: float = 3e-4, weight_decay: float = 0.0,
                  scheduler: str = "cosine", decode: dict | None = None, crop_top: float = 0.0):
         super().__init__()
-        if scheduler not in ("cosine", "none"):
-            raise ValueError(f"scheduler={scheduler!r}: expected 'cosine' or 'none'")
+        if scheduler not in SCHEDULERS:
+            raise ValueError(f"scheduler={scheduler!r}: expected one of {', '.join(SCHEDULERS)}")
         self.backbone = backbone
         self.head = head
         self.lr = lr

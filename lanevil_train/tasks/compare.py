@@ -13,11 +13,12 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from lanevil_train.data.formats.atomic import atomic_write_text
 from lanevil_train.report.defenses import (REFERENCE, best_defense, defense_gain, defense_scores, gain_pivot,
                                            write_defense_report)
 from lanevil_train.report.specs import spec_for
 from lanevil_train.report.tables import print_table
-from lanevil_train.tasks.builders import output_dir
+from lanevil_train.tasks.builders import build_defense, output_dir
 from lanevil_train.tasks.config_check import check_config
 from lanevil_train.tasks.scoring import RESULTS, read_records
 
@@ -106,8 +107,8 @@ def run_defense(cfg: DictConfig, defense: str, overrides: list[str], run_dir: Pa
     _finish_wandb()
     if not _is_rank_zero():
         return
-    done.write_text(json.dumps({"defense": defense, "label": run_label(run_cfg), "perturbed_accuracy": result},
-                               indent=2) + "\n")
+    atomic_write_text(done, json.dumps({"defense": defense, "label": run_label(run_cfg),  # a kill leaves no torn marker
+                                        "perturbed_accuracy": result}, indent=2) + "\n")
 
 
 def _is_rank_zero() -> bool:
@@ -190,8 +191,8 @@ def compare(cfg: DictConfig, overrides: list[str] | None = None) -> float | None
             overrides = list(HydraConfig.get().overrides.task)
         common = run_overrides(overrides)
         runs = {d: str(out / "runs" / d) for d in defenses}
-        for defense in defenses:  # every run's config is checked before the first one trains
-            compose_run(cfg, defense, common, Path(runs[defense]))
+        for defense in defenses:  # every run's config and defense arguments are checked before the first one trains
+            build_defense(compose_run(cfg, defense, common, Path(runs[defense])))
         for i, defense in enumerate(defenses, 1):
             log.info("compare: [%d/%d] defense=%s", i, len(defenses), defense)
             run_defense(cfg, defense, common, Path(runs[defense]))

@@ -26,15 +26,10 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
 
 from lanevil_train.illusions import ILLUSIONS, SEVERITIES
+from lanevil_train.models.backbones import STAGE_STRIDES
+from lanevil_train.models.detector import SCHEDULERS
 from lanevil_train.progress import MODES
 
-# LaneDetector's learning-rate schedules (models/detector.py).
-SCHEDULERS = ("cosine", "none")
-# The stride of each feature stage timm's features_only backbones return (index = backbone.out_indices entry);
-# tests check it against timm. models/backbones.py SUPPORTED_BACKBONES names the same networks.
-RESNET_STRIDES = (2, 4, 8, 16, 32)
-STAGE_STRIDES = {"resnet18": RESNET_STRIDES, "resnet34": RESNET_STRIDES, "resnet50": RESNET_STRIDES,
-                 "resnet101": RESNET_STRIDES, "vgg16": (1, 2, 4, 8, 16, 32)}
 # Keys of a `_target_` node that Hydra reads itself (not passed to the target).
 HYDRA_KEYS = {"_target_", "_recursive_", "_convert_", "_partial_", "_args_"}
 # Arguments the code passes to a target itself: a config value for them would be ignored.

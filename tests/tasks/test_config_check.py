@@ -13,7 +13,8 @@ from hydra import compose, initialize_config_module
 from hydra.core.global_hydra import GlobalHydra
 
 import lanevil_train.conf
-from lanevil_train.tasks.config_check import STAGE_STRIDES, ConfigError, check_config
+from lanevil_train.models.backbones import STAGE_STRIDES
+from lanevil_train.tasks.config_check import ConfigError, check_config
 from tests.tasks.cli_helpers import REPO, TINY
 
 CONF = Path(lanevil_train.conf.__file__).parent
@@ -292,9 +293,6 @@ def test_stage_strides_are_timms():
     import timm
     import torch
 
-    from lanevil_train.models.backbones import SUPPORTED_BACKBONES
-
-    assert set(STAGE_STRIDES) == set(SUPPORTED_BACKBONES)
     with torch.device("meta"):  # the network's shapes only: no memory, no weights
         for name, strides in STAGE_STRIDES.items():
             net = timm.create_model(name, features_only=True, out_indices=tuple(range(len(strides))))
