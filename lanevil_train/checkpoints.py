@@ -1,17 +1,27 @@
-"""Reading checkpoint files safely, with errors that name the option that gave the file.
+"""Reading checkpoint files safely, with errors that name the option that gave the file; writing them atomically.
 
 Every option that takes a checkpoint (`ckpt_path`, `task.init_from`, `backbone.checkpoint`) reads it here.
 Files are loaded with `torch.load(weights_only=True)`: tensors and plain values only, never arbitrary
 pickled objects, since unpickling an untrusted file can run code. A file that is not a readable
 checkpoint (random bytes, empty, truncated, or holding Python objects) is a `CheckpointError` saying what
 is wrong with it; torch's own message is not passed on, because it advises loading the file unsafely.
+
+Training writes its checkpoints through `AtomicCheckpointIO`: beside the final name, then renamed into place,
+so a run killed while saving leaves the previous `last.ckpt` whole (Lightning's own writer stages the file in
+the system temp folder, and moving it to an output folder on another file system is a copy a kill can cut).
 """
 
 from __future__ import annotations
 
+import io
 import re
 import zipfile
 from pathlib import Path
+from typing import Any
+
+from pytorch_lightning.plugins.io import TorchCheckpointIO
+
+from lanevil_train.data.formats.atomic import atomic_write_bytes
 
 _UNSAFE_GLOBAL = re.compile(r"Unsupported global: GLOBAL ([\w.]+)")
 _ZIP_MAGIC = b"PK\x03\x04"  # torch.save (since torch 1.6) writes a zip archive
@@ -87,3 +97,18 @@ def fit_weights(model, state_dict: dict, where: str) -> None:
         raise CheckpointError(f"{where}: its weights do not fit this run's network (model, backbone and input size "
                               f"must match the checkpoint's): weights {'; '.join(parts)}")
     model.load_state_dict(state_dict)
+
+
+class AtomicCheckpointIO(TorchCheckpointIO):
+    """Lightning's torch checkpoint writer, made atomic on local paths: the file is written to a hidden `.partial`
+    temporary beside its final name, fsynced and renamed, so it is at every instant the old file or the whole new
+    one (remote URLs such as s3://... go through Lightning's own writer)."""
+
+    def save_checkpoint(self, checkpoint: dict[str, Any], path, storage_options: Any | None = None) -> None:
+        if storage_options is not None or "://" in str(path):
+            return super().save_checkpoint(checkpoint, path, storage_options)
+        import torch
+
+        buffer = io.BytesIO()
+        torch.save(checkpoint, buffer)
+        atomic_write_bytes(path, buffer.getbuffer())

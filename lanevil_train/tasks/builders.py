@@ -9,6 +9,7 @@ from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
+from lanevil_train.checkpoints import AtomicCheckpointIO
 from lanevil_train.data.datamodule import LaneDataModule
 from lanevil_train.data.datasets import EmptySplitError
 from lanevil_train.models.detector import LaneDetector
@@ -139,6 +140,8 @@ def build_trainer(cfg: DictConfig, callbacks: list | None = None, logger=True) -
     bar = progress_callback(cfg.progress)
     if bar is not None:
         callbacks.append(bar)
+    if "plugins" not in args:  # checkpoints written atomically (a user's own plugins take over)
+        args["plugins"] = [AtomicCheckpointIO()]
     return pl.Trainer(**args, callbacks=callbacks, logger=build_logger(cfg) if logger else False,
                       enable_progress_bar=bar is not None, default_root_dir=cfg.output_dir)
 

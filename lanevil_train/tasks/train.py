@@ -9,6 +9,7 @@ import pytorch_lightning as pl
 from omegaconf import DictConfig
 
 from lanevil_train.checkpoints import load_weights
+from lanevil_train.data.formats.atomic import remove_temporaries
 from lanevil_train.tasks.builders import (build_callbacks, build_datamodule, build_defense, build_model, build_trainer,
                                           model_config, output_dir)
 from lanevil_train.tasks.evaluate import stream_dataset, test_dataset
@@ -38,6 +39,7 @@ def train(cfg: DictConfig) -> float | None:
     datamodule = build_datamodule(cfg, splits, model, defense)
     suite = test_dataset(cfg) if cfg.task.get("suite") is not None else None  # read and checked before training
     callbacks = build_callbacks(cfg)
+    remove_stale_checkpoint_temporaries(callbacks)
     writer = PerImageWriter(out / RESULTS, {"model": run_label(cfg), "dataset": cfg.data.name})
     callbacks.append(writer)
     if defense["callback"] is not None:
@@ -50,6 +52,14 @@ def train(cfg: DictConfig) -> float | None:
     if suite is not None and trainer.is_global_zero:
         result = score_robustness(cfg, model, suite, out / "robustness")
     return result
+
+
+def remove_stale_checkpoint_temporaries(callbacks: list) -> None:
+    """Delete the `.partial` files a run killed while saving a checkpoint left in the checkpoint folders (nothing
+    writes there before fit starts)."""
+    for callback in callbacks:
+        if isinstance(callback, pl.callbacks.ModelCheckpoint) and callback.dirpath and Path(callback.dirpath).is_dir():
+            remove_temporaries(callback.dirpath)
 
 
 def run_label(cfg: DictConfig) -> str:
