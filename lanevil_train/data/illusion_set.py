@@ -142,10 +142,13 @@ def build_illusion_set(cases: list[Case], plan: Plan, root: str | Path, workers:
     """Write every case's images, labels and manifest under root; skip what an earlier run finished.
     `progress`: a lanevil_train.progress mode (auto, rich, tqdm, plain, none)."""
     root = Path(root)
-    root.mkdir(parents=True, exist_ok=True)
+    if not cases:
+        raise ValueError("build_illusion_set: no cases to build (an empty source: no scenes, or a label file that "
+                         "lists no images)")
     for name in plan.illusions:
         if name not in ILLUSIONS:
             raise ValueError(f"unknown illusion {name!r}; expected one of: {', '.join(ILLUSIONS)}")
+    root.mkdir(parents=True, exist_ok=True)
     remove_temporaries(root)
     manifest = ResultsLog(root / "manifest.jsonl", key_field="image")
     done = manifest.resume()

@@ -87,3 +87,9 @@ def test_resume_after_an_interruption_gives_the_uninterrupted_result(tmp_path, m
 def test_unknown_illusion_is_rejected_before_any_work(tmp_path):
     with pytest.raises(ValueError, match="unknown illusion 'smoke'"):
         build_illusion_set(synthetic_cases(1, 0), Plan(illusions=("smoke",)), tmp_path, progress="none")
+
+
+def test_no_cases_is_refused_before_anything_is_written(tmp_path):
+    with pytest.raises(ValueError, match=r"^build_illusion_set: no cases to build"):
+        build_illusion_set([], PLAN, tmp_path / "set", progress="none")
+    assert not (tmp_path / "set").exists()
