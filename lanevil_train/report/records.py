@@ -127,7 +127,8 @@ def validate_records(records: Sequence[dict], spec: RecordSpec) -> list[dict]:
             if item in clean_seen:
                 if clean_seen[item] != values:
                     raise ValueError(f"record {i}: a second clean (severity 0) record for model/dataset/case "
-                                     f"{item} with different scores {values} vs {clean_seen[item]}")
+                                     f"{item} with different scores {values} vs {clean_seen[item]} (two runs of "
+                                     f"different models under one label? give each run its own task.label)")
                 continue  # the same clean item written once per illusion: count it once
             clean_seen[item] = values
         else:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 from lanevil_train.report.scores import summary_rows
@@ -20,7 +21,7 @@ def write_results(result_files: list[Path], out_dir: Path, baseline: str | None 
     records = [r for path in result_files for r in read_records(path, keep_lanes=False)]
     if not records:
         raise ValueError(f"no per-image results to report in {', '.join(map(str, result_files))}")
-    rs = record_set(records)
+    rs = _checked_record_set(records, result_files)
     if any(r["severity"] > 0 for r in rs.records):
         from lanevil_train.report.plots import worst_case_pairs
 
@@ -41,6 +42,22 @@ def write_results(result_files: list[Path], out_dir: Path, baseline: str | None 
         plots = ", ".join(p.name for p in paths.values() if p.suffix == ".png")
         print(f"Robustness report: {paths['report']} (per type, per severity, relative); plots: {plots}")
     return rs.spec.headline.aggregate(perturbed or rs.records)
+
+
+def _checked_record_set(records: list[dict], result_files: list[Path]):
+    """record_set(records); a bad record is reported with the file and line it came from."""
+    try:
+        return record_set(records)
+    except ValueError as error:
+        for path in result_files:  # find the file: each file's records are validated on their own
+            part = read_records(path, keep_lanes=False)
+            try:
+                record_set(part)
+            except ValueError as file_error:
+                line = re.match(r"^record (\d+): ", str(file_error))  # record i is line i + 1 of its file
+                where = f"{path}:{int(line.group(1)) + 1}" if line else str(path)
+                raise ValueError(f"{where}: {str(file_error)[line.end() if line else 0:]}") from None
+        raise error  # records of several files that do not fit together
 
 
 def log_results(logger, out_dir: Path) -> None:

@@ -103,7 +103,7 @@ def test_duplicate_clean_records_count_once_and_conflicts_raise():
 
 
 @pytest.mark.parametrize("bad, match", [
-    ({"severity": 7}, "severity"), ({"accuracy": 1.5}, "accuracy"), ({"case_id": None}, "case_id"),
+    ({"severity": 7}, "severity"), ({"accuracy": -0.1}, "accuracy"), ({"case_id": None}, "case_id"),
     ({"illusion": None, "category": None}, "illusion"),
 ])
 def test_bad_records_raise_naming_the_record(bad, match):
