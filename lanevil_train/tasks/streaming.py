@@ -6,12 +6,15 @@ rerun with the same output file skips every image it already lists.
 
 from __future__ import annotations
 
+import hashlib
+import json
 from pathlib import Path
 
 import torch
 from torch.utils.data import DataLoader, Dataset, Subset
 
 from lanevil_train.data.datamodule import ProcessedDataset, collate_lanes
+from lanevil_train.data.formats.atomic import atomic_write_text
 from lanevil_train.data.transforms import LaneSampleProcessor
 from lanevil_train.models.detector import LaneDetector
 from lanevil_train.progress import progress_counter
@@ -29,6 +32,7 @@ def stream_evaluate(model: LaneDetector, dataset: Dataset, out_path: str | Path,
     """
     log = ResultsLog(out_path)
     done = log.resume()
+    claim_results(log.path, run_identity(model, label), resuming=bool(done))
     todo = [i for i in range(len(dataset)) if dataset.item_key(i) not in done]
     spec = model.build_config or {}
     processor = LaneSampleProcessor(tuple(spec.get("input_size", dataset[0]["image"].shape[:2])), augment=False,
@@ -47,3 +51,30 @@ def stream_evaluate(model: LaneDetector, dataset: Dataset, out_path: str | Path,
             bar.update(len(preds))
     bar.close()
     return log.path
+
+
+def run_identity(model: LaneDetector, label: dict) -> dict:
+    """What makes two evaluations the same: the label, the network's weights (a hash), input geometry, decoding."""
+    digest = hashlib.sha256()
+    for name, tensor in sorted(model.state_dict().items()):
+        digest.update(name.encode())
+        digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
+    spec = model.build_config or {}
+    return {**{k: str(v) for k, v in label.items()}, "weights_sha256": digest.hexdigest(),
+            "input_size": list(spec.get("input_size", [])), "crop_top": spec.get("crop_top", 0.0),
+            "decode": {k: v for k, v in sorted(model.decode_kwargs.items())}}
+
+
+def claim_results(path: Path, identity: dict, resuming: bool) -> None:
+    """Record which evaluation writes `path` (in <name>.run.json beside it), or check that a resumed file was
+    written by this same evaluation: resuming another model's results would report them as this model's."""
+    marker = path.with_name(f"{path.stem}.run.json")
+    if resuming and marker.is_file():
+        before = json.loads(marker.read_text(encoding="utf-8"))
+        changed = sorted(k for k in set(before) | set(identity) if before.get(k) != identity.get(k))
+        if changed:
+            differences = "; ".join("other weights" if k == "weights_sha256" else
+                                    f"{k} was {before.get(k)!r}, now {identity.get(k)!r}" for k in changed)
+            raise ValueError(f"{path} holds results of another evaluation ({differences}); resuming would report "
+                             f"them as this one's: write to another folder (task.out_dir) or delete {path}")
+    atomic_write_text(marker, json.dumps(identity, indent=1) + "\n")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import pytest
 import torch
 
 from lanevil_train.data.suites import SyntheticIllusionSuite
@@ -57,3 +58,24 @@ def test_resume_after_an_interruption_gives_the_uninterrupted_results(tmp_path):
     # nothing left to do: a third run adds nothing
     stream_evaluate(model, suite, tmp_path / "b.jsonl", {"model": "m"}, progress="none")
     assert len(read_records(tmp_path / "b.jsonl")) == 10
+
+
+def test_resuming_another_models_results_is_refused(tmp_path):
+    model, suite = _model(), _suite()
+    path = tmp_path / "per_image.jsonl"
+    stream_evaluate(model, suite, path, {"model": "m", "dataset": "d"}, progress="none")
+    finished = path.read_bytes()
+    torch.manual_seed(1)
+    other = build_model(SPEC)  # the same network with other weights
+    with pytest.raises(ValueError, match=rf"^{path} holds results of another evaluation \(other weights\); resuming "
+                                         r"would report them as this one's: write to another folder \(task\.out_dir\)"):
+        stream_evaluate(other, suite, path, {"model": "m", "dataset": "d"}, progress="none")
+    model.decode_kwargs["conf_threshold"] = 0.9
+    with pytest.raises(ValueError, match=r"decode was \{'conf_threshold': 0\.45.*now \{'conf_threshold': 0\.9"):
+        stream_evaluate(model, suite, path, {"model": "m", "dataset": "d"}, progress="none")
+    model.decode_kwargs["conf_threshold"] = 0.45
+    with pytest.raises(ValueError, match=r"model was 'm', now 'untrained'"):
+        stream_evaluate(model, suite, path, {"model": "untrained", "dataset": "d"}, progress="none")
+    assert path.read_bytes() == finished  # nothing was appended
+    stream_evaluate(model, suite, path, {"model": "m", "dataset": "d"}, progress="none")  # the same run resumes
+    assert path.read_bytes() == finished
