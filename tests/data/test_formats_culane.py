@@ -121,3 +121,26 @@ def test_bad_list_lines(tmp_path):
         read_culane(tmp_path / "list.txt", tmp_path)
     with pytest.raises(ValueError, match="record 0: image .* not under root"):
         write_culane([{"image_path": tmp_path.parent / "elsewhere.jpg", "lanes": []}], tmp_path, tmp_path / "l.txt")
+
+
+def test_an_image_listed_twice_is_refused_naming_both_lines(tmp_path):
+    img = _image(tmp_path)
+    other = _image(tmp_path, REL.replace("00000", "00030"))
+    for path in (img, other):
+        _write(lines_path_for(path), "1 2 3 4\n")
+    other_rel = REL.replace("00000", "00030")
+    listing = _write(tmp_path / "list/test.txt", f"/{REL}\n/{other_rel}\n\n{REL}\n")  # with or without the '/'
+    with pytest.raises(ValueError) as error:
+        read_culane(listing, tmp_path)
+    assert str(error.value) == (f"{listing}:4: image {REL} is listed twice (first at {listing}:1); "
+                                "each image must appear once in a CULane list")
+
+
+def test_a_utf8_bom_is_accepted_in_lists_and_lines_files(tmp_path):
+    img = _image(tmp_path)
+    lines_path_for(img).write_bytes(b"\xef\xbb\xbf1 2 3 4\n")
+    (tmp_path / "list").mkdir()
+    (tmp_path / "list/test.txt").write_bytes(b"\xef\xbb\xbf" + f"/{REL}\n".encode())
+    (rec,) = read_culane(tmp_path / "list/test.txt", tmp_path)
+    assert rec["image_path"] == img and rec["rel_path"] == REL
+    np.testing.assert_array_equal(rec["lanes"][0], [[3, 4], [1, 2]])  # y descending

@@ -44,8 +44,9 @@ def test_read_converts_rows_to_lanes(tmp_path):
 
 def test_read_several_files_blank_lines_and_empty_lanes(tmp_path):
     _image(tmp_path, "clips/0/20.png")
+    _image(tmp_path, "clips/0/21.png")  # another image: one image on two lines is an error (test below)
     empty = json.dumps({"lanes": [[-2, -2, -2, -2], [1, 2, 3, 4]], "h_samples": [160, 170, 180, 190],
-                        "raw_file": "clips/0/20.png"})
+                        "raw_file": "clips/0/21.png"})
     a = _label(tmp_path, [GOOD, ""], "a.json")
     b = _label(tmp_path, [empty], "b.json")
     recs = read_tusimple([a, b], tmp_path)
@@ -131,3 +132,47 @@ def test_load_image_rgb_and_errors(tmp_path):
     junk.write_bytes(b"not an image")
     with pytest.raises(ValueError, match="junk.jpg"):
         load_image(junk)
+
+
+def _line(raw_file: str = "clips/0/20.png", h_samples=(160, 170, 180, 190)) -> str:
+    return json.dumps({"lanes": [[-2, -2, 100, 110]], "h_samples": list(h_samples), "raw_file": raw_file})
+
+
+def test_an_image_on_two_lines_is_refused_naming_both(tmp_path):
+    _image(tmp_path, "clips/0/20.png")
+    _image(tmp_path, "clips/0/21.png")
+    one = _label(tmp_path, [_line(), _line("clips/0/21.png"), "", _line()], "one.json")
+    with pytest.raises(ValueError) as error:
+        read_tusimple(one, tmp_path)
+    assert str(error.value) == (f"{one}:4: raw_file 'clips/0/20.png' appears twice (first at {one}:1); "
+                                "each image must have one label line")
+    a = _label(tmp_path, [_line()], "a.json")
+    b = _label(tmp_path, [_line("clips/0/21.png"), _line("./clips/0/20.png")], "b.json")  # across files too
+    with pytest.raises(ValueError, match=rf"^{b}:2: raw_file './clips/0/20.png' appears twice \(first at {a}:1\)"):
+        read_tusimple([a, b], tmp_path)
+
+
+@pytest.mark.parametrize("h_samples,message", [
+    ((160, 170, 170, 190), "h_samples repeats value 170 (2 times); expected each row once"),
+    ((160, 160, 160, 160), "h_samples repeats value 160 (4 times); expected each row once"),
+    ((160, -10, 180, 190), "h_samples contains negative value -10; expected image rows y >= 0"),
+    ((160, 170, 180, -0.5), "h_samples contains negative value -0.5; expected image rows y >= 0"),
+])
+def test_negative_or_repeated_h_samples_are_refused_naming_line_and_value(tmp_path, h_samples, message):
+    path = _label(tmp_path, [_line(h_samples=h_samples)])
+    with pytest.raises(ValueError) as error:
+        read_tusimple(path, tmp_path, check_images=False)
+    assert str(error.value) == f"{path}:1: {message}"
+
+
+def test_unsorted_h_samples_are_accepted(tmp_path):
+    (rec,) = read_tusimple(_label(tmp_path, [_line(h_samples=(190, 160, 180, 170))]), tmp_path, check_images=False)
+    assert rec["h_samples"].tolist() == [190, 160, 180, 170] and len(rec["lanes"]) == 1
+
+
+def test_a_utf8_bom_is_accepted(tmp_path):
+    _image(tmp_path, "clips/0/20.png")
+    path = tmp_path / "bom.json"
+    path.write_bytes(b"\xef\xbb\xbf" + (GOOD + "\n").encode())
+    (rec,) = read_tusimple(path, tmp_path)
+    assert rec["raw_file"] == "clips/0/20.png" and rec["source"] == f"{path}:1"

@@ -32,7 +32,7 @@ def read_culane_lanes(path: Path | str) -> list[np.ndarray]:
     """Parse one ``.lines.txt`` into lanes (N, 2), y descending; errors name the file and line."""
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")  # a BOM is accepted
     except FileNotFoundError as e:
         raise FileNotFoundError(f"CULane annotation {path} not found") from e
     except OSError as e:
@@ -73,14 +73,15 @@ def read_culane(
 
     train_gt-style lines also give "mask_path" and "exist" (4 ints). A missing ``.lines.txt`` is an
     error unless ``require_labels=False`` (unlabelled test sets): then "lanes" is [] and
-    "labeled" False.
+    "labeled" False. An image listed twice is an error naming both lines; a UTF-8 BOM is accepted.
     """
     list_file, root = Path(list_file), Path(root)
     try:
-        text = list_file.read_text(encoding="utf-8")
+        text = list_file.read_text(encoding="utf-8-sig")  # a BOM is accepted
     except OSError as e:
         raise FileNotFoundError(f"cannot read CULane list file {list_file}: {e}") from e
     records = []
+    first_seen: dict[str, str] = {}
     for lineno, line in enumerate(text.splitlines(), start=1):
         tokens = line.split()
         if not tokens:
@@ -91,6 +92,13 @@ def read_culane(
                 f"{where}: expected 'IMAGE' or 'IMAGE MASK e1 e2 e3 e4' (1 or 6 fields), got {len(tokens)}"
             )
         rel = tokens[0]
+        key = os.path.normpath(rel.lstrip("/"))
+        if key in first_seen:
+            raise ValueError(
+                f"{where}: image {rel} is listed twice (first at {first_seen[key]}); "
+                "each image must appear once in a CULane list"
+            )
+        first_seen[key] = where
         record: dict = {"image_path": _join(root, rel), "rel_path": rel.lstrip("/"), "source": where}
         if len(tokens) == 6:
             try:

@@ -10,11 +10,12 @@ from typing import Iterator
 def read_json_objects(path: str | Path, required: tuple[str, ...], what: str) -> Iterator[tuple[str, dict]]:
     """("file:line", object) for each non-blank line of `path`, each a JSON object with the `required` keys.
 
-    `what` names the kind of file in messages ("TuSimple label", "manifest").
+    `what` names the kind of file in messages ("TuSimple label", "manifest"). A UTF-8 byte-order
+    mark at the start of the file is accepted (editors on Windows write one).
     """
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")
     except OSError as e:
         raise FileNotFoundError(f"cannot read {what} file {path}: {e}") from e
     for lineno, line in enumerate(text.splitlines(), start=1):

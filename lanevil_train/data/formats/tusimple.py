@@ -9,6 +9,7 @@ the official script (we write them anyway, which it ignores).
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import Iterable, Sequence
 
@@ -45,6 +46,26 @@ def _check_line(obj: dict, where: str) -> dict:
     return obj
 
 
+def _check_h_samples(ys: np.ndarray, where: str) -> None:
+    """h_samples are image rows: none negative, none repeated (any order is fine)."""
+    negative = ys[ys < 0]
+    if negative.size:
+        raise ValueError(
+            f"{where}: h_samples contains negative value {_num(negative[0])}; expected image rows y >= 0"
+        )
+    values, counts = np.unique(ys, return_counts=True)
+    repeated = values[counts > 1]
+    if repeated.size:
+        raise ValueError(
+            f"{where}: h_samples repeats value {_num(repeated[0])} ({int(counts[counts > 1][0])} times); "
+            "expected each row once"
+        )
+
+
+def _num(v: float) -> str:
+    return str(int(v)) if float(v).is_integer() else str(float(v))
+
+
 def read_tusimple(
     label_files: Sequence[Path | str] | Path | str,
     root: Path | str,
@@ -55,15 +76,26 @@ def read_tusimple(
 
     Lanes keep the file's order; a lane with no valid point is dropped unless ``keep_empty``
     (the official metric still counts such a GT lane, so keep them to score exactly).
+    Errors name file:line: an image (raw_file) on two lines, in one file or across ``label_files``,
+    and negative or repeated h_samples are refused (unsorted h_samples are fine). A UTF-8 BOM is accepted.
     """
     if isinstance(label_files, (str, Path)):
         label_files = [label_files]
     root = Path(root)
     records: list[dict] = []
+    first_seen: dict[str, str] = {}
     for label_file in map(Path, label_files):
         for where, obj in read_json_objects(label_file, _REQUIRED, "TuSimple label"):
             _check_line(obj, where)
+            key = os.path.normpath(obj["raw_file"].lstrip("/"))
+            if key in first_seen:
+                raise ValueError(
+                    f"{where}: raw_file {obj['raw_file']!r} appears twice (first at {first_seen[key]}); "
+                    "each image must have one label line"
+                )
+            first_seen[key] = where
             ys = _numbers(obj["h_samples"], where, "h_samples")
+            _check_h_samples(ys, where)
             lanes = []
             for j, xs in enumerate(obj["lanes"]):
                 row = _numbers(xs, where, f"lane {j}")
