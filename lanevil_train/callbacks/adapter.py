@@ -71,5 +71,51 @@ class BatchAdapter:
                 raise ValueError(f"BatchAdapter: lane masks at {self.lane_mask_at!r} must be (B, H, W) with "
                                  f"(H, W) = {tuple(shape)}, got {tuple(mask.shape)}")
             return mask.detach().cpu().numpy() > 0
-        lanes = _fetch(batch, self.lanes_at, "lanes")
+        lanes = self._check_lanes(_fetch(batch, self.lanes_at, "lanes"))
         return np.stack([lane_mask(list(per_image), shape, width) for per_image in lanes])
+
+    def _check_lanes(self, lanes: Any) -> Any:
+        """Lanes must be, per image, a sequence of (N, 2) x, y point arrays; a mask passed as lanes is refused
+        (its rows would be taken for lanes)."""
+        expected = "a list of (N, 2) x, y point arrays (input pixels) per image"
+        if _looks_like_mask(lanes, batch_level=True):
+            raise ValueError(f"BatchAdapter: the lanes at {self.lanes_at!r} are a {_describe(lanes)}, which looks "
+                             f"like a lane mask; lanes must be {expected}. Pass a mask as "
+                             f"lane_mask={self.lanes_at!r} instead of lanes={self.lanes_at!r}")
+        if isinstance(lanes, (str, bytes)) or not hasattr(lanes, "__len__") or not hasattr(lanes, "__iter__"):
+            raise ValueError(f"BatchAdapter: the lanes at {self.lanes_at!r} are a {_describe(lanes)}; expected "
+                             f"{expected}")
+        for i, per_image in enumerate(lanes):
+            if _looks_like_mask(per_image, batch_level=False):
+                raise ValueError(f"BatchAdapter: the lanes of image {i} at {self.lanes_at!r} are a "
+                                 f"{_describe(per_image)}, which looks like a lane mask; lanes must be {expected}. "
+                                 f"Pass masks as lane_mask={self.lanes_at!r} instead of lanes={self.lanes_at!r}")
+            if isinstance(per_image, (str, bytes, dict)) or not hasattr(per_image, "__iter__"):
+                raise ValueError(f"BatchAdapter: the lanes of image {i} at {self.lanes_at!r} are a "
+                                 f"{_describe(per_image)}; expected {expected}")
+            for j, lane in enumerate(per_image):
+                try:
+                    points = np.asarray(lane.detach().cpu() if isinstance(lane, torch.Tensor) else lane,
+                                        dtype=np.float64)
+                except (TypeError, ValueError):
+                    points = None
+                if points is None or points.ndim != 2 or points.shape[1] != 2:
+                    raise ValueError(f"BatchAdapter: lane {j} of image {i} at {self.lanes_at!r} is a "
+                                     f"{_describe(lane)}; expected {expected}")
+        return lanes
+
+
+def _describe(value: Any) -> str:
+    if isinstance(value, (torch.Tensor, np.ndarray)):
+        return f"{tuple(value.shape)} {type(value).__name__}"
+    return type(value).__name__
+
+
+def _looks_like_mask(value: Any, batch_level: bool) -> bool:
+    """A (B, H, W) / (B, 1, H, W) / (H, W) tensor or array (batch level), or an (H, W) one (one image): not lanes,
+    which end in a dimension of 2 (x, y) one level deeper."""
+    if not isinstance(value, (torch.Tensor, np.ndarray)) or value.ndim < 2 or value.shape[-1] == 2:
+        return False
+    if batch_level:
+        return value.ndim in (2, 3) or (value.ndim == 4 and value.shape[1] == 1)
+    return value.ndim == 2 or (value.ndim == 3 and value.shape[0] == 1)

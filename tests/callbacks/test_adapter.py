@@ -56,3 +56,32 @@ def test_a_missing_location_names_what_was_expected_where():
         BatchAdapter(images="img", lane_mask="seg").lane_masks({"img": IMAGES}, (8, 10), width=1)
     with pytest.raises(ValueError, match=r"must be \(B, H, W\) with \(H, W\) = \(8, 10\)"):
         BatchAdapter(images="img", lane_mask="seg").lane_masks({"img": IMAGES, "seg": MASK[:, :4]}, (8, 10), 1)
+
+
+@pytest.mark.parametrize("lanes, what", [
+    (MASK, r"the lanes at 1 are a \(2, 8, 10\) Tensor, which looks like a lane mask"),
+    (MASK[:, None], r"the lanes at 1 are a \(2, 1, 8, 10\) Tensor, which looks like a lane mask"),
+    (MASK[0].numpy(), r"the lanes at 1 are a \(8, 10\) ndarray, which looks like a lane mask"),
+    ([MASK[0], MASK[1]], r"the lanes of image 0 at 1 are a \(8, 10\) Tensor, which looks like a lane mask"),
+])
+def test_a_mask_passed_as_lanes_is_refused_and_lane_mask_is_suggested(lanes, what):
+    with pytest.raises(ValueError, match=f"BatchAdapter: {what}; lanes must be a list of \\(N, 2\\) x, y "
+                                         f"point arrays \\(input pixels\\) per image. Pass .*as lane_mask=1 instead of lanes=1"):
+        BatchAdapter(images=0, lanes=1).lane_masks((IMAGES, lanes), (8, 10), width=1)
+
+
+@pytest.mark.parametrize("lanes, what", [
+    (None, "the lanes at 1 are a NoneType"),
+    ([[np.array([2.0, 7.0])]], r"lane 0 of image 0 at 1 is a \(2,\) ndarray"),
+    ([LANES[0], [np.zeros((3, 3))]], r"lane 0 of image 1 at 1 is a \(3, 3\) ndarray"),
+    ([LANES[0], 5], "the lanes of image 1 at 1 are a int"),
+])
+def test_lanes_that_are_not_lists_of_point_arrays_are_named(lanes, what):
+    with pytest.raises(ValueError, match=f"BatchAdapter: {what}; expected a list of \\(N, 2\\) x, y point arrays"):
+        BatchAdapter(images=0, lanes=1).lane_masks((IMAGES, lanes), (8, 10), width=1)
+
+
+def test_lanes_as_tensors_and_images_without_lanes_are_accepted():
+    lanes = [torch.tensor([[[2.0, 7.0], [2.0, 0.0]]]), []]  # image 0: an (L, N, 2) tensor; image 1: no lanes
+    masks = BatchAdapter(images=0, lanes=1).lane_masks((IMAGES, lanes), (8, 10), width=1)
+    assert expected_columns(masks) == [[2], []]
