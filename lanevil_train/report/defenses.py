@@ -17,6 +17,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+from lanevil_train.data.formats.atomic import atomic_write_text
 from lanevil_train.report.records import AVERAGE, RecordSet, RecordSpec, item_of
 from lanevil_train.report.robustness import main_table
 from lanevil_train.report.specs import spec_for
@@ -192,5 +193,5 @@ def write_defense_report(score_rows: list[dict], gain_rows: list[dict], out_dir:
     if runs:
         parts += ["## Runs", "", markdown_table([{"defense": d, "run": str(r)} for d, r in runs.items()]), ""]
     paths["report"] = out_dir / "compare.md"
-    paths["report"].write_text("\n".join(parts))
+    atomic_write_text(paths["report"], "\n".join(parts))
     return paths

@@ -4,6 +4,7 @@ green, predictions red). Each takes a list of records (the spec is inferred) or 
 
 from __future__ import annotations
 
+import io
 import warnings
 from pathlib import Path
 
@@ -14,6 +15,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from lanevil_train.data.formats.atomic import atomic_write_bytes  # noqa: E402
 from lanevil_train.report.records import item_of  # noqa: E402
 from lanevil_train.report.specs import record_set  # noqa: E402
 
@@ -21,11 +23,12 @@ _STYLES = ("-", "--", ":", "-.")
 
 
 def save_figure(fig, path: str | Path) -> Path:
-    """Write a figure (parent folders made) and close it."""
+    """Write a figure as PNG, whole or not at all (atomically; parent folders made), and close it."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100, bbox_inches="tight")
+    image = io.BytesIO()
+    fig.savefig(image, format="png", dpi=100, bbox_inches="tight")
     plt.close(fig)
+    atomic_write_bytes(path, image.getbuffer())
     return path
 
 

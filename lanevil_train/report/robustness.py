@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+from lanevil_train.data.formats.atomic import atomic_write_text
 from lanevil_train.report.records import AVERAGE, KINDS, NAN, ModelRecords, RecordSet, mean
 from lanevil_train.report.specs import record_set
 from lanevil_train.report.tables import markdown_table, write_table
@@ -183,5 +184,5 @@ def write_report(records, out_dir: str | Path, baseline: str | None = None) -> d
             paths[name] = Path(p)
             parts += [f"![{name}]({Path(p).name})", ""]
     paths["report"] = out_dir / "report.md"
-    paths["report"].write_text("\n".join(parts))
+    atomic_write_text(paths["report"], "\n".join(parts))
     return paths

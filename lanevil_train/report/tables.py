@@ -7,8 +7,11 @@ its keys are the columns.
 from __future__ import annotations
 
 import csv
+import io
 import json
 from pathlib import Path
+
+from lanevil_train.data.formats.atomic import atomic_write_text
 
 
 def _fmt(value, digits: int) -> str:
@@ -33,13 +36,14 @@ def write_table(rows: list[dict], out_dir: str | Path, name: str, digits: int = 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = {"json": out_dir / f"{name}.json", "csv": out_dir / f"{name}.csv", "md": out_dir / f"{name}.md"}
-    paths["json"].write_text(json.dumps(rows, indent=2) + "\n")
-    columns = list(rows[0]) if rows else []
-    with open(paths["csv"], "w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=columns)
-        writer.writeheader()
-        writer.writerows(rows)
-    paths["md"].write_text(markdown_table(rows, digits=digits) + "\n")
+    # each file written whole or not at all: a report killed half-way leaves no torn table
+    atomic_write_text(paths["json"], json.dumps(rows, indent=2) + "\n")
+    text = io.StringIO(newline="")
+    writer = csv.DictWriter(text, fieldnames=list(rows[0]) if rows else [])
+    writer.writeheader()
+    writer.writerows(rows)
+    atomic_write_text(paths["csv"], text.getvalue())
+    atomic_write_text(paths["md"], markdown_table(rows, digits=digits) + "\n")
     return paths
 
 
