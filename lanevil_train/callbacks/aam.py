@@ -67,7 +67,10 @@ class AttentionAreaMixing(pl.Callback):
     """AAM++ (mode="aam++", high and low attention areas) or AAM (mode="aam", high only).
 
     Args (paper defaults where the paper gives one):
-        layer: dotted name of the module whose output is the attention source (e.g. "backbone.layer4").
+        layer: dotted name of the module whose output is the attention source (e.g. "backbone.layer4"): a
+            4-D (B, C, H, W) feature map with H, W > 1 that receives gradients. Anything else (a 2-D fc output,
+            a 1x1 globally pooled map, a frozen layer, a layer the training step does not run) is a ValueError
+            at the first training step, since it would bank no region.
         output_index: which tensor, if that module returns a list or tuple.
         sigma: std of the Gaussian blur of M, in input pixels.
         t_haa, t_laa: thresholds on the [0, 1]-normalised blurred map (0.6, 0.4).
@@ -85,6 +88,8 @@ class AttentionAreaMixing(pl.Callback):
         adapter: where images and lane ground truth sit in a batch (default: lanevil_train batches).
         seed: seeds the choices of regions and places (offset by the DDP rank).
     """
+
+    MODEL_ARGUMENTS = ("layer",)  # the arguments check_model checks against the model (task=compare names them)
 
     def __init__(self, layer: str, mode: str = "aam++", output_index: int = -1, sigma: float = 3.0,
                  t_haa: float = 0.6, t_laa: float = 0.4, min_area: float = 0.002, overlap_threshold: float = 0.2,
@@ -136,6 +141,7 @@ class AttentionAreaMixing(pl.Callback):
         self._rng = np.random.default_rng(seed)
         self._handle = None
         self._capture = False
+        self._indexed = False
         self._activation: torch.Tensor | None = None
         self._gradient: torch.Tensor | None = None
         self._mixed: set[int] = set()
@@ -145,13 +151,21 @@ class AttentionAreaMixing(pl.Callback):
     def setup(self, trainer: pl.Trainer, pl_module: pl.LightningModule, stage: str) -> None:
         self._rng = np.random.default_rng([self.seed, trainer.global_rank])
 
-    def on_fit_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+    def check_model(self, model: torch.nn.Module) -> torch.nn.Module:
+        """The module `layer` names in `model`; a ValueError naming `layer` when the model has none.
+
+        Run at fit start, and by task=compare on each run's model before any run trains. What the layer gives
+        (a 4-D feature map that receives gradients, H, W > 1) can only be checked in the first training step.
+        """
         try:
-            module = pl_module.get_submodule(self.layer)
+            return model.get_submodule(self.layer)
         except AttributeError as error:
-            names = [name for name, _ in pl_module.named_modules() if name and name.count(".") < 2]
+            names = [name for name, _ in model.named_modules() if name and name.count(".") < 2]
             raise ValueError(f"AttentionAreaMixing: layer={self.layer!r} is not a module of "
-                             f"{type(pl_module).__name__}; some names: {names[:20]}") from error
+                             f"{type(model).__name__}; some names: {names[:20]}") from error
+
+    def on_fit_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        module = self.check_model(pl_module)
         self._handle = module.register_forward_hook(self._keep_activation)
         if self.hardness != "loss" and isinstance(getattr(pl_module, "score_train_batches", None), bool):
             pl_module.score_train_batches = True
@@ -161,15 +175,42 @@ class AttentionAreaMixing(pl.Callback):
             self._handle.remove()
             self._handle = None
 
+    def on_exception(self, trainer: pl.Trainer, pl_module: pl.LightningModule, exception: BaseException) -> None:
+        self.on_fit_end(trainer, pl_module)  # a failed fit leaves no hook on the user's model
+
     def _keep_activation(self, module, inputs, output) -> None:
         if not (self._capture and module.training and torch.is_grad_enabled()):
             return
-        if isinstance(output, (list, tuple)):
+        self._indexed = isinstance(output, (list, tuple))
+        if self._indexed:
             output = output[self.output_index]
-        if not isinstance(output, torch.Tensor) or output.ndim != 4 or not output.requires_grad:
-            return
+        self._check_output(output)
         self._activation = output.detach()
         output.register_hook(self._keep_gradient)
+
+    def _check_output(self, output) -> None:
+        """Refuse, at the first training step, a layer output AAM cannot use (it would bank nothing, silently).
+
+        AAM needs a 4-D (B, C, H, W) feature map with H, W > 1 (a map of 1x1, e.g. after global pooling, has
+        no area to cut out) that receives gradients (Grad-CAM needs them: a frozen layer gets none).
+        """
+        if isinstance(output, torch.Tensor):
+            gave = f"a {tuple(output.shape)} tensor (requires_grad={output.requires_grad})"
+        else:
+            gave = f"a {type(output).__name__}"
+        problem = None
+        if not isinstance(output, torch.Tensor) or output.ndim != 4:
+            problem = "not a 4-D feature map"
+        elif output.shape[-2] < 2 or output.shape[-1] < 2:
+            problem = "no spatial extent to cut regions from (H, W must both be > 1)"
+        elif not output.requires_grad:
+            problem = "no gradient reaches it (is the layer frozen, or run under torch.no_grad?)"
+        if problem is not None:
+            which = f" (output_index={self.output_index} of its outputs)" if self._indexed else ""
+            raise ValueError(f"AttentionAreaMixing: layer={self.layer!r}{which} gave {gave} in the training step: "
+                             f"{problem}. AAM needs a 4-D (B, C, H, W) feature map with H, W > 1 that receives "
+                             f"gradients; set layer to such a module (e.g. a backbone stage like "
+                             f"'backbone.layer4', not a pooled or fully connected layer)")
 
     def _keep_gradient(self, grad: torch.Tensor) -> None:
         self._gradient = grad.detach()
@@ -193,7 +234,11 @@ class AttentionAreaMixing(pl.Callback):
         """Boolean (B, H, W) lane masks of a batch, lanes drawn `lane_width` of the image width wide."""
         images = self.adapter.images(batch)
         height, width = images.shape[-2:]
-        return self.adapter.lane_masks(batch, (height, width), max(1, round(self.lane_width * width)))
+        masks = self.adapter.lane_masks(batch, (height, width), max(1, round(self.lane_width * width)))
+        if masks.shape[0] != images.shape[0]:
+            raise ValueError(f"AttentionAreaMixing: the batch has {images.shape[0]} images but lane ground truth "
+                             f"for {masks.shape[0]}; check the adapter's lanes/lane_mask location")
+        return masks
 
     def mix(self, images: torch.Tensor, masks: np.ndarray) -> set[int]:
         """Blend one banked region into a `mix_prob` share of the images, in place; returns their indices."""
@@ -218,6 +263,8 @@ class AttentionAreaMixing(pl.Callback):
         activation, gradient = self._activation, self._gradient
         self._activation = self._gradient = None
         found = []
+        if outputs is not None:  # None: training_step skipped the batch (no backward)
+            self._check_captured(activation, gradient)
         if activation is not None and gradient is not None:
             scores, higher_is_harder = self.per_sample_scores(outputs)
             found = self.harvest(activation, gradient, scores, higher_is_harder, batch)
@@ -226,6 +273,17 @@ class AttentionAreaMixing(pl.Callback):
             self.bank.add(kind, patch)
         self.stats["banked"] += len(found)
         pl_module.log("aam/bank", float(len(self.bank)), on_step=True, on_epoch=False, batch_size=1)
+
+    def _check_captured(self, activation, gradient) -> None:
+        """The step ran the layer in training mode and its backward reached it; else AAM would bank nothing."""
+        if activation is None:
+            raise ValueError(f"AttentionAreaMixing: layer={self.layer!r} gave no output in the training step (it "
+                             f"was not called, or only in eval mode or under torch.no_grad); AAM needs a 4-D "
+                             f"(B, C, H, W) feature map of the training forward that receives gradients")
+        if gradient is None:
+            raise ValueError(f"AttentionAreaMixing: layer={self.layer!r} gave a {tuple(activation.shape)} feature "
+                             f"map but the step's backward sent it no gradient (does the loss depend on it?); AAM "
+                             f"needs a 4-D (B, C, H, W) feature map that receives gradients")
 
     def per_sample_scores(self, outputs) -> tuple[np.ndarray, bool]:
         """(scores, higher_is_harder) from what training_step returned."""

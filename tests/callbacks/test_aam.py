@@ -221,3 +221,56 @@ def test_the_region_bank_is_shared_across_ddp_ranks(tmp_path):
     mp.spawn(_gather_worker, args=(2, _free_port(), str(tmp_path)), nprocs=2, join=True)
     banks = [json.loads((tmp_path / f"rank{r}.json").read_text()) for r in range(2)]
     assert banks[0] == banks[1] == [1.0, 2.0, 2.0]  # rank 0 found one region, rank 1 two: every rank holds all
+
+
+class PooledSegmenter(TinySegmenter):
+    """TinySegmenter with a global-pool + fc bias branch, a frozen first conv option and a module it never calls."""
+
+    def __init__(self, freeze_first: bool = False):
+        super().__init__()
+        self.pool = nn.AdaptiveAvgPool2d(1)
+        self.fc = nn.Linear(8, 1)
+        self.unused = nn.Conv2d(3, 8, 3)
+        if freeze_first:
+            self.features[0].requires_grad_(False)
+
+    def forward(self, images):
+        self.forward_calls += 1
+        features = self.features(images)
+        logits = self.classifier(features) + self.fc(self.pool(features).flatten(1))[:, :, None, None]
+        return nn.functional.interpolate(logits, size=images.shape[-2:], mode="bilinear", align_corners=False)[:, 0]
+
+
+NEEDS = r"AAM needs a 4-D \(B, C, H, W\) feature map"
+
+
+@pytest.mark.parametrize("layer, freeze, expected", [
+    ("fc", False, r"layer='fc' gave a \(4, 1\) tensor \(requires_grad=True\) in the training step: "
+                  rf"not a 4-D feature map. {NEEDS} with H, W > 1 that receives gradients; set layer to such a module"),
+    ("pool", False, r"layer='pool' gave a \(4, 8, 1, 1\) tensor \(requires_grad=True\) in the training step: "
+                    rf"no spatial extent to cut regions from \(H, W must both be > 1\). {NEEDS}"),
+    ("features.0", True, r"layer='features.0' gave a \(4, 8, 32, 48\) tensor \(requires_grad=False\) in the "
+                         rf"training step: no gradient reaches it \(is the layer frozen.*\). {NEEDS}"),
+    ("unused", False, rf"layer='unused' gave no output in the training step .*; {NEEDS}"),
+])
+def test_a_layer_aam_cannot_use_fails_at_the_first_step_naming_what_it_gave(layer, freeze, expected):
+    module, callback = PooledSegmenter(freeze_first=freeze), make_callback(layer=layer)
+    with pytest.raises(ValueError, match=f"AttentionAreaMixing: {expected}"):
+        fit(module, callback, steps=3)
+    assert module.forward_calls == 1 and callback._handle is None  # the first step, and the hook is gone
+    fit(PooledSegmenter(), make_callback(layer="features"), steps=1)  # the same model with a usable layer trains
+
+
+def test_check_model_finds_the_layer_or_names_it():
+    module = TinySegmenter()
+    assert make_callback(layer="features.2").check_model(module) is module.features[2]
+    with pytest.raises(ValueError, match=r"AttentionAreaMixing: layer='nope' is not a module of TinySegmenter; "
+                                         r"some names: \['features', 'features.0'"):
+        make_callback(layer="nope").check_model(module)
+
+
+def test_lane_ground_truth_for_a_different_number_of_images_is_refused():
+    callback = make_callback(adapter=BatchAdapter(images=0, lanes=1))
+    batch = (torch.zeros(2, 3, H, W), [[np.array([[1.0, 1.0], [1.0, 9.0]])]])
+    with pytest.raises(ValueError, match="the batch has 2 images but lane ground truth for 1"):
+        callback.adapter_masks(batch)
