@@ -9,14 +9,21 @@ Safe to kill at any instant, and a rerun with the same root finishes the set as 
 - per image, the image (and its .lines.txt) comes first, then its labels.json line, then its manifest line,
   each durable before the next, so a manifest line promises everything before it;
 - the manifest is a ResultsLog keyed by image: a rerun cuts a torn last line and skips the images it lists,
-  and `_repair_labels` drops label lines of images the manifest does not list (yet).
+  and `_repair_labels` drops label lines of images the manifest does not list (yet);
+- `build.json` (BUILD_FILE) says what the set should hold (image and case counts, the plan) and is written before
+  the first image with "complete": false and rewritten with "complete": true after the last, so a reader
+  (suites.IllusionSetDataset) can refuse a set a kill left half-built. It holds no timestamps: a rerun ends
+  byte-identical to an uninterrupted build.
+
+Photo cases are checked before any image is written: each image's size is read from its header (PIL, lazy) and its
+lanes must give a ground plane (unless plan.fallback); errors name the case's label file:line and image.
 """
 
 from __future__ import annotations
 
 import json
 import os
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from multiprocessing import get_context
 from pathlib import Path
 from typing import Iterator
@@ -43,6 +50,7 @@ class Case:
     frame: int = 0
     image_path: str | None = None  # a real photo; None for a simulated scene
     lanes: tuple = ()              # the photo's lanes (pixels)
+    source: str | None = None      # where the photo's labels came from ("file:line"), for error messages
 
 
 @dataclass(frozen=True)
@@ -69,8 +77,28 @@ def dataset_cases(records: list[dict]) -> list[Case]:
     out = []
     for i, record in enumerate(records):
         name = str(record.get("raw_file") or record.get("rel_path") or record["image_path"])
-        out.append(Case(name, i, 0, str(record["image_path"]), tuple(np.asarray(l) for l in record["lanes"])))
+        out.append(Case(name, i, 0, str(record["image_path"]), tuple(np.asarray(l) for l in record["lanes"]),
+                        record.get("source")))
     return out
+
+
+def case_where(case: Case) -> str:
+    """How messages name a photo case: "labels.json:12 (image /data/clips/x/20.jpg)"."""
+    image = f"image {case.image_path}"
+    return f"{case.source} ({image})" if case.source else image
+
+
+def _named(error: Exception, case: Case) -> Exception:
+    """`error` re-made with the case's source in front, of the same type where that type takes one message."""
+    message = f"{case_where(case)}: {error}"
+    for kind in (type(error), ValueError if isinstance(error, ValueError) else RuntimeError):
+        try:
+            named = kind(message)
+        except Exception:  # noqa: BLE001 - a type that takes other arguments: fall back to its base
+            continue
+        if str(named) == message:
+            return named
+    return RuntimeError(message)
 
 
 def variants(case: Case, plan: Plan) -> list[dict]:
@@ -97,15 +125,55 @@ def case_source(case: Case, plan: Plan):
         h, w = plan.size
         sample = render_scene(case.seed, params, width=w, height=h)
         return sample["image"], sample["lanes"], context_from_scene(build_scene(case.seed, params, w, h))
-    image = load_image(case.image_path)
-    lanes = [np.asarray(lane, dtype=np.float64) for lane in case.lanes]
     try:
-        ctx = context_from_lanes(lanes, image.shape[:2])
-    except GroundPlaneError:
-        if not plan.fallback:
-            raise
-        ctx = fallback_context(image.shape[:2])
+        image = load_image(case.image_path)
+        lanes = [np.asarray(lane, dtype=np.float64) for lane in case.lanes]
+        try:
+            ctx = context_from_lanes(lanes, image.shape[:2])
+        except GroundPlaneError:
+            if not plan.fallback:
+                raise
+            ctx = fallback_context(image.shape[:2])
+    except (ValueError, OSError) as error:
+        raise _named(error, case) from error
     return image, lanes, ctx
+
+
+def _header_size(path: str) -> tuple[int, int] | None:
+    """(height, width) as load_image will see it, from the file's header only; None if PIL cannot tell."""
+    try:
+        from PIL import Image  # a dependency of matplotlib; only the header is read (Image.open is lazy)
+
+        with Image.open(path) as im:
+            w, h = im.size
+            if im.format == "JPEG" and im.getexif().get(0x0112) in (5, 6, 7, 8):
+                w, h = h, w  # cv2.imread applies the EXIF rotation
+            return h, w
+    except Exception:  # noqa: BLE001 - no pre-check then; rendering reads the image and names any problem
+        return None
+
+
+def check_photo_cases(cases: list[Case], plan: Plan) -> None:
+    """Before any rendering: every photo case's lanes must give a ground plane (unless plan.fallback).
+    Reads only image headers; raises naming every failing case's source (the first few in full)."""
+    if plan.fallback:
+        return
+    failures = []
+    photos = [case for case in cases if case.image_path is not None]
+    for case in photos:
+        size = _header_size(case.image_path)
+        if size is None:
+            continue
+        try:
+            context_from_lanes([np.asarray(lane, dtype=np.float64) for lane in case.lanes], size)
+        except ValueError as error:
+            failures.append(f"{case_where(case)}: {error}")
+    if failures:
+        shown = "\n  ".join(failures[:5]) + (f"\n  ... and {len(failures) - 5} more" if len(failures) > 5 else "")
+        raise GroundPlaneError(
+            f"{len(failures)} of {len(photos)} photo cases have lanes that give no ground plane, so their illusions "
+            f"cannot be placed; fix those labels, leave the images out, or set task.fallback=true (Plan.fallback) to "
+            f"use a default camera for them. Nothing was built.\n  {shown}")
 
 
 def _write_image(path: Path, image: np.ndarray) -> None:
@@ -127,8 +195,13 @@ def render_case(args: tuple[Case, Plan, str, frozenset]) -> list[dict]:
     label = {"lanes": lanes_to_rows(lanes, h_samples).round().astype(int).tolist(), "h_samples": h_samples.astype(int).tolist()}
     out = []
     for record in todo:
-        picture = image if record["illusion"] is None else \
-            ILLUSIONS[record["illusion"]](image, ctx, record["severity"], record["seed"])
+        try:
+            picture = image if record["illusion"] is None else \
+                ILLUSIONS[record["illusion"]](image, ctx, record["severity"], record["seed"])
+        except (ValueError, OSError) as error:
+            if case.image_path is None:
+                raise
+            raise _named(error, case) from error
         path = Path(root) / record["image"]
         if plan.label_format == "culane":
             write_culane_lanes(lanes, path.with_suffix(".lines.txt"))
@@ -148,13 +221,24 @@ def build_illusion_set(cases: list[Case], plan: Plan, root: str | Path, workers:
     for name in plan.illusions:
         if name not in ILLUSIONS:
             raise ValueError(f"unknown illusion {name!r}; expected one of: {', '.join(ILLUSIONS)}")
+    check_photo_cases(cases, plan)
+    total = sum(len(variants(c, plan)) for c in cases)
+    expected = {"images": total, "cases": len(cases), "plan": asdict(plan)}
+    previous = read_build_record(root) if (root / BUILD_FILE).exists() else None
+    if previous is not None and {k: previous.get(k) for k in expected} != json.loads(json.dumps(expected)):
+        raise ValueError(
+            f"{root / BUILD_FILE}: out_dir {root} holds a set built with other cases or another plan "
+            f"({previous.get('images')} images of {previous.get('cases')} cases, plan {previous.get('plan')}; "
+            f"now {total} images of {len(cases)} cases, plan {expected['plan']}); rerun with the same settings to "
+            f"finish it, or choose a new out_dir")
     root.mkdir(parents=True, exist_ok=True)
     remove_temporaries(root)
+    if previous is None or not previous.get("complete"):
+        _write_build_record(root, expected, complete=False)
     manifest = ResultsLog(root / "manifest.jsonl", key_field="image")
     done = manifest.resume()
     manifest.path.touch()  # a set without images still has its (empty) manifest
     _repair_labels(root, plan, done)
-    total = sum(len(variants(c, plan)) for c in cases)
     skipped = len(done)
     jobs = [(case, plan, str(root), frozenset(done)) for case in cases]
     bar = progress_counter(total, skipped, "build", "img", progress)
@@ -170,7 +254,32 @@ def build_illusion_set(cases: list[Case], plan: Plan, root: str | Path, workers:
     if plan.label_format == "culane":
         images = [r["image"] for r in read_manifest(manifest.path)]
         atomic_write_text(root / "list" / "test.txt", "".join(f"/{image}\n" for image in images))
+    _write_build_record(root, expected, complete=True)
     return {"root": str(root), "images": total, "written": written, "skipped": skipped}
+
+
+BUILD_FILE = "build.json"
+
+
+def _write_build_record(root: Path, expected: dict, complete: bool) -> None:
+    """build.json: what the set should hold and whether it is whole; no timestamps (reruns end byte-identical)."""
+    atomic_write_text(root / BUILD_FILE, json.dumps({**expected, "complete": complete}, indent=1, sort_keys=True)
+                      + "\n")
+
+
+def read_build_record(root: str | Path) -> dict:
+    """The parsed build.json of a set, or an error naming it and what it should hold."""
+    path = Path(root) / BUILD_FILE
+    try:
+        record = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as error:
+        raise ValueError(f"{path}: cannot read the set's build record ({error}); rerun task=build with the same "
+                         f"out_dir ({path.parent}) to rewrite it") from error
+    if not isinstance(record, dict) or not isinstance(record.get("images"), int) or \
+            not isinstance(record.get("complete"), bool):
+        raise ValueError(f"{path}: expected a JSON object with an integer 'images' and a boolean 'complete', got "
+                         f"{str(record)[:120]}")
+    return record
 
 
 def _append_line(path: Path, line: str) -> None:

@@ -14,7 +14,7 @@ from torch.utils.data import Dataset
 from lanevil_train.data.datasets import EmptySplitError
 from lanevil_train.data.formats import load_image, read_culane, read_tusimple
 from lanevil_train.data.formats.manifest import read_manifest
-from lanevil_train.data.illusion_set import Plan, case_source, synthetic_cases, variants
+from lanevil_train.data.illusion_set import BUILD_FILE, Plan, case_source, read_build_record, synthetic_cases, variants
 from lanevil_train.illusions import ILLUSIONS
 from lanevil_train.lanes import default_h_samples
 
@@ -22,11 +22,16 @@ _VARIANT_KEYS = ("case_id", "illusion", "category", "severity", "seed")
 
 
 class IllusionSetDataset(Dataset):
-    """A test set written by `task=build` (manifest.jsonl + TuSimple labels.json or CULane list)."""
+    """A test set written by `task=build` (manifest.jsonl + TuSimple labels.json or CULane list).
+
+    A set whose build.json says it is not complete (a build killed or still running) is refused; sets written
+    before build.json existed have none and are read as they are."""
 
     def __init__(self, root: str | Path):
         self.root = Path(root)
         self.manifest = read_manifest(self.root / "manifest.jsonl")
+        if (self.root / BUILD_FILE).exists():
+            self._check_complete(read_build_record(self.root))
         if not self.manifest:
             raise EmptySplitError(f"the illusion set's manifest {self.root / 'manifest.jsonl'} lists no images "
                                   f"(an empty set; task=build writes one)", "root")
@@ -38,6 +43,18 @@ class IllusionSetDataset(Dataset):
         if missing:
             raise ValueError(f"{self.root}: {len(missing)} manifest images have no label, e.g. {missing[0]}")
         self.labels = labels
+
+    def _check_complete(self, build: dict) -> None:
+        have, want = len(self.manifest), build["images"]
+        if not build["complete"]:
+            raise ValueError(
+                f"illusion set {self.root} is incomplete: {have} of {want} images were built ({BUILD_FILE} is not "
+                f"marked complete: the build was interrupted or is still running); rerun task=build with the same "
+                f"out_dir ({self.root}) to finish it")
+        if have != want:
+            raise ValueError(
+                f"illusion set {self.root} is marked complete but its manifest lists {have} of {want} images; "
+                f"rerun task=build with the same out_dir ({self.root}) to finish it")
 
     def __len__(self) -> int:
         return len(self.manifest)

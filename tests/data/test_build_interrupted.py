@@ -155,10 +155,13 @@ def test_a_kill_between_any_two_writes_then_rerun_equals_the_uninterrupted_build
         steps = kill_before_write(monkeypatch, None)
         build_illusion_set(cases, plan, tmp_path / "whole", progress="none")
     whole = snapshot(tmp_path / "whole")
+    # build.json (not complete) first and (complete) last, written by atomic_write_text
     if label_format == "tusimple":  # a case's images, then per image its label line and its manifest line
-        assert steps == ["atomic_write_bytes"] * 5 + ["_append_line", "manifest"] * 5
+        assert steps == ["atomic_write_text"] + ["atomic_write_bytes"] * 5 + ["_append_line", "manifest"] * 5 \
+            + ["atomic_write_text"]
     else:                           # per image its .lines.txt and the image, then the manifest lines, the list
-        assert steps == ["write_culane_lanes", "atomic_write_bytes"] * 5 + ["manifest"] * 5 + ["atomic_write_text"]
+        assert steps == ["atomic_write_text"] + ["write_culane_lanes", "atomic_write_bytes"] * 5 + ["manifest"] * 5 \
+            + ["atomic_write_text"] * 2
     for step in range(1, len(steps) + 1):
         root = tmp_path / f"killed_before_{step}"
         with pytest.MonkeyPatch.context() as monkeypatch, pytest.raises(Killed):
@@ -253,8 +256,9 @@ def test_written_files_get_the_mode_open_gives_them(tmp_path, umask, mode):
         os.umask(old)
     modes = {p.relative_to(tmp_path).as_posix(): stat.S_IMODE(p.stat().st_mode)
              for p in tmp_path.rglob("*") if p.is_file()}
-    assert len(modes) == 2 * 5 + 5 + 2 + 1 + 1 + 2  # images, .lines.txt, 2 manifests, labels.json, list, 2 files
-    assert {"culane/list/test.txt", "tusimple/labels.json", "culane/manifest.jsonl",
+    assert len(modes) == 2 * 5 + 5 + 2 + 2 + 1 + 1 + 2  # images, .lines.txt, 2 manifests, 2 build.json,
+    # labels.json, list, 2 files
+    assert {"culane/list/test.txt", "tusimple/labels.json", "culane/manifest.jsonl", "tusimple/build.json",
             "culane/images/sim-0004000-f0/original.lines.txt"} <= set(modes)
     assert modes == dict.fromkeys(modes, mode)
 
