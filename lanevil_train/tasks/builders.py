@@ -7,6 +7,7 @@ from pathlib import Path
 import pytorch_lightning as pl
 from hydra.errors import InstantiationException
 from hydra.utils import instantiate
+from lightning_fabric.utilities.exceptions import MisconfigurationException
 from omegaconf import DictConfig, OmegaConf
 
 from lanevil_train.checkpoints import AtomicCheckpointIO
@@ -142,8 +143,11 @@ def build_trainer(cfg: DictConfig, callbacks: list | None = None, logger=True) -
         callbacks.append(bar)
     if "plugins" not in args:  # checkpoints written atomically (a user's own plugins take over)
         args["plugins"] = [AtomicCheckpointIO()]
-    return pl.Trainer(**args, callbacks=callbacks, logger=build_logger(cfg) if logger else False,
-                      enable_progress_bar=bar is not None, default_root_dir=cfg.output_dir)
+    try:
+        return pl.Trainer(**args, callbacks=callbacks, logger=build_logger(cfg) if logger else False,
+                          enable_progress_bar=bar is not None, default_root_dir=cfg.output_dir)
+    except (MisconfigurationException, ValueError, TypeError) as error:  # Lightning's check of its arguments
+        raise ValueError(f"trainer: Lightning refused the trainer.* arguments: {error}") from None
 
 
 def build_logger(cfg: DictConfig):

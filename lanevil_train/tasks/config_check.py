@@ -174,6 +174,15 @@ def existing_dir(what: str = "directory") -> Rule:
     return Rule(f"the path of an existing {what}", _path_test("directory"))
 
 
+def output_folder() -> Rule:
+    """A folder to write into: it may exist (a rerun resumes there) but must not be a file."""
+    def test(v):
+        if not isinstance(v, str) or not v:
+            return ""
+        return "an existing file, not a folder" if Path(v).exists() and not Path(v).is_dir() else None
+    return Rule("a folder path (new, or a folder to resume)", test)
+
+
 def illusion_names() -> Rule:
     def test(v):
         if v == "all":
@@ -301,7 +310,7 @@ RULES: dict[str, Rule] = {
     "defense.callback": null_or(target_node()),
     # task (each task has some of these)
     "task.name": text(),
-    "task.out_dir": null_or(text()),
+    "task.out_dir": null_or(output_folder()),
     "task.cases": integer(0),
     "task.frames": integer(1),
     "task.frame_step_m": number(0, low_open=True),

@@ -31,20 +31,20 @@ def train(cfg: DictConfig) -> float | None:
     # so a corrupt file or another network is reported before any data is read or any step runs
     # (task.init_from: its weights only, to fine-tune; ckpt_path: Lightning then restores the whole training state)
     if cfg.ckpt_path is not None:
-        load_weights(model, cfg.ckpt_path, "ckpt_path")
+        check_same_network(load_weights(model, cfg.ckpt_path, "ckpt_path"), model.build_config, cfg.ckpt_path)
     elif cfg.task.get("init_from"):
         load_weights(model, cfg.task.init_from, "task.init_from")
     defense = build_defense(cfg)
-    splits = ("train", "val", "test") if cfg.task.test_after_fit else ("train", "val")
-    datamodule = build_datamodule(cfg, splits, model, defense)
-    suite = test_dataset(cfg) if cfg.task.get("suite") is not None else None  # read and checked before training
     callbacks = build_callbacks(cfg)
     remove_stale_checkpoint_temporaries(callbacks)
     writer = PerImageWriter(out / RESULTS, {"model": run_label(cfg), "dataset": cfg.data.name})
     callbacks.append(writer)
     if defense["callback"] is not None:
         callbacks.append(defense["callback"])
-    trainer = build_trainer(cfg, callbacks=callbacks)
+    trainer = build_trainer(cfg, callbacks=callbacks)  # before the data: Lightning checks its arguments here
+    splits = ("train", "val", "test") if cfg.task.test_after_fit else ("train", "val")
+    datamodule = build_datamodule(cfg, splits, model, defense)
+    suite = test_dataset(cfg) if cfg.task.get("suite") is not None else None  # read and checked before training
     trainer.fit(model, datamodule=datamodule, ckpt_path=cfg.ckpt_path)
     result = None
     if cfg.task.test_after_fit:
@@ -52,6 +52,31 @@ def train(cfg: DictConfig) -> float | None:
     if suite is not None and trainer.is_global_zero:
         result = score_robustness(cfg, model, suite, out / "robustness")
     return result
+
+
+# The parts of a checkpoint's network spec that a resumed run must share: the weights fit either way, but
+# the same weights fed another input geometry (size, top crop) would silently learn something else.
+RESUME_KEYS = (("input_size",), ("crop_top",), ("backbone", "name"), ("backbone", "out_indices"), ("model", "head"))
+
+
+def check_same_network(checkpoint: dict, spec: dict, path) -> None:
+    """A checkpoint resumed with ckpt_path must have been trained with this run's network and input geometry."""
+    saved = checkpoint.get("lanevil_model")
+    if saved is None:
+        return  # a checkpoint without its spec: the weights were checked, nothing more to compare
+
+    def at(tree: dict, keys: tuple):
+        for key in keys:
+            tree = tree.get(key) if isinstance(tree, dict) else None
+        return list(tree) if isinstance(tree, tuple) else tree
+
+    changed = [(".".join(k), at(saved, k), at(spec, k)) for k in RESUME_KEYS if at(saved, k) != at(spec, k)]
+    if changed:
+        differences = "; ".join(f"{'data.' if key in ('input_size', 'crop_top') else ''}{key} was {old!r}, now "
+                                f"{new!r}" for key, old, new in changed)
+        raise ValueError(f"ckpt_path={path}: resuming needs the network the checkpoint was trained with, and this "
+                         f"config differs ({differences}); set those back, or start a new run from its weights with "
+                         f"task.init_from={path}")
 
 
 def remove_stale_checkpoint_temporaries(callbacks: list) -> None:

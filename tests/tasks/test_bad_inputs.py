@@ -165,3 +165,25 @@ def test_an_empty_checkpoint_file(tmp_path):
     path.write_bytes(b"")
     with pytest.raises(CheckpointError, match=rf"^ckpt_path={path}: not a readable checkpoint: the file is empty"):
         train(_config(tmp_path, f"ckpt_path={path}"))
+
+
+def test_trainer_arguments_lightning_refuses_are_reported_before_the_data_is_read(tmp_path, monkeypatch):
+    import lanevil_train.tasks.train as train_module
+
+    def no_data(*args, **kwargs):
+        raise AssertionError("the datasets were read before the trainer's arguments were checked")
+
+    monkeypatch.setattr(train_module, "build_datamodule", no_data)
+    with pytest.raises(ValueError, match=r"^trainer: Lightning refused the trainer\.\* arguments: .*devices=0"):
+        train(_config(tmp_path, "trainer.devices=0"))
+
+
+def test_resuming_with_another_input_geometry_is_refused(tmp_path):
+    cfg = _config(tmp_path)
+    model = build_model(model_config(cfg))
+    path = tmp_path / "last.ckpt"
+    torch.save({"state_dict": model.state_dict(), "lanevil_model": model.build_config}, path)
+    with pytest.raises(ValueError, match=rf"^ckpt_path={path}: resuming needs the network the checkpoint was trained "
+                                         r"with, and this config differs \(data\.crop_top was 0\.0, now 0\.4\); .*"
+                                         rf"task\.init_from={path}"):
+        train(_config(tmp_path, f"ckpt_path={path}", "data.crop_top=0.4"))

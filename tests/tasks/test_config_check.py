@@ -264,6 +264,9 @@ def test_paths_of_the_wrong_kind_are_named(files):
         (f"data.root: expected the path of an existing dataset directory, got '{files / 'model.ckpt'}' "
          f"(a file, not a directory)")
     assert only_problem(f"task.suite={files / 'dataset'}").endswith("(it holds no manifest.jsonl)")
+    assert only_problem("task=build", f"task.out_dir={files / 'model.ckpt'}") == \
+        (f"task.out_dir: expected null or a folder path (new, or a folder to resume), got '{files / 'model.ckpt'}' "
+         f"(an existing file, not a folder)")
     assert problems(f"task.suite={files / 'set'}", f"task.init_from={files / 'model.ckpt'}",
                     f"backbone.checkpoint={files / 'model.ckpt'}") == []
     assert only_problem("backbone.pretrained=true", f"backbone.checkpoint={files / 'model.ckpt'}") == \
