@@ -85,6 +85,64 @@ def worker_count(workers: int | None, num_images: int) -> int:
     return max(1, min(available_cpus(), num_images // IMAGES_PER_WORKER))
 
 
+def _read_list(list_file: str) -> list[str]:
+    """The image paths of ``list_file``, one per non-blank line, or a ValueError naming list:line."""
+    names = []
+    with open(list_file) as f:
+        for lineno, line in enumerate(f, 1):
+            entry = line.strip()
+            if not entry:
+                continue
+            columns = entry.split()
+            if len(columns) > 1:
+                # the official evaluate reads the whole line as the name: it resolves to no file, silently
+                raise ValueError(
+                    f"{list_file}:{lineno}: expected one image path per line, got {len(columns)} columns "
+                    f"{entry!r} (a train_gt-style list? give the test list, e.g. list/test.txt, whose lines are "
+                    f"image paths like /driver_100_30frame/05251517_0433.MP4/00000.jpg)")
+            if "\\" in entry:
+                raise ValueError(f"{list_file}:{lineno}: image path {entry!r} has backslashes; expected a "
+                                 f"'/'-separated path like /driver_100_30frame/05251517_0433.MP4/00000.jpg")
+            names.append(entry)
+    if not names:
+        raise ValueError(f"list file {list_file} has no image paths; expected one image path per line, "
+                         f"like /driver_100_30frame/05251517_0433.MP4/00000.jpg")
+    return names
+
+
+def _check_dir(path: str, arg: str, holds: str) -> None:
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"{arg} {path} does not exist; expected the directory of {holds} .lines.txt files")
+    if not os.path.isdir(path):
+        raise ValueError(f"{arg} {path} is not a directory; expected the directory of {holds} .lines.txt files")
+
+
+def _check_inputs(pred_dir: str, gt_dir: str, list_file: str, width: int, height: int, lane_width: int,
+                  iou_threshold: float) -> list[str]:
+    """The list's image paths once every argument is valid, or an error naming the bad one (see below)."""
+    if not os.path.isfile(list_file):
+        raise FileNotFoundError(f"list file {list_file} does not exist")
+    if width < 1 or height < 1 or lane_width < 1:
+        raise ValueError(f"width, height, lane_width must be positive, got {width}, {height}, {lane_width}")
+    if not 0 < iou_threshold < 1:  # also refuses nan
+        raise ValueError(f"iou_threshold (--iou) must be a number between 0 and 1 (exclusive; official: 0.5), "
+                         f"got {iou_threshold}")
+    _check_dir(pred_dir, "pred_dir", "prediction")
+    _check_dir(gt_dir, "gt_dir", "ground-truth")
+    names = _read_list(list_file)
+    first_gt = os.path.join(gt_dir, lines_file_path(names[0]))
+    if not any(os.path.isfile(os.path.join(gt_dir, lines_file_path(n))) for n in names):
+        raise ValueError(
+            f"the list {list_file} and gt_dir {gt_dir} do not match: none of its {len(names)} image paths has a "
+            f"ground-truth file (first entry {names[0]!r}: looked for {first_gt})")
+    if not any(os.path.isfile(os.path.join(pred_dir, lines_file_path(n))) for n in names):
+        raise ValueError(
+            f"pred_dir {pred_dir} has no prediction file for any of the {len(names)} image paths of {list_file} "
+            f"(first entry {names[0]!r}: looked for {os.path.join(pred_dir, lines_file_path(names[0]))}); "
+            f"a missing file counts as an image with no lanes, but not for every image: a wrong pred_dir?")
+    return names
+
+
 def evaluate_culane_dirs(
     pred_dir: str,
     gt_dir: str,
@@ -100,13 +158,11 @@ def evaluate_culane_dirs(
     Images are split into contiguous chunks scored by ``workers`` processes (default: one per CPU for long
     lists, see ``worker_count``; 1 scores in this process). The counts are integers summed over images, so
     the result is the same for any number of workers.
+
+    Inputs are checked before any scoring (``_check_inputs``): a missing prediction file is an image with no
+    lanes, as officially, but a list none of whose entries has a GT file, or none a prediction file, is refused.
     """
-    if not os.path.isfile(list_file):
-        raise FileNotFoundError(f"list file {list_file} does not exist")
-    if width < 1 or height < 1 or lane_width < 1:
-        raise ValueError(f"width, height, lane_width must be positive, got {width}, {height}, {lane_width}")
-    with open(list_file) as f:
-        names = [ln.rstrip("\r\n") for ln in f if ln.strip()]
+    names = _check_inputs(pred_dir, gt_dir, list_file, width, height, lane_width, iou_threshold)
     n_proc = worker_count(workers, len(names))
     score = partial(count_images, pred_dir, gt_dir, width=width, height=height, lane_width=lane_width,
                     iou_threshold=iou_threshold)

@@ -114,3 +114,59 @@ def test_reader_rejects_non_finite_even_in_the_ignored_odd_tail(tmp_path: Path) 
         read_lines_file(str(f))
     f.write_text("1 2 3 4 5\n")  # a finite odd tail is still ignored, as by the official reader
     assert read_lines_file(str(f))[0].tolist() == [[1.0, 2.0], [3.0, 4.0]]
+
+
+def _culane_error(args: list[str], capsys: pytest.CaptureFixture) -> str:
+    assert main(["culane", *args]) == 1
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    return captured.err
+
+
+def test_bad_directories_are_refused_not_scored_as_zeros(tree, tmp_path, capsys) -> None:
+    pred, gt, lst = tree
+    err = _culane_error(["--pred-dir", "/nonexistent", "--gt-dir", str(gt), "--list", str(lst)], capsys)
+    assert err == "error: pred_dir /nonexistent does not exist; expected the directory of prediction .lines.txt files\n"
+    err = _culane_error(["--pred-dir", str(pred), "--gt-dir", "/nonexistent", "--list", str(lst)], capsys)
+    assert "gt_dir /nonexistent does not exist; expected the directory of ground-truth .lines.txt files" in err
+    err = _culane_error(["--pred-dir", str(lst), "--gt-dir", str(gt), "--list", str(lst)], capsys)
+    assert f"pred_dir {lst} is not a directory" in err
+    # an existing directory holding none of the list's predictions: a wrong --pred-dir, not all-FN
+    err = _culane_error(["--pred-dir", str(tmp_path), "--gt-dir", str(gt), "--list", str(lst)], capsys)
+    assert f"pred_dir {tmp_path} has no prediction file for any of the 2 image paths of {lst}" in err
+    assert f"looked for {tmp_path / 'driver_1/05/a.lines.txt'}" in err
+    # and a GT tree the list does not match
+    err = _culane_error(["--pred-dir", str(pred), "--gt-dir", str(tmp_path), "--list", str(lst)], capsys)
+    assert f"the list {lst} and gt_dir {tmp_path} do not match" in err
+    assert f"(first entry '/driver_1/05/a.jpg': looked for {tmp_path / 'driver_1/05/a.lines.txt'})" in err
+
+
+@pytest.mark.parametrize("text, message", [
+    ("", "has no image paths; expected one image path per line"),
+    ("\n  \n", "has no image paths; expected one image path per line"),
+    ("/driver_1/05/a.jpg\n\\driver_1\\05\\b.jpg\n", ":2: image path '\\\\driver_1\\\\05\\\\b.jpg' has backslashes"),
+    ("/driver_1/05/a.jpg /laneseg/driver_1/05/a.png 1 1 1 1\n",
+     ":1: expected one image path per line, got 6 columns '/driver_1/05/a.jpg /laneseg/driver_1/05/a.png 1 1 1 1' "
+     "(a train_gt-style list?"),
+])
+def test_bad_list_files_name_the_line(tree, tmp_path, capsys, text, message) -> None:
+    pred, gt, _ = tree
+    lst = tmp_path / "bad_list.txt"
+    lst.write_text(text)
+    err = _culane_error(["--pred-dir", str(pred), "--gt-dir", str(gt), "--list", str(lst)], capsys)
+    assert f"{lst}" in err
+    assert message in err
+
+
+@pytest.mark.parametrize("iou", ["1.5", "-1", "0", "1", "nan"])
+def test_iou_outside_zero_one_is_refused(tree, capsys, iou) -> None:
+    pred, gt, lst = tree
+    err = _culane_error(["--pred-dir", str(pred), "--gt-dir", str(gt), "--list", str(lst), "--iou", iou], capsys)
+    assert "iou_threshold (--iou) must be a number between 0 and 1 (exclusive; official: 0.5)" in err
+
+
+def test_missing_prediction_for_some_images_still_counts_as_no_lanes(tree) -> None:
+    pred, gt, lst = tree  # b has no prediction file: its GT lane is an FN, as officially
+    lst.write_text("/driver_1/05/b.jpg\n/driver_1/05/a.jpg\r\n")  # CRLF line ends are fine
+    res = evaluate_culane_dirs(str(pred), str(gt), str(lst))
+    assert (res["TP"], res["FP"], res["FN"]) == (1, 1, 2)
