@@ -23,6 +23,7 @@ is ``wrappers.TuSimpleMetric``.
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from typing import Sequence
 
@@ -234,6 +235,19 @@ def _lane_rows(value: object, ys: np.ndarray, path: Path, lineno: int, raw: str,
     return rows
 
 
+def _check_thresholds(pixel_thresh, pt_thresh) -> None:
+    """ValueError naming the threshold unless pixel_thresh is finite > 0 and pt_thresh in (0, 1]."""
+    def real(v) -> bool:
+        return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)
+
+    if not real(pixel_thresh) or not (math.isfinite(pixel_thresh) and pixel_thresh > 0):
+        raise ValueError(f"pixel_thresh (--pixel-thresh) must be a finite number of pixels > 0 (official: 20), "
+                         f"got {pixel_thresh}")
+    if not real(pt_thresh) or not 0 < pt_thresh <= 1:
+        raise ValueError(f"pt_thresh (--pt-thresh) must be a fraction of matched points in (0, 1] (official: 0.85), "
+                         f"got {pt_thresh}")
+
+
 def evaluate_tusimple_files(
     pred_path: str | Path, gt_path: str | Path, pixel_thresh: float = 20, pt_thresh: float = 0.85
 ) -> dict:
@@ -242,6 +256,7 @@ def evaluate_tusimple_files(
     Every GT image needs exactly one prediction and every prediction a GT image (as officially).
     ``run_time`` is accepted but ignored (no run-time penalty). Returns {"Accuracy","FP","FN","F1"}.
     """
+    _check_thresholds(pixel_thresh, pt_thresh)
     pred_path, gt_path = Path(pred_path), Path(gt_path)
     gts: dict[str, tuple[int, dict]] = {}
     for lineno, obj in _read_json_lines(gt_path, ("lanes", "h_samples", "raw_file")):

@@ -269,3 +269,28 @@ def test_error_raw_file_that_is_not_a_string(tmp_path):
     with pytest.raises(ValueError, match=rf"^{pred_path}:2: raw_file must be a non-empty string \(the image's path\), "
                                          r"got \['clips/a/20.jpg'\]"):
         evaluate_tusimple_files(pred_path, gt_path)
+
+
+@pytest.mark.parametrize("flag, value, message", [
+    ("--pixel-thresh", "-5", "pixel_thresh (--pixel-thresh) must be a finite number of pixels > 0 (official: 20), "
+                             "got -5.0"),
+    ("--pixel-thresh", "0", "got 0.0"),
+    ("--pixel-thresh", "nan", "pixel_thresh (--pixel-thresh) must be a finite number of pixels > 0"),
+    ("--pixel-thresh", "inf", "got inf"),
+    ("--pt-thresh", "2", "pt_thresh (--pt-thresh) must be a fraction of matched points in (0, 1] (official: 0.85), "
+                         "got 2.0"),
+    ("--pt-thresh", "0", "got 0.0"),
+    ("--pt-thresh", "nan", "pt_thresh (--pt-thresh) must be"),
+])
+def test_cli_bad_thresholds_are_refused(tmp_path, capsys, flag, value, message):
+    pred, gt = _two_images(tmp_path)
+    assert main(["tusimple", "--pred", str(pred), "--gt", str(gt), flag, value]) == 1
+    captured = capsys.readouterr()
+    assert captured.out == "" and message in captured.err
+
+
+def test_threshold_edges_still_score(tmp_path):
+    pred, gt = _two_images(tmp_path)
+    assert evaluate_tusimple_files(pred, gt, pixel_thresh=20, pt_thresh=1.0)["Accuracy"] > 0
+    with pytest.raises(ValueError, match="pixel_thresh"):
+        evaluate_tusimple_files(pred, gt, pixel_thresh="20")
