@@ -31,8 +31,9 @@ class Illusion:
     def __call__(self, image: np.ndarray, ctx: IllusionContext, severity: int, seed: int = 0) -> np.ndarray:
         """Render this illusion at `severity` (1..5) on an image whose geometry `ctx` describes."""
         check_severity(severity)
+        seed = check_seed(seed)
         # one stream per seed, shared by all severities: a case's variants differ in degree, not layout
-        return self.render(image, ctx, severity, np.random.default_rng(int(seed)))
+        return self.render(image, ctx, severity, np.random.default_rng(seed))
 
 
 def _build() -> dict[str, Illusion]:
@@ -55,6 +56,13 @@ def check_severity(severity) -> int:
     if isinstance(severity, bool) or not isinstance(severity, (int, np.integer)) or severity not in SEVERITIES:
         raise ValueError(f"severity must be an integer from 1 (subtle) to 5 (severe), got {severity!r}")
     return int(severity)
+
+
+def check_seed(seed) -> int:
+    """Seed as an int >= 0 (numpy integers too), or a ValueError saying what was expected."""
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"seed must be an integer >= 0, got {seed!r}")
+    return int(seed)
 
 
 def get_illusion(name: str) -> Illusion:

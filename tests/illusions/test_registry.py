@@ -104,3 +104,70 @@ def test_illusion_transform_inside_an_albumentations_pipeline():
             image=sample["image"], keypoints=points[one_lane], lane_ids=ids[one_lane])
     with pytest.raises(ValueError, match="unknown illusion"):
         IllusionTransform(names=["nope"])
+
+
+def test_bad_seeds_are_refused_naming_seed():
+    sample, ctx = _scene()
+    image, lanes = sample["image"], sample["lanes"]
+    for seed in (-1, None, 1.5, "3", True, np.int64(-2)):
+        with pytest.raises(ValueError, match=r"^seed must be an integer >= 0, got "):
+            apply_illusion(image, lanes, "rail_shadow", 3, seed=seed, context=ctx)
+        with pytest.raises(ValueError, match=r"^seed must be an integer >= 0, got "):
+            ILLUSIONS["rail_shadow"](image, ctx, 3, seed)
+        with pytest.raises(ValueError, match=r"^seed must be an integer >= 0, got "):
+            apply_illusions(image, lanes, [("rail_shadow", 3)], seed=seed, context=ctx)
+    assert np.array_equal(apply_illusion(image, lanes, "rail_shadow", 3, seed=np.int64(7), context=ctx),
+                          apply_illusion(image, lanes, "rail_shadow", 3, seed=7, context=ctx))
+
+
+@pytest.mark.parametrize("combo, message", [
+    (["rail_shadow", "vehicle"], "combo[0] must be a (name, severity) pair like ('rail_shadow', 3), got 'rail_shadow'"),
+    ("rail_shadow", "combo must be a non-empty list of (name, severity) pairs, e.g. [('rail_shadow', 3), "
+                    "('vehicle', 2)]; got 'rail_shadow'"),
+    ({"rail_shadow": 3}, "combo must be a non-empty list of (name, severity) pairs"),
+    ([], "combo must be a non-empty list of (name, severity) pairs"),
+    ([("rail_shadow", 3), ("vehicle", 2, 1)], "combo[1] must be a (name, severity) pair"),
+    ([("rail_shadow", 3), ("puddle", 2)], "combo[1]: unknown illusion 'puddle'"),
+    ([("rail_shadow", 9)], "combo[0]: severity must be an integer from 1 (subtle) to 5 (severe), got 9"),
+])
+def test_bad_combos_name_the_entry(combo, message):
+    sample, ctx = _scene()
+    with pytest.raises(ValueError) as caught:
+        apply_illusions(sample["image"], sample["lanes"], combo, context=ctx)
+    assert message in str(caught.value)
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    (dict(names=[]), "names must be a non-empty list of illusion names"),
+    (dict(names=[3]), "names[0] must be an illusion name (a string), got 3"),
+    (dict(severities=()), "severities must be a non-empty list of severities 1..5"),
+    (dict(severities=(3, 7)), "severities[1]: severity must be an integer from 1"),
+    (dict(lane_widht=3.5), "IllusionTransform got unknown keyword(s) 'lane_widht'; expected names, severities, strict, "
+                           "p, or the ground-plane keywords of context_from_lanes: lane_width, camera_height"),
+])
+def test_illusion_transform_constructor_refuses_bad_arguments(kwargs, message):
+    with pytest.raises(ValueError) as caught:
+        IllusionTransform(**kwargs)
+    assert message in str(caught.value)
+
+
+def test_illusion_transform_accepts_one_name_and_one_severity():
+    t = IllusionTransform(names="rail_shadow", severities=3, lane_width=3.5)
+    assert (t.names, t.severities, t.recover_kwargs) == (["rail_shadow"], (3,), {"lane_width": 3.5})
+
+
+@pytest.mark.parametrize("label_fields, got", [(None, "label_fields=[]"), (["a", "b"], "label_fields=['a', 'b']")])
+def test_illusion_transform_needs_exactly_one_lane_label_field(label_fields, got):
+    sample, _ = _scene()
+    points = np.concatenate(sample["lanes"])
+    ids = np.concatenate([np.full(len(lane), i) for i, lane in enumerate(sample["lanes"])])
+    pipeline = A.Compose([IllusionTransform(names=["fence_shadow"], severities=(5,), p=1.0)],
+                         keypoint_params=A.KeypointParams(format="xy", label_fields=label_fields))
+    labels = {name: ids for name in label_fields or []}
+    with pytest.raises(ValueError) as caught:
+        pipeline(image=sample["image"], keypoints=points, **labels)
+    assert str(caught.value).startswith("IllusionTransform needs the lanes as keypoints labelled by lane index")
+    assert "keypoint_params=A.KeypointParams(format='xy', label_fields=['lane_ids'])" in str(caught.value)
+    assert str(caught.value).endswith(f"got KeypointParams with {got}")
+    with pytest.raises(ValueError, match="got no KeypointParams"):
+        IllusionTransform(p=1.0)(image=sample["image"], keypoints=np.c_[points, ids])
