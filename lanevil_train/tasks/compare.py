@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf, open_dict
@@ -18,7 +19,7 @@ from lanevil_train.report.defenses import (REFERENCE, best_defense, defense_gain
                                            write_defense_report)
 from lanevil_train.report.specs import spec_for
 from lanevil_train.report.tables import print_table
-from lanevil_train.tasks.builders import build_defense, output_dir
+from lanevil_train.tasks.builders import build_defense, build_model, model_config, output_dir
 from lanevil_train.tasks.config_check import check_config
 from lanevil_train.tasks.scoring import RESULTS, read_records
 
@@ -90,6 +91,35 @@ def compose_run(cfg: DictConfig, defense: str, overrides: list[str], run_dir: Pa
     return run_cfg
 
 
+def check_defense_model(run_cfg: DictConfig, built: dict, models: dict | None = None) -> None:
+    """A defense callback that names a part of the model (AAM's `layer`) is checked against the run's model
+    (built from run_cfg, untrained) before any run trains. `models`: a cache of built models by model config.
+
+    Such a callback has check_model(model) and MODEL_ARGUMENTS, the constructor arguments the check is about;
+    the error names their config keys (defense.callback.<arg>) and the key they are interpolated from.
+    """
+    callback = built.get("callback")
+    if not hasattr(callback, "check_model"):
+        return
+    spec = model_config(run_cfg)
+    key = json.dumps(spec, sort_keys=True, default=str)
+    models = {} if models is None else models
+    if key not in models:
+        models[key] = build_model(spec)
+    try:
+        callback.check_model(models[key])
+    except ValueError as error:
+        raw = OmegaConf.to_container(run_cfg.defense.callback, resolve=False)
+        keys = []
+        for arg in getattr(callback, "MODEL_ARGUMENTS", ()):
+            source = re.fullmatch(r"\$\{([\w.]+)\}", str(raw.get(arg, "")))
+            keys.append(f"{source.group(1)}={OmegaConf.select(run_cfg, source.group(1))!r} (defense.callback.{arg} "
+                        f"is ${{{source.group(1)}}})" if source else f"defense.callback.{arg}")
+        where = f"{', '.join(keys)}: " if keys else ""
+        raise ValueError(f"task=compare: the defense={run_cfg.defense.name} run cannot use this model: {where}"
+                         f"{error}. Nothing was trained") from None
+
+
 def run_defense(cfg: DictConfig, defense: str, overrides: list[str], run_dir: Path) -> None:
     """Train and score one defense into run_dir, unless a finished result is there (then nothing is done)."""
     from lanevil_train.tasks.train import run_label, train
@@ -148,28 +178,55 @@ def _results_of(run: Path) -> Path | None:
     return None
 
 
-def _run_dirs(path: Path) -> list[tuple[Path, Path]]:
-    """(run directory, results file) for a run, an evaluate output, or a directory of runs one level down."""
+def _run_dirs(path: Path) -> tuple[list[tuple[Path, Path]], list[Path]]:
+    """(run directory, results file) for a run, an evaluate output, or a directory of runs one level down; and
+    the subdirectories skipped for having no results (a run that failed or is still training)."""
+    if not path.is_dir():
+        raise FileNotFoundError(f"task.runs: {path} is not a directory; expected a run directory or a directory "
+                                f"of runs")
     own = _results_of(path)
     if own is not None:
-        return [(path, own)]
-    found = [(sub, results) for sub in path.iterdir() if sub.is_dir() and (results := _results_of(sub)) is not None]
+        return [(path, own)], []
+    found, skipped = [], []
+    for sub in path.iterdir():
+        if sub.is_dir():
+            results = _results_of(sub)
+            if results is None:
+                skipped.append(sub)
+            else:
+                found.append((sub, results))
     if not found:
         raise FileNotFoundError(f"task.runs: no robustness/per_image.jsonl in {path} or its subdirectories")
     key = lambda t: (0, int(t[0].name), "") if t[0].name.isdigit() else (1, 0, t[0].name)  # noqa: E731
-    return sorted(found, key=key)
+    return sorted(found, key=key), sorted(skipped)
 
 
 def records_from_runs(runs: list[str]) -> tuple[dict[str, list[dict]], dict[str, str]]:
-    """{defense: records} and {defense: run dir} from run directories trained elsewhere; `none` first."""
-    records, where = {}, {}
+    """{defense: records} and {defense: run dir} from run directories trained elsewhere; `none` first.
+
+    Subdirectories without results (or with an empty results file) are skipped and named in the log; at least
+    one defense besides `none` must have results, or there is nothing to compare.
+    """
+    records, where, skipped = {}, {}, []
     for path in map(Path, runs):
-        for run, results in _run_dirs(path):
+        found, empty_dirs = _run_dirs(path)
+        skipped += [str(sub) for sub in empty_dirs]
+        for run, results in found:
             recs = read_records(results, keep_lanes=False)
+            if not recs:
+                skipped.append(str(run))
+                continue
             defense = _defense_of(run, recs)
             if defense in records:
                 raise ValueError(f"task.runs: defense {defense!r} found twice: {where[defense]} and {run}")
             records[defense], where[defense] = recs, str(run)
+    note = f"; skipped for having no results (no complete robustness/per_image.jsonl): {skipped}" if skipped else ""
+    if not any(d != REFERENCE for d in records):
+        found_text = f"only {REFERENCE!r} has results ({where[REFERENCE]})" if records else "no run has results"
+        raise ValueError(f"task.runs={list(runs)}: {found_text}; need the results of {REFERENCE!r} and at least one "
+                         f"other defense to compare with it{note}")
+    if skipped:
+        log.warning("compare: task.runs%s", note)
     order = sorted(records, key=lambda d: d != REFERENCE)
     return {d: records[d] for d in order}, {d: where[d] for d in order}
 
@@ -191,8 +248,10 @@ def compare(cfg: DictConfig, overrides: list[str] | None = None) -> float | None
             overrides = list(HydraConfig.get().overrides.task)
         common = run_overrides(overrides)
         runs = {d: str(out / "runs" / d) for d in defenses}
+        models: dict[str, object] = {}
         for defense in defenses:  # every run's config and defense arguments are checked before the first one trains
-            build_defense(compose_run(cfg, defense, common, Path(runs[defense])))
+            run_cfg = compose_run(cfg, defense, common, Path(runs[defense]))
+            check_defense_model(run_cfg, build_defense(run_cfg), models)
         for i, defense in enumerate(defenses, 1):
             log.info("compare: [%d/%d] defense=%s", i, len(defenses), defense)
             run_defense(cfg, defense, common, Path(runs[defense]))

@@ -133,3 +133,50 @@ def test_report_only_from_a_multirun_directory_and_a_single_run(tmp_path):
     _write_run(tmp_path / "again", RECORDS["pgd"], defense="pgd")
     with pytest.raises(ValueError, match="defense 'pgd' found twice"):
         records_from_runs([str(sweep), str(tmp_path / "again")])
+
+
+def test_a_defense_layer_missing_from_the_model_fails_before_any_run_trains(tmp_path, monkeypatch):
+    import lanevil_train.tasks.compare as compare_module
+
+    def no_training(*args, **kwargs):
+        raise AssertionError("a run was started before every defense was checked")
+
+    monkeypatch.setattr(compare_module, "run_defense", no_training)
+    user = ["task=compare", "task.defenses=[none,aam]", "model.attention_layer=nolayer", *TINY]
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_module(config_module="lanevil_train.conf", version_base="1.3"):
+            cfg = compose(config_name="config", overrides=[*user, f"task.out_dir={tmp_path}"])
+            with pytest.raises(ValueError, match=r"task=compare: the defense=aam run cannot use this model: "
+                                                 r"model.attention_layer='nolayer' \(defense.callback.layer is "
+                                                 r"\$\{model.attention_layer\}\): AttentionAreaMixing: "
+                                                 r"layer='nolayer' is not a module of LaneDetector; some names: "
+                                                 r".*'backbone'.*Nothing was trained"):
+                compare(cfg, overrides=user)
+            cfg = compose(config_name="config", overrides=[*user[:2], *TINY, f"task.out_dir={tmp_path}"])
+            with pytest.raises(AssertionError, match="a run was started"):  # the shipped layer passes the check
+                compare(cfg, overrides=[*user[:2], *TINY])
+    finally:
+        GlobalHydra.instance().clear()
+    assert not (tmp_path / "runs").exists()
+
+
+def test_report_only_needs_a_defense_besides_none_and_names_the_runs_without_results(tmp_path, caplog):
+    sweep = tmp_path / "multirun"
+    _write_run(sweep / "0", RECORDS["none"], defense="none")
+    (sweep / "1" / "checkpoints").mkdir(parents=True)  # a run that failed before it was scored
+    with pytest.raises(ValueError, match=rf"only 'none' has results \({sweep / '0'}\); need the results of 'none' "
+                                         rf"and at least one other defense.*skipped for having no results .*"
+                                         rf"\['{sweep / '1'}'\]"):
+        records_from_runs([str(sweep)])
+    (sweep / "1" / "robustness").mkdir()
+    (sweep / "1" / "robustness" / "per_image.jsonl").write_text("")  # killed before its first record
+    with pytest.raises(ValueError, match=rf"only 'none' has results.*\['{sweep / '1'}'\]"):
+        records_from_runs([str(sweep)])
+    with pytest.raises(ValueError, match=rf"task.runs=\['{sweep / '0'}'\]: only 'none' has results"):
+        records_from_runs([str(sweep / "0")])
+    _write_run(sweep / "2", RECORDS["pgd"], defense="pgd")
+    with caplog.at_level("WARNING"):
+        records, _ = records_from_runs([str(sweep)])
+    assert list(records) == ["none", "pgd"]
+    assert f"skipped for having no results (no complete robustness/per_image.jsonl): ['{sweep / '1'}']" in caplog.text
