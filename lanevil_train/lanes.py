@@ -65,3 +65,40 @@ def rows_to_lane(xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
 def scale_lanes(lanes: list[np.ndarray], sx: float, sy: float) -> list[np.ndarray]:
     """Lanes in a resized image: x scaled by sx, y by sy."""
     return [lane * np.array([sx, sy]) for lane in lanes]
+
+
+# How far lane points may lie outside the image, as a fraction of its width / height. CULane's ground
+# truth extends each lane's spline to the bottom row, so x there can be far outside the image
+# (negative at the left, beyond the width at the right; an outer lane several hundred pixels out);
+# y stays within the rows (CULane writes y = 590 on its 590-row images, so the edge itself counts).
+# Beyond these margins, or with no point inside the image at all, a lane is taken as given in other
+# pixel coordinates (another image size, x and y swapped) and rejected.
+LANE_X_MARGIN_FRAC = 1.0       # x in [-width, 2 * width]
+LANE_Y_MARGIN_FRAC = 0.02      # y in [-2 %, 102 %] of the height
+
+
+def lane_extent_problem(points: np.ndarray, height: int, width: int) -> str | None:
+    """None if a lane's (N, 2) points fit an image of this size (see LANE_X_MARGIN_FRAC), else why not.
+
+    The answer reads after a lane's name ("lanes[2]: " + problem): it gives the offending points' extent,
+    the image size and the accepted ranges. TuSimple's x = INVALID_X ("no point") must be removed first.
+    """
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    if len(pts) == 0:
+        return None
+    h, w = height, width
+    x, y = pts[:, 0], pts[:, 1]
+    mx, my = LANE_X_MARGIN_FRAC * w, LANE_Y_MARGIN_FRAC * h
+    inside = (x >= 0) & (x <= w) & (y >= 0) & (y <= h)
+    far = (x < -mx) | (x > w + mx) | (y < -my) | (y > h + my)
+    if not inside.any():
+        problem, bad = f"none of its {len(pts)} points lies in the image ({w} wide, {h} high): they", pts
+    elif far.any():
+        problem, bad = (f"{int(far.sum())} of its {len(pts)} points lie too far outside the image ({w} wide, "
+                        f"{h} high): those"), pts[far]
+    else:
+        return None
+    return (f"{problem} span x {bad[:, 0].min():.1f}..{bad[:, 0].max():.1f}, y {bad[:, 1].min():.1f}.."
+            f"{bad[:, 1].max():.1f}; expected (x, y) pixels of this image: at least one point in x 0..{w}, y 0..{h} "
+            f"and every point within x {-mx:g}..{w + mx:g}, y {-my:g}..{h + my:g}. Are the lanes for another image "
+            f"size, or (y, x) pairs?")

@@ -23,7 +23,9 @@ import math
 import numpy as np
 
 from lanevil_train.illusions.context import IllusionContext
-from lanevil_train.lanes import INVALID_X
+from lanevil_train.lanes import INVALID_X, lane_extent_problem
+# re-exported: the margins, documented in lanevil_train.lanes (illusions/api.py refers to them here)
+from lanevil_train.lanes import LANE_X_MARGIN_FRAC, LANE_Y_MARGIN_FRAC  # noqa: F401
 from lanevil_train.sim import Camera, RoadGeometry
 from lanevil_train.sim.presets import MARKING_STRIPES
 from lanevil_train.sim.road import Boundary
@@ -40,14 +42,8 @@ MIN_ANGLE_DEG = 1.0            # lines closer in image direction than this count
 MAX_PITCH_DEG = 30.0           # |pitch| beyond this is implausible for a road camera
 MAX_YAW_DEG = 45.0             # |yaw| beyond this too (and outside Camera's valid range)
 SHOULDER_M = 1.0               # asphalt beyond the outermost recovered lane
-# How far lane points may lie outside the image, as a fraction of its width / height. CULane's ground
-# truth extends each lane's spline to the bottom row, so x there can be far outside the image
-# (negative at the left, beyond the width at the right; an outer lane several hundred pixels out);
-# y stays within the rows (CULane writes y = 590 on its 590-row images, so the edge itself counts).
-# Beyond these margins, or with no point inside the image at all, a lane is taken as given in other
-# pixel coordinates (another image size, x and y swapped) and rejected.
-LANE_X_MARGIN_FRAC = 1.0       # x in [-width, 2 * width]
-LANE_Y_MARGIN_FRAC = 0.02      # y in [-2 %, 102 %] of the height
+# LANE_X_MARGIN_FRAC / LANE_Y_MARGIN_FRAC (imported above): how far lane points may lie outside the image;
+# lanevil_train.lanes.lane_extent_problem is the check, shared with the datasets.
 _TRIAL_HEIGHT = 1.0            # camera height used for back-projection before scaling
 _MARKING = "white_solid"       # the marking assumed for every recovered lane (type is unknown)
 
@@ -108,24 +104,9 @@ def _road(center_x: float, offsets: np.ndarray, shoulder: float = SHOULDER_M) ->
 # ----------------------------------------------------------------------------- lane fitting
 def _check_in_image(i: int, pts: np.ndarray, h: int, w: int) -> None:
     """Raise GroundPlaneError unless lane i's points (N, 2) lie in the h x w image (within the margins)."""
-    if len(pts) == 0:
-        return
-    x, y = pts[:, 0], pts[:, 1]
-    mx, my = LANE_X_MARGIN_FRAC * w, LANE_Y_MARGIN_FRAC * h
-    inside = (x >= 0) & (x <= w) & (y >= 0) & (y <= h)
-    far = (x < -mx) | (x > w + mx) | (y < -my) | (y > h + my)
-    if not inside.any():
-        problem, bad = f"none of its {len(pts)} points lies in the image ({w} wide, {h} high): they", pts
-    elif far.any():
-        problem, bad = (f"{int(far.sum())} of its {len(pts)} points lie too far outside the image ({w} wide, "
-                        f"{h} high): those"), pts[far]
-    else:
-        return
-    raise GroundPlaneError(
-        f"lanes[{i}]: {problem} span x {bad[:, 0].min():.1f}..{bad[:, 0].max():.1f}, y {bad[:, 1].min():.1f}.."
-        f"{bad[:, 1].max():.1f}; expected (x, y) pixels of this image: at least one point in x 0..{w}, y 0..{h} "
-        f"and every point within x {-mx:g}..{w + mx:g}, y {-my:g}..{h + my:g}. Are the lanes for another image "
-        f"size, or (y, x) pairs?")
+    problem = lane_extent_problem(pts, h, w)
+    if problem is not None:
+        raise GroundPlaneError(f"lanes[{i}]: {problem}")
 
 
 def _usable_lanes(lanes: list[np.ndarray], h: int, w: int) -> list[np.ndarray]:
