@@ -3,6 +3,13 @@
 Lanes travel as keypoints labelled with their lane index; points pushed out of the image are
 dropped, and the lanes are rebuilt, re-sorted by y descending and re-ordered left to right
 (a horizontal flip reverses lane order).
+
+Labels may hold points outside the image (CULane extends every lane to the bottom row, so x there is
+often negative or beyond the width), which albumentations rejects. Before the pipeline each lane is
+therefore cut at the image border (`clip_lane_to_image`): the part outside is replaced by the point
+where the lane crosses the border, found by linear interpolation along the polyline, so the lane
+inside the image keeps its exact geometry (and its bottom end, from which the target encoders
+extrapolate down, lies on the lane).
 """
 
 from __future__ import annotations
@@ -38,8 +45,64 @@ def build_pipeline(input_size: tuple[int, int], augment: bool, extra: list | Non
     return A.Compose(steps, keypoint_params=A.KeypointParams(format="xy", label_fields=["lane_ids"]))
 
 
+# How far inside the far borders (x = width, y = height) a cut lane ends: albumentations wants x < width.
+_EDGE = 1e-3
+
+
+def _clip_segment(p0: np.ndarray, p1: np.ndarray, xmax: float, ymax: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """The part of segment p0 -> p1 inside [0, xmax] x [0, ymax] (Liang-Barsky), or None if none is.
+
+    Ends already inside come back unchanged (the same values), so a lane wholly inside is untouched."""
+    d = p1 - p0
+    t0, t1 = 0.0, 1.0
+    for p, q in ((-d[0], p0[0]), (d[0], xmax - p0[0]), (-d[1], p0[1]), (d[1], ymax - p0[1])):
+        if p == 0:
+            if q < 0:
+                return None
+            continue
+        t = q / p
+        if p < 0:
+            t0 = max(t0, t)
+        else:
+            t1 = min(t1, t)
+        if t0 > t1:
+            return None
+    return (p0 if t0 == 0.0 else p0 + t0 * d), (p1 if t1 == 1.0 else p0 + t1 * d)
+
+
+def clip_lane_to_image(lane: np.ndarray, height: int, width: int) -> np.ndarray:
+    """A lane (N, 2) cut to the image: points outside are dropped and, where the lane crosses the
+    border, the crossing point (linear interpolation between the points either side) takes their place.
+
+    Border points on the far edges sit _EDGE inside (x < width, y < height, as albumentations wants).
+    A lane that leaves the image and comes back keeps both inside parts, joined at their border points;
+    a lane never inside comes back empty (0, 2). Point order is kept.
+    """
+    lane = np.asarray(lane, dtype=np.float64).reshape(-1, 2)
+    xmax, ymax = width - _EDGE, height - _EDGE
+    inside = (lane[:, 0] >= 0) & (lane[:, 0] <= xmax) & (lane[:, 1] >= 0) & (lane[:, 1] <= ymax)
+    if inside.all():
+        return lane
+    if len(lane) == 1:
+        return lane[inside]
+    kept: list[np.ndarray] = []
+    for p0, p1 in zip(lane[:-1], lane[1:]):
+        part = _clip_segment(p0, p1, xmax, ymax)
+        if part is None:
+            continue
+        for point in part:
+            if not kept or not np.array_equal(kept[-1], point):
+                kept.append(point)
+    return np.array(kept, dtype=np.float64).reshape(-1, 2)
+
+
 def apply_pipeline(pipeline: A.Compose, image: np.ndarray, lanes: list[np.ndarray]) -> tuple[np.ndarray, list[np.ndarray]]:
-    """Run an albumentations pipeline on an image and its lanes; lanes come back in output pixels."""
+    """Run an albumentations pipeline on an image and its lanes; lanes come back in output pixels.
+
+    Lanes are first cut at the image border (clip_lane_to_image): points outside the image never reach
+    albumentations, which rejects them."""
+    height, width = image.shape[:2]
+    lanes = [clip_lane_to_image(lane, height, width) for lane in lanes]
     points = np.concatenate(lanes, axis=0) if lanes else np.zeros((0, 2))
     ids = np.concatenate([np.full(len(lane), i) for i, lane in enumerate(lanes)]) if lanes else np.zeros(0)
     out = pipeline(image=image, keypoints=points, lane_ids=ids)
