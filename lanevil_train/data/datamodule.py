@@ -23,7 +23,13 @@ class ProcessedDataset(Dataset):
         return len(self.base)
 
     def __getitem__(self, index: int) -> dict:
-        return self.processor(self.base[index])
+        sample = self.base[index]
+        try:
+            return self.processor(sample)
+        except ValueError as error:  # name the sample: the DataLoader worker's traceback does not
+            meta = sample.get("meta") or {}
+            where = meta.get("source") or meta.get("case_id") or f"sample {index}"
+            raise ValueError(f"{where}: {error}") from error
 
 
 def collate_lanes(items: list[dict]) -> dict:
@@ -61,11 +67,46 @@ class MixingCollate:
         return collate_lanes(items)
 
 
+def encoder_max_lanes(encode: Callable | None) -> int | None:
+    """The most lanes `encode` takes per image: the `max_lanes` of the head whose bound method it is
+    (builders pass `model.head.encode`; the LaneATT head has `max_lanes`, set from data.max_lanes), or of
+    the encoder object itself; None when it has no such limit."""
+    owner = getattr(encode, "__self__", encode)
+    value = getattr(owner, "max_lanes", None)
+    return int(value) if isinstance(value, (int, np.integer)) and not isinstance(value, bool) else None
+
+
+def check_lane_counts(dataset: Dataset | None, max_lanes: int, split: str = "train") -> None:
+    """Before any training: raise ValueError naming the first record (its source, "file:line") with more
+    lanes than max_lanes, which the target encoder would reject at that sample mid-epoch.
+
+    Only datasets of records (a `.records` list, as TuSimple / CULane) are checked; their lanes are
+    counted as labelled (lanes of at least 2 points), without reading images. A lane wholly in the
+    cropped sky would not reach the encoder, so this is strict for such rare labels.
+    """
+    records = getattr(dataset, "records", None)
+    if not records:
+        return
+    counts = [sum(1 for lane in record.get("lanes") or [] if len(lane) >= 2) for record in records]
+    most = max(counts)
+    if most <= max_lanes:
+        return
+    first = next(i for i, n in enumerate(counts) if n > max_lanes)
+    record = records[first]
+    source = record.get("source") or record.get("raw_file") or record.get("image_path") or f"record {first}"
+    over = sum(1 for n in counts if n > max_lanes)
+    raise ValueError(
+        f"{source}: {counts[first]} lanes, but data.max_lanes={max_lanes} (the model head's max_lanes) allows at "
+        f"most {max_lanes} per image; {over} image(s) of the {split} split have more (up to {most}). Raise "
+        f"data.max_lanes to at least {most}, or remove the extra lanes from the labels")
+
+
 class LaneDataModule(pl.LightningDataModule):
     """Train/val/test loaders over sample datasets; `encode` is the detector family's target encoder.
 
     `train_mixer` (e.g. mixers.MixUp) mixes each train batch before its targets are encoded;
-    val and test batches are never mixed.
+    val and test batches are never mixed. When `encode` has a lane limit (the head's max_lanes, see
+    encoder_max_lanes) every record dataset is checked against it here, before any training.
     """
 
     def __init__(self, train: Dataset | None, val: Dataset | None, test: Dataset | None,
@@ -83,6 +124,10 @@ class LaneDataModule(pl.LightningDataModule):
         self.train_processor = LaneSampleProcessor(self.input_size, augment, train_encode, train_transforms, crop_top)
         self.eval_processor = LaneSampleProcessor(self.input_size, False, encode, crop_top=crop_top)
         self.train_collate = collate_lanes if train_mixer is None else MixingCollate(train_mixer, encode)
+        self.max_lanes = encoder_max_lanes(encode)
+        if self.max_lanes is not None:
+            for split, base in self.sets.items():
+                check_lane_counts(base, self.max_lanes, split)
 
     def _loader(self, split: str, shuffle: bool) -> DataLoader:
         base = self.sets[split]

@@ -12,7 +12,7 @@ import numpy as np
 from torch.utils.data import Dataset
 
 from lanevil_train.data.formats import load_image, read_culane, read_tusimple
-from lanevil_train.lanes import default_h_samples
+from lanevil_train.lanes import default_h_samples, lane_extent_problem
 from lanevil_train.sim import render_scene
 
 
@@ -95,9 +95,23 @@ class _RecordDataset(Dataset):
         h_samples = record.get("h_samples")
         if h_samples is None:
             h_samples = default_h_samples(image.shape[0])
-        meta = {"case_id": self.item_key(index), "h_samples": np.asarray(h_samples, dtype=np.float64),
+        source = str(record.get("source") or self.item_key(index))
+        where = source if record.get("lines_path") is None else f"{source} (lanes in {record['lines_path']})"
+        _check_lane_extent(where, record["lanes"], image.shape[0], image.shape[1])
+        meta = {"case_id": self.item_key(index), "source": source,
+                "h_samples": np.asarray(h_samples, dtype=np.float64),
                 "image_path": str(record["image_path"]), "height": image.shape[0], "width": image.shape[1]}
         return {"image": image, "lanes": record["lanes"], "meta": meta}
+
+
+def _check_lane_extent(source: str, lanes: list[np.ndarray], height: int, width: int) -> None:
+    """Raise ValueError (starting with the record's source, "file:line") when a lane does not fit the image:
+    labels meant for another image size. Points a little outside are fine (CULane extends lanes to the
+    bottom row, x can be far out): the margins are lanevil_train.lanes.LANE_X_MARGIN_FRAC / _Y_."""
+    for i, lane in enumerate(lanes):
+        problem = lane_extent_problem(lane, height, width)
+        if problem is not None:
+            raise ValueError(f"{source}: lanes[{i}] does not fit the {width}x{height} image: {problem}")
 
 
 class TuSimpleDataset(_RecordDataset):
