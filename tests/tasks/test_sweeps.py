@@ -162,7 +162,7 @@ def test_optuna_search_runs_trials_and_names_the_best(tmp_path):
     trials = [job_overrides(p) for p in jobs]
     for params in trials:
         assert AAM_KEYS <= set(params)
-        assert 0.5 <= float(params["defense.callback.t_haa"]) <= 0.7
+        assert 0.2 <= float(params["defense.callback.t_haa"]) <= 0.7  # interval(0.2, 0.7) of aam_optuna.yaml
         assert 0.05 <= float(params["defense.callback.t_laa"]) <= 0.5
         assert float(params["defense.callback.beta"]) in (0.1, 0.2, 0.3, 0.4, 0.5, 0.6)
     assert trials[0] != trials[1]
@@ -176,3 +176,29 @@ def test_optuna_search_runs_trials_and_names_the_best(tmp_path):
     assert set(best) == AAM_KEYS
     assert best in [{k: float(params[k]) for k in AAM_KEYS}
                     for params, acc in zip(trials, perturbed) if acc == pytest.approx(max(perturbed))]
+
+
+def test_every_job_of_a_grid_is_listed_up_front():
+    from lanevil_train.tasks.sweep_check import sweep_jobs
+
+    cfg = compose_root(["hparams_search=aam_beta", "trainer.max_steps=1"])
+    cfg.hydra.overrides.task = ["hparams_search=aam_beta", "data.batch_size=2,4"]
+    jobs = sweep_jobs(cfg)
+    assert len(jobs) == 12
+    assert jobs[0] == ["defense.callback.beta=0.1", "hparams_search=aam_beta", "data.batch_size=2"]
+    assert jobs[-1] == ["defense.callback.beta=0.6", "hparams_search=aam_beta", "data.batch_size=4"]
+    assert sweep_jobs(compose_root(["hparams_search=aam_optuna"])) is None  # Optuna picks its jobs as it goes
+
+
+def test_a_bad_value_in_a_later_job_stops_the_sweep_before_the_first_job(tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    cmd = [sys.executable, "-m", "lanevil_train", "-m", *TINY, "trainer.max_steps=1", "data.batch_size=2,-1",
+           f"hydra.sweep.dir={sweep_dir}"]
+    env = {**os.environ, "PYTHONPATH": str(REPO), "WANDB_MODE": "offline", "OMP_NUM_THREADS": "1"}
+    proc = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 1
+    assert "ConfigError: sweep job 1 [" in proc.stderr and " data.batch_size=-1 " in proc.stderr
+    assert "trainer.max_steps=1] has 1 problem:" in proc.stderr
+    assert "data.batch_size: expected an integer >= 1, got -1" in proc.stderr
+    assert "No job of the sweep was started." in proc.stderr
+    assert not sweep_dir.exists()
