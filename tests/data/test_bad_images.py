@@ -81,3 +81,18 @@ def test_an_illusion_set_image_spoilt_after_the_build_is_named_with_its_label_li
     image.write_text("not a png")
     with pytest.raises(ValueError, match=rf"^{tmp_path / 'labels.json'}:2: image {image} is not an image"):
         dataset[1]
+
+
+def test_a_directory_where_an_image_or_annotation_should_be_is_named_as_one(tmp_path):
+    root = tmp_path / "culane"
+    write_culane(write_photo_dataset(root, [f"d/v.MP4/{i:05d}.jpg" for i in range(2)]), root, root / "list/test.txt")
+    (root / "d/v.MP4/00001.lines.txt").unlink()
+    (root / "d/v.MP4/00001.lines.txt").mkdir()
+    with pytest.raises(ValueError, match="^" + re.escape(f"{root / 'list/test.txt'}:2: annotation "
+                                                         f"{root / 'd/v.MP4/00001.lines.txt'} is a directory")):
+        read_culane(root / "list/test.txt", root)
+    (root / "d/v.MP4/00000.jpg").unlink()
+    (root / "d/v.MP4/00000.jpg").mkdir()
+    with pytest.raises(ValueError, match="^" + re.escape(f"{root / 'list/test.txt'}:1: image {root / 'd/v.MP4/00000.jpg'} "
+                                                         f"is a directory, not an image file")):
+        read_culane(root / "list/test.txt", root)

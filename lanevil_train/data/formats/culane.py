@@ -115,6 +115,8 @@ def read_culane(
             raise error(f"{where}: image {record['image_path']} {problem}")
         lines_path = lines_path_for(record["image_path"])
         record["lines_path"] = lines_path
+        if lines_path.is_dir():
+            raise ValueError(f"{where}: annotation {lines_path} is a directory, not a .lines.txt file")
         if lines_path.is_file():
             record["lanes"] = read_culane_lanes(lines_path)
             record["labeled"] = True

@@ -15,6 +15,8 @@ def image_file_problem(path: str | Path) -> str | None:
     every image before any long work starts. A file cut short after a valid header passes; `load_image` finds it.
     """
     path = Path(path)
+    if path.is_dir():
+        return "is a directory, not an image file"
     if not path.is_file():
         return "not found"
     if path.stat().st_size == 0:
