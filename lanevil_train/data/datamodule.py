@@ -10,6 +10,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 from lanevil_train.data.transforms import LaneSampleProcessor
+from lanevil_train.errors import prefixed
 
 
 class ProcessedDataset(Dataset):
@@ -29,7 +30,7 @@ class ProcessedDataset(Dataset):
         except ValueError as error:  # name the sample: the DataLoader worker's traceback does not
             meta = sample.get("meta") or {}
             where = meta.get("source") or meta.get("case_id") or f"sample {index}"
-            raise ValueError(f"{where}: {error}") from error
+            raise prefixed(error, where) from error
 
 
 def collate_lanes(items: list[dict]) -> dict:

@@ -12,6 +12,7 @@ import numpy as np
 from torch.utils.data import Dataset
 
 from lanevil_train.data.formats import load_image, read_culane, read_tusimple
+from lanevil_train.errors import prefixed
 from lanevil_train.lanes import default_h_samples, lane_extent_problem
 from lanevil_train.sim import render_scene
 
@@ -91,7 +92,7 @@ class _RecordDataset(Dataset):
         try:
             image = load_image(record["image_path"])
         except (FileNotFoundError, ValueError) as error:
-            raise type(error)(f"{record.get('source', 'record %d' % index)}: {error}") from None
+            raise prefixed(error, record.get("source", f"record {index}")) from None
         h_samples = record.get("h_samples")
         if h_samples is None:
             h_samples = default_h_samples(image.shape[0])

@@ -34,7 +34,9 @@ import numpy as np
 from lanevil_train.data.formats import load_image, write_culane_lanes
 from lanevil_train.data.formats.atomic import atomic_write_bytes, atomic_write_text, remove_temporaries
 from lanevil_train.data.formats.manifest import manifest_record, read_manifest
-from lanevil_train.illusions import ILLUSIONS, GroundPlaneError, context_from_lanes, context_from_scene, fallback_context
+from lanevil_train.errors import prefixed
+from lanevil_train.illusions import (ILLUSIONS, GroundPlaneError, context_from_lanes, context_from_scene, fallback_context,
+                                     get_illusion)
 from lanevil_train.lanes import default_h_samples, lanes_to_rows
 from lanevil_train.progress import progress_counter
 from lanevil_train.results_log import ResultsLog
@@ -88,19 +90,6 @@ def case_where(case: Case) -> str:
     return f"{case.source} ({image})" if case.source else image
 
 
-def _named(error: Exception, case: Case) -> Exception:
-    """`error` re-made with the case's source in front, of the same type where that type takes one message."""
-    message = f"{case_where(case)}: {error}"
-    for kind in (type(error), ValueError if isinstance(error, ValueError) else RuntimeError):
-        try:
-            named = kind(message)
-        except Exception:  # noqa: BLE001 - a type that takes other arguments: fall back to its base
-            continue
-        if str(named) == message:
-            return named
-    return RuntimeError(message)
-
-
 def variants(case: Case, plan: Plan) -> list[dict]:
     """Manifest records (without files) of every image of a case: the original first."""
     folder = case.case_id.replace("/", "_").replace(".", "_")
@@ -135,7 +124,7 @@ def case_source(case: Case, plan: Plan):
                 raise
             ctx = fallback_context(image.shape[:2])
     except (ValueError, OSError) as error:
-        raise _named(error, case) from error
+        raise prefixed(error, case_where(case)) from error
     return image, lanes, ctx
 
 
@@ -201,7 +190,7 @@ def render_case(args: tuple[Case, Plan, str, frozenset]) -> list[dict]:
         except (ValueError, OSError) as error:
             if case.image_path is None:
                 raise
-            raise _named(error, case) from error
+            raise prefixed(error, case_where(case)) from error
         path = Path(root) / record["image"]
         if plan.label_format == "culane":
             write_culane_lanes(lanes, path.with_suffix(".lines.txt"))
@@ -219,8 +208,7 @@ def build_illusion_set(cases: list[Case], plan: Plan, root: str | Path, workers:
         raise ValueError("build_illusion_set: no cases to build (an empty source: no scenes, or a label file that "
                          "lists no images)")
     for name in plan.illusions:
-        if name not in ILLUSIONS:
-            raise ValueError(f"unknown illusion {name!r}; expected one of: {', '.join(ILLUSIONS)}")
+        get_illusion(name)  # an unknown name is an error listing the known ones
     check_photo_cases(cases, plan)
     total = sum(len(variants(c, plan)) for c in cases)
     expected = {"images": total, "cases": len(cases), "plan": asdict(plan)}

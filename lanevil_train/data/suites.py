@@ -15,7 +15,9 @@ from lanevil_train.data.datasets import EmptySplitError
 from lanevil_train.data.formats import load_image, read_culane, read_tusimple
 from lanevil_train.data.formats.manifest import read_manifest
 from lanevil_train.data.illusion_set import BUILD_FILE, Plan, case_source, read_build_record, synthetic_cases, variants
+from lanevil_train.errors import prefixed
 from lanevil_train.illusions import ILLUSIONS
+from lanevil_train.illusions.registry import check_severity, get_illusion
 from lanevil_train.lanes import default_h_samples
 
 _VARIANT_KEYS = ("case_id", "illusion", "category", "severity", "seed")
@@ -68,7 +70,7 @@ class IllusionSetDataset(Dataset):
         try:
             image = load_image(self.root / entry["image"])
         except (FileNotFoundError, ValueError) as error:
-            raise type(error)(f"{label['source']}: {error}") from None
+            raise prefixed(error, label["source"]) from None
         h_samples = label.get("h_samples")
         meta = {k: entry[k] for k in _VARIANT_KEYS}
         meta.update(key=entry["image"], image_path=str(self.root / entry["image"]), height=image.shape[0],
@@ -81,13 +83,16 @@ def _check_suite_arguments(num_cases: int, names: tuple, severities, repeats: in
     """A clear error naming the argument for a suite that would be empty or name what does not exist."""
     if not isinstance(num_cases, int) or num_cases < 1:
         raise EmptySplitError(f"num_cases (scenes) must be an integer >= 1, got {num_cases!r}", "num_cases")
-    unknown = [name for name in names if name not in ILLUSIONS]
-    if unknown or not names:
-        raise ValueError(f"illusions: expected 'all' or a non-empty list of illusion names from "
-                         f"{', '.join(ILLUSIONS)}; unknown: {unknown or 'an empty list'}")
-    bad = [s for s in severities if not isinstance(s, int) or not 1 <= s <= 5]
-    if bad or not severities:
-        raise ValueError(f"severities: expected a non-empty list of integers 1..5, got {list(severities)}")
+    if not names:
+        raise ValueError("illusions: expected 'all' or a non-empty list of illusion names, got an empty list")
+    if not severities:
+        raise ValueError("severities: expected a non-empty list of integers 1..5, got an empty list")
+    for argument, check, values in (("illusions", get_illusion, names), ("severities", check_severity, severities)):
+        for value in values:
+            try:
+                check(value)  # the registry's own checks: an unknown name lists the known ones
+            except ValueError as error:
+                raise prefixed(error, argument) from None
     if not isinstance(repeats, int) or repeats < 1:
         raise ValueError(f"repeats: expected an integer >= 1, got {repeats!r}")
 

@@ -13,6 +13,7 @@ from omegaconf import DictConfig, OmegaConf
 from lanevil_train.checkpoints import AtomicCheckpointIO
 from lanevil_train.data.datamodule import LaneDataModule
 from lanevil_train.data.datasets import EmptySplitError
+from lanevil_train.errors import prefixed
 from lanevil_train.models.detector import LaneDetector
 
 # The parts of a config that define the network; stored in every checkpoint so that
@@ -32,8 +33,8 @@ def instantiate_at(node, key: str, **kwargs):
     """instantiate(node, **kwargs), where any error names the config key `key` the node came from.
 
     Hydra wraps a constructor's error in its own exception; the user gets the constructor's message prefixed
-    with the key instead (e.g. "defense.callback: beta must be in [0, 1], got 2.0"), as a FileNotFoundError,
-    ValueError or TypeError like the original. An empty dataset names the argument to change too:
+    with the key instead (e.g. "defense.callback: beta must be in [0, 1], got 2.0"), of the original's type
+    where it can be (errors.prefixed). An empty dataset names the argument to change too:
     "data.test.label_files: the test split is empty: ...".
     """
     try:
@@ -46,8 +47,7 @@ def instantiate_at(node, key: str, **kwargs):
                                   cause.argument) from None
         if str(cause).startswith(key):  # the message names the key already (e.g. backbone.checkpoint=...)
             raise cause from None
-        kind = next((t for t in (FileNotFoundError, ValueError, TypeError) if isinstance(cause, t)), RuntimeError)
-        raise kind(f"{key}: {cause}") from cause
+        raise prefixed(cause, key) from cause
 
 
 def build_split(cfg: DictConfig, split: str):

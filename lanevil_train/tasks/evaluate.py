@@ -13,6 +13,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from lanevil_train.checkpoints import fit_weights, read_lightning_checkpoint
 from lanevil_train.data.suites import IllusionSetDataset, SyntheticIllusionSuite
+from lanevil_train.errors import prefixed
 from lanevil_train.models.detector import LaneDetector
 from lanevil_train.report.specs import LANE_SPEC
 from lanevil_train.tasks.builders import build_logger, build_model, build_split, model_config, output_dir
@@ -46,7 +47,7 @@ def test_dataset(cfg: DictConfig):
     try:
         return IllusionSetDataset(suite), Path(suite).name
     except (FileNotFoundError, ValueError) as error:
-        raise type(error)(f"task.suite={suite}: {error}") from None
+        raise prefixed(error, f"task.suite={suite}") from None
 
 
 def synthetic_suite(cfg: DictConfig) -> SyntheticIllusionSuite:
