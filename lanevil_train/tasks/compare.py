@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import logging
-import re
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf, open_dict
@@ -20,7 +19,7 @@ from lanevil_train.report.defenses import (REFERENCE, best_defense, defense_gain
 from lanevil_train.report.specs import spec_for
 from lanevil_train.report.tables import print_table
 from lanevil_train.tasks.builders import build_defense, build_model, model_config, output_dir
-from lanevil_train.tasks.config_check import check_config
+from lanevil_train.tasks.config_check import check_config, interpolated_from
 from lanevil_train.tasks.scoring import RESULTS, read_records
 
 log = logging.getLogger(__name__)
@@ -109,12 +108,11 @@ def check_defense_model(run_cfg: DictConfig, built: dict, models: dict | None = 
     try:
         callback.check_model(models[key])
     except ValueError as error:
-        raw = OmegaConf.to_container(run_cfg.defense.callback, resolve=False)
         keys = []
         for arg in getattr(callback, "MODEL_ARGUMENTS", ()):
-            source = re.fullmatch(r"\$\{([\w.]+)\}", str(raw.get(arg, "")))
-            keys.append(f"{source.group(1)}={OmegaConf.select(run_cfg, source.group(1))!r} (defense.callback.{arg} "
-                        f"is ${{{source.group(1)}}})" if source else f"defense.callback.{arg}")
+            source = interpolated_from(run_cfg, f"defense.callback.{arg}")
+            keys.append(f"{source}={OmegaConf.select(run_cfg, source)!r} (defense.callback.{arg} is ${{{source}}})"
+                        if source else f"defense.callback.{arg}")
         where = f"{', '.join(keys)}: " if keys else ""
         raise ValueError(f"task=compare: the defense={run_cfg.defense.name} run cannot use this model: {where}"
                          f"{error}. Nothing was trained") from None

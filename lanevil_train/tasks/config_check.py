@@ -515,7 +515,7 @@ def check_target(key: str, node: Any) -> list[str]:
 
 # ---------------------------------------------------------------------------------------------- entry point
 
-def _copied_from(cfg: DictConfig, key: str) -> str | None:
+def interpolated_from(cfg: DictConfig, key: str) -> str | None:
     """The key whose value `key` copies (`${data.max_lanes}`), or None."""
     parent, _, leaf = key.rpartition(".")
     node = OmegaConf.select(cfg, parent) if parent else cfg
@@ -536,7 +536,7 @@ def check_config(cfg: DictConfig, where: str = "the config") -> None:
         problem = _apply(cfg, key, rule)
         if problem is not None:
             bad_keys.add(key)
-            if _copied_from(cfg, key) not in bad_keys:
+            if interpolated_from(cfg, key) not in bad_keys:
                 problems.append(problem)
     for check in CROSS_CHECKS:
         try:
