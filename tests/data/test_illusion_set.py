@@ -52,10 +52,9 @@ def test_build_writes_originals_variants_labels_and_manifest(tmp_path):
     assert variant["category"] == "traffic_obstruction" and variant["source_image"] == originals[0]["image"]
 
 
-def test_resume_after_an_interruption_gives_the_uninterrupted_result(tmp_path, monkeypatch):
-    cases = synthetic_cases(3, 2000, frames=1)
-    build_illusion_set(cases, PLAN, tmp_path / "whole", progress="none")
-
+def _die_on_third_case(monkeypatch):
+    """Make the build raise KeyboardInterrupt when it reaches its third case (an interruption); returns the real
+    render_case, to put back."""
     real = illusion_set.render_case
     calls = {"n": 0}
 
@@ -66,6 +65,14 @@ def test_resume_after_an_interruption_gives_the_uninterrupted_result(tmp_path, m
         return real(args)
 
     monkeypatch.setattr(illusion_set, "render_case", dies_on_third_case)
+    return real
+
+
+def test_resume_after_an_interruption_gives_the_uninterrupted_result(tmp_path, monkeypatch):
+    cases = synthetic_cases(3, 2000, frames=1)
+    build_illusion_set(cases, PLAN, tmp_path / "whole", progress="none")
+
+    real = _die_on_third_case(monkeypatch)
     with pytest.raises(KeyboardInterrupt):
         build_illusion_set(cases, PLAN, tmp_path / "resumed", progress="none")
     assert len(read_manifest(tmp_path / "resumed" / "manifest.jsonl")) == 10
@@ -143,16 +150,7 @@ def test_errors_while_rendering_a_photo_case_name_its_label_line_and_image(tmp_p
 def test_a_partial_set_is_refused_until_a_rerun_finishes_it(tmp_path, monkeypatch):
     from lanevil_train.data.suites import IllusionSetDataset
     cases, root = synthetic_cases(3, 2000, frames=1), tmp_path / "set"
-    real = illusion_set.render_case
-    calls = {"n": 0}
-
-    def dies_on_third_case(args):
-        calls["n"] += 1
-        if calls["n"] == 3:
-            raise KeyboardInterrupt
-        return real(args)
-
-    monkeypatch.setattr(illusion_set, "render_case", dies_on_third_case)
+    real = _die_on_third_case(monkeypatch)
     with pytest.raises(KeyboardInterrupt):
         build_illusion_set(cases, PLAN, root, progress="none")
     monkeypatch.setattr(illusion_set, "render_case", real)
