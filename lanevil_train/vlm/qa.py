@@ -1,0 +1,404 @@
+"""Question-answer pairs for a clip from the simulator's truth, in the paper's six categories (§3.6).
+
+`make_qa(truth, base_clip_id, seed)` writes 5 QA for one base (clean) clip. Every reference answer is true of
+the real scene in every variant of the clip: the illusion is a shadow, crack, reflection or object, never a lane
+marking, so the lanes, markings, weather and the safe action do not change with it. Questions carry the
+illusion's cue (what it looks like and where), as the paper asks: "Is the dark straight line in the left lane a
+lane marking?" -> "No. It is the shadow of a rail ...". Categories rotate with the seed and the segment, so the
+3 clips of a case together cover all six; each category has several question kinds and each kind several
+phrasings. `answer_is_correct` is the accuracy rule for yes/no and choice questions.
+"""
+
+from __future__ import annotations
+
+import re
+import zlib
+
+import numpy as np
+
+from lanevil_train.vlm.qa_facts import (ILLUSION_FACTS, LANE_PLACES, NUMBER_WORDS, ORDINALS, ROAD_SHAPES,
+                                        SCENE_KINDS_TEXT, WEATHER_TEXT, crossing_allowed, marking_text)
+
+QA_CATEGORIES = ("scene_description", "object_recognition", "lane_recognition", "object_behavior",
+                 "motion_reasoning", "action")
+QA_TYPES = ("open", "yes_no", "choice")
+SEGMENT_ORDER = ("before", "over", "alongside")
+REQUIRED_TRUTH = ("road", "num_lanes", "ego_lane", "markings", "weather", "night", "wet", "scene_kind",
+                  "illusion", "illusion_lane", "ego_speed_mps", "frame_step_m", "segment")
+
+
+# ---------------------------------------------------------------------------------------------- helpers
+
+def _pick(rng: np.random.Generator, options):
+    return options[int(rng.integers(len(options)))]
+
+
+def _choice_qa(category: str, question: str, options: list[str], correct: int) -> dict:
+    """A choice QA: options lettered A, B, ...; the answer is the correct option with its letter."""
+    choices = [f"{chr(65 + i)}. {text}" for i, text in enumerate(options)]
+    return {"category": category, "type": "choice", "question": question, "answer": choices[correct],
+            "choices": choices}
+
+
+def _qa(category: str, kind: str, question: str, answer: str) -> dict:
+    return {"category": category, "type": kind, "question": question, "answer": answer}
+
+
+def _cue(truth: dict) -> tuple[dict, str]:
+    """The illusion's facts and where it lies, as words ("in the left lane")."""
+    return ILLUSION_FACTS[truth["illusion"]], LANE_PLACES[truth["illusion_lane"]]
+
+
+def _ego_lane_words(truth: dict) -> str:
+    n, ego = truth["num_lanes"], truth["ego_lane"]
+    if ego == 0:
+        return "the leftmost lane"
+    if ego == n - 1:
+        return "the rightmost lane"
+    return f"the {ORDINALS[ego]} lane from the left"
+
+
+def _curve(truth: dict) -> int:
+    sign = truth.get("curvature_sign", 0) or 0
+    return int(np.sign(sign))
+
+
+# ---------------------------------------------------------------------------------------------- scene description
+
+def _weather_open(t, rng):
+    q = _pick(rng, ("Describe the weather and lighting in this clip.", "What are the weather and light "
+                    "conditions while the ego vehicle drives here?", "How would you describe the driving "
+                    "conditions (weather, light, road surface) in these frames?"))
+    surface = "wet" if t["wet"] else "dry"
+    return _qa("scene_description", "open", q, f"{WEATHER_TEXT[t['weather']]} The road surface is {surface}.")
+
+
+def _night_yes_no(t, rng):
+    q = _pick(rng, ("Is this clip recorded at night?", "Is it night-time in this scene?",
+                    "Is the ego vehicle driving in the dark?"))
+    a = "Yes. It is night; the road is lit only by lamps and headlights." if t["night"] else \
+        "No. It is daytime."
+    return _qa("scene_description", "yes_no", q, a)
+
+
+def _wet_yes_no(t, rng):
+    q = _pick(rng, ("Is the road surface wet?", "Does the asphalt look wet in this clip?",
+                    "Is the road dry?"))
+    dry_asked = q == "Is the road dry?"
+    yes = (not t["wet"]) if dry_asked else t["wet"]
+    state = "wet" if t["wet"] else "dry"
+    return _qa("scene_description", "yes_no", q, f"{'Yes' if yes else 'No'}. The road surface is {state}.")
+
+
+def _scene_kind_choice(t, rng):
+    q = _pick(rng, ("What kind of road environment is this?", "Where is the ego vehicle driving?",
+                    "Which setting best describes this scene?"))
+    kinds = list(SCENE_KINDS_TEXT)
+    return _choice_qa("scene_description", q, [SCENE_KINDS_TEXT[k] for k in kinds], kinds.index(t["scene_kind"]))
+
+
+def _road_shape_choice(t, rng):
+    q = _pick(rng, ("How does the road run ahead of the ego vehicle?", "What is the shape of the road in this "
+                    "clip?", "Which description fits the road geometry here?"))
+    shapes = list(ROAD_SHAPES)
+    return _choice_qa("scene_description", q, [ROAD_SHAPES[s] for s in shapes], shapes.index(t["road"]))
+
+
+# ---------------------------------------------------------------------------------------------- object recognition
+
+def _illusion_identity_choice(t, rng):
+    facts, place = _cue(t)
+    q = _pick(rng, (f"What are the {facts['looks']} {place}?", f"What causes the {facts['looks']} {place}?",
+                    f"Which of these best explains the {facts['looks']} {place}?"))
+    others = [f["is"] for name, f in ILLUSION_FACTS.items() if f["is"] != facts["is"]]
+    distractors = list(rng.choice(others, size=2, replace=False))
+    options = ["Lane markings painted on the road", facts["is"].capitalize(), *(d.capitalize() for d in distractors)]
+    order = rng.permutation(len(options))
+    shuffled = [options[i] + "." for i in order]
+    return _choice_qa("object_recognition", q, shuffled, int(np.where(order == 1)[0][0]))
+
+
+def _illusion_identity_open(t, rng):
+    facts, place = _cue(t)
+    q = _pick(rng, (f"What are the {facts['looks']} {place}?", f"Identify the {facts['looks']} {place}.",
+                    f"What object or effect produces the {facts['looks']} {place}?"))
+    return _qa("object_recognition", "open", q, f"They are {facts['is']}, not lane markings. {facts['note']}")
+
+
+def _illusion_is_object_yes_no(t, rng):
+    facts, place = _cue(t)
+    q = _pick(rng, (f"Are the {facts['looks']} {place} painted road markings?",
+                    f"Are the {facts['looks']} {place} part of the lane markings?"))
+    return _qa("object_recognition", "yes_no", q, f"No. They are {facts['is']}; the lane markings are unchanged.")
+
+
+# ---------------------------------------------------------------------------------------------- lane recognition
+
+def _lane_count(t, rng):
+    n = t["num_lanes"]
+    q = _pick(rng, ("How many lanes does this road have?", "How many driving lanes can you count on the road?",
+                    "Count the lanes of the road in this clip."))
+    if rng.random() < 0.5:
+        options = [f"{NUMBER_WORDS[k].capitalize()} lanes." for k in range(2, 6)]
+        return _choice_qa("lane_recognition", q, options, n - 2)
+    return _qa("lane_recognition", "open", q, f"The road has {NUMBER_WORDS[n]} lanes.")
+
+
+def _ego_lane(t, rng):
+    n, ego = t["num_lanes"], t["ego_lane"]
+    q = _pick(rng, ("Which lane is the ego vehicle driving in?", "In which lane is the camera car?",
+                    "Counting from the left, which lane does the ego vehicle occupy?"))
+    if rng.random() < 0.5:
+        options = [f"The {ORDINALS[k]} lane from the left." for k in range(n)]
+        return _choice_qa("lane_recognition", q, options, ego)
+    return _qa("lane_recognition", "open", q,
+               f"The ego vehicle is in {_ego_lane_words(t)}; the road has {NUMBER_WORDS[n]} lanes.")
+
+
+def _boundary_marking_open(t, rng):
+    side = _pick(rng, ("left", "right"))
+    index = t["ego_lane"] + (0 if side == "left" else 1)
+    q = _pick(rng, (f"What marking is on the {side} side of the ego lane?",
+                    f"Describe the line that bounds the ego lane on the {side}."))
+    return _qa("lane_recognition", "open", q,
+               f"On the {side} of the ego lane there is {marking_text(t['markings'][index])}.")
+
+
+def _marking_vs_illusion_yes_no(t, rng):
+    facts, place = _cue(t)
+    q = _pick(rng, (f"Is the {facts['looks_one']} {place} a lane marking?",
+                    f"Does the {facts['looks_one']} {place} mark a lane boundary?",
+                    f"Should the {facts['looks_one']} {place} be read as a lane line?"))
+    return _qa("lane_recognition", "yes_no", q, f"No. It is {facts['is_one']}, not a lane marking; the road "
+               f"still has {NUMBER_WORDS[t['num_lanes']]} lanes.")
+
+
+def _boundary_color_yes_no(t, rng):
+    side = _pick(rng, ("left", "right"))
+    colour = _pick(rng, ("yellow", "white"))
+    marking = t["markings"][t["ego_lane"] + (0 if side == "left" else 1)]
+    q = f"Is the line on the {side} of the ego lane {colour}?"
+    if marking == "none":
+        return _qa("lane_recognition", "yes_no", q, f"No. There is no painted line on the {side} of the ego lane; "
+                   f"the lane ends at the road edge.")
+    actual = "yellow" if marking.startswith("yellow") else "white"
+    return _qa("lane_recognition", "yes_no", q,
+               f"{'Yes' if actual == colour else 'No'}. It is {marking_text(marking)}.")
+
+
+# ---------------------------------------------------------------------------------------------- object behaviour
+
+def _illusion_static_yes_no(t, rng):
+    facts, place = _cue(t)
+    q = _pick(rng, (f"Do the {facts['looks']} {place} move along with the traffic?",
+                    f"Are the {facts['looks']} {place} moving?"))
+    return _qa("object_behavior", "yes_no", q, f"No. They are {facts['is']}, which stay in place on the road "
+               f"while the ego vehicle drives past.")
+
+
+def _illusion_motion_open(t, rng):
+    facts, place = _cue(t)
+    q = _pick(rng, (f"How do the {facts['looks']} {place} move in the images over the clip?",
+                    f"Describe how the position of the {facts['looks']} {place} changes from frame to frame."))
+    where = {"before": "they are ahead of the ego vehicle and come closer, moving down the image",
+             "over": "the ego vehicle drives over them, so they slide down and out of the bottom of the image",
+             "alongside": "they pass beside the ego vehicle and drop out of view behind it"}[t["segment"]]
+    return _qa("object_behavior", "open", q, f"They are fixed to the road: {where} as the ego vehicle moves "
+               f"forward.")
+
+
+def _markings_shift_yes_no(t, rng):
+    q = _pick(rng, ("Do the lane markings shift sideways relative to the ego vehicle during the clip?",
+                    "Does the ego vehicle drift across a lane line in this clip?"))
+    return _qa("object_behavior", "yes_no", q, f"No. The ego vehicle stays in {_ego_lane_words(t)}, so its lane "
+               f"lines stay on either side of it.")
+
+
+# ---------------------------------------------------------------------------------------------- motion reasoning
+
+def _speed_kmh(t) -> float:
+    return float(t["ego_speed_mps"]) * 3.6
+
+
+def _moving_yes_no(t, rng):
+    q = _pick(rng, ("Is the ego vehicle moving forward in this clip?", "Is the ego vehicle standing still?"))
+    moving = t["ego_speed_mps"] > 0.1
+    still_asked = q.endswith("still?")
+    yes = (not moving) if still_asked else moving
+    detail = (f"It moves forward about {float(t['frame_step_m']):.0f} m between frames, about "
+              f"{_speed_kmh(t):.0f} km/h.") if moving else "It is stopped."
+    return _qa("motion_reasoning", "yes_no", q, f"{'Yes' if yes else 'No'}. {detail}")
+
+
+def _speed_choice(t, rng):
+    q = _pick(rng, ("About how fast is the ego vehicle driving?", "Which speed range fits the ego vehicle?"))
+    kmh = _speed_kmh(t)
+    options = ["Standing still.", "Slower than 30 km/h.", "Between 30 and 60 km/h.", "Faster than 60 km/h."]
+    band = 0 if kmh < 1 else 1 if kmh < 30 else 2 if kmh <= 60 else 3
+    return _choice_qa("motion_reasoning", q, options, band)
+
+
+def _approach_choice(t, rng):
+    facts, place = _cue(t)
+    q = _pick(rng, (f"Relative to the {facts['looks']} {place}, what is the ego vehicle doing?",
+                    f"Where is the ego vehicle relative to the {facts['looks']} {place} in this clip?"))
+    options = ["Approaching them from a distance.", "Driving over them.", "Passing alongside them."]
+    return _choice_qa("motion_reasoning", q, options, SEGMENT_ORDER.index(t["segment"]))
+
+
+def _steering_open(t, rng):
+    q = _pick(rng, ("Does the ego vehicle need to steer to follow the road?", "Which way must the ego vehicle "
+                    "steer to stay in its lane?"))
+    sign = _curve(t)
+    if sign == 0:
+        a = "No steering is needed: the road runs straight here, so the ego vehicle holds its wheel steady."
+    else:
+        a = f"It must steer gently to the {'right' if sign > 0 else 'left'}, following the road's curve."
+    return _qa("motion_reasoning", "open", q, a)
+
+
+# ---------------------------------------------------------------------------------------------- action
+
+def _swerve_yes_no(t, rng):
+    facts, place = _cue(t)
+    if facts["traffic"]:
+        q = f"Should the ego vehicle treat the {facts['looks']} {place} as lane lines and steer between them?"
+        a = f"No. They are {facts['is']}, not lane lines; it should keep to its lane, slow down and give them room."
+    else:
+        q = _pick(rng, (f"Should the ego vehicle steer away from the {facts['looks']} {place}?",
+                        f"Should the ego vehicle change its path because of the {facts['looks']} {place}?"))
+        a = f"No. They are {facts['is']}, not lane markings; it should keep following the real lane lines."
+    return _qa("action", "yes_no", q, a)
+
+
+def _next_action_choice(t, rng):
+    facts, _ = _cue(t)
+    q = _pick(rng, ("What should the ego vehicle do next?", "Which action is the safe one for the ego vehicle?"))
+    keep = ("Keep its lane at reduced speed, ready to stop for the people or vehicles near the lane line."
+            if facts["traffic"] else "Keep driving in its lane, following the road.")
+    options = [keep, "Brake hard to a full stop.", "Swerve into the lane on its left.",
+               "Swerve into the lane on its right."]
+    return _choice_qa("action", q, options, 0)
+
+
+def _safe_action_open(t, rng):
+    facts, place = _cue(t)
+    q = _pick(rng, ("What is the safe action for the ego vehicle here, and why?",
+                    "How should the ego vehicle drive through this stretch of road?"))
+    sign = _curve(t)
+    follow = "follow the road's curve" if sign else "hold a straight course"
+    care = "slow down and give them room" if facts["traffic"] else "ignore them when judging the lanes"
+    return _qa("action", "open", q, f"It should stay in {_ego_lane_words(t)} and {follow}; the {facts['looks']} "
+               f"{place} are {facts['is']}, not lane markings, so it should {care}.")
+
+
+def _lane_change_yes_no(t, rng):
+    side = _pick(rng, ("left", "right"))
+    q = f"May the ego vehicle change to the lane on its {side} here?"
+    n, ego = t["num_lanes"], t["ego_lane"]
+    edge = (ego == 0) if side == "left" else (ego == n - 1)
+    if edge:
+        return _qa("action", "yes_no", q, f"No. The ego vehicle is already in {_ego_lane_words(t)}; there is no "
+                   f"lane on its {side}.")
+    marking = t["markings"][ego + (0 if side == "left" else 1)]
+    allowed = crossing_allowed(marking, from_side="right" if side == "left" else "left")
+    rule = "may be crossed when the lane is clear" if allowed else "must not be crossed"
+    return _qa("action", "yes_no", q, f"{'Yes' if allowed else 'No'}. The line on its {side} is "
+               f"{marking_text(marking)}, which {rule}.")
+
+
+KINDS = {
+    "scene_description": (_weather_open, _night_yes_no, _wet_yes_no, _scene_kind_choice, _road_shape_choice),
+    "object_recognition": (_illusion_identity_choice, _illusion_identity_open, _illusion_is_object_yes_no),
+    "lane_recognition": (_lane_count, _ego_lane, _boundary_marking_open, _marking_vs_illusion_yes_no,
+                         _boundary_color_yes_no),
+    "object_behavior": (_illusion_static_yes_no, _illusion_motion_open, _markings_shift_yes_no),
+    "motion_reasoning": (_moving_yes_no, _speed_choice, _approach_choice, _steering_open),
+    "action": (_swerve_yes_no, _next_action_choice, _safe_action_open, _lane_change_yes_no),
+}
+
+
+# ---------------------------------------------------------------------------------------------- public
+
+def check_truth(truth: dict, where: str = "truth") -> None:
+    """The truth has every key the templates read, with values they know; else a ValueError naming the key."""
+    if not isinstance(truth, dict):
+        raise ValueError(f"{where}: expected a dict of scene truth, got {type(truth).__name__}")
+    missing = [k for k in REQUIRED_TRUTH if k not in truth]
+    if missing:
+        raise ValueError(f"{where}: missing keys {', '.join(missing)} (clips.clip_truth gives them)")
+    n = truth["num_lanes"]
+    checks = [("illusion", truth["illusion"] in ILLUSION_FACTS, f"one of {', '.join(ILLUSION_FACTS)}"),
+              ("illusion_lane", truth["illusion_lane"] in LANE_PLACES, f"one of {', '.join(LANE_PLACES)}"),
+              ("num_lanes", isinstance(n, int) and 2 <= n <= 5, "an integer from 2 to 5"),
+              ("ego_lane", isinstance(truth["ego_lane"], int) and 0 <= truth["ego_lane"] < (n if isinstance(n, int)
+                                                                                          else 0),
+               "an integer from 0 to num_lanes - 1"),
+              ("markings", isinstance(truth["markings"], (list, tuple)) and len(truth["markings"]) == n + 1
+               if isinstance(n, int) else False, "num_lanes + 1 marking names"),
+              ("road", truth["road"] in ROAD_SHAPES, f"one of {', '.join(ROAD_SHAPES)}"),
+              ("weather", truth["weather"] in WEATHER_TEXT, f"one of {', '.join(WEATHER_TEXT)}"),
+              ("scene_kind", truth["scene_kind"] in SCENE_KINDS_TEXT, f"one of {', '.join(SCENE_KINDS_TEXT)}"),
+              ("segment", truth["segment"] in SEGMENT_ORDER, f"one of {', '.join(SEGMENT_ORDER)}")]
+    for key, good, expected in checks:
+        if not good:
+            raise ValueError(f"{where}: {key}: expected {expected}, got {truth[key]!r}")
+
+
+def clip_categories(seed: int, segment: str, per_clip: int) -> list[str]:
+    """The categories of one clip's QA: a rotation started by the seed and shifted by the segment, so the 3
+    segments of a case leave out 3 different categories and together cover all six."""
+    start = int(np.random.default_rng([seed, 0x9A]).integers(len(QA_CATEGORIES))) + SEGMENT_ORDER.index(segment)
+    return [QA_CATEGORIES[(start + k) % len(QA_CATEGORIES)] for k in range(per_clip)]
+
+
+def make_qa(truth: dict, base_clip_id: str, seed: int, per_clip: int = 5) -> list[dict]:
+    """`per_clip` QA for the base clip `base_clip_id` from its scene truth; deterministic given the seed."""
+    check_truth(truth, f"truth of {base_clip_id}")
+    if not isinstance(per_clip, int) or per_clip < 1:
+        raise ValueError(f"per_clip: expected an integer >= 1, got {per_clip!r}")
+    rng = np.random.default_rng([int(seed), zlib.crc32(base_clip_id.encode("utf-8"))])
+    used: dict[str, list] = {}
+    out = []
+    for k, category in enumerate(clip_categories(int(seed), truth["segment"], per_clip)):
+        kinds = [kind for kind in KINDS[category] if kind not in used.get(category, [])] or list(KINDS[category])
+        kind = kinds[int(rng.integers(len(kinds)))]
+        used.setdefault(category, []).append(kind)
+        qa = kind(truth, rng)
+        out.append({"qa_id": f"{base_clip_id}-q{k}", "base_clip_id": base_clip_id, **qa})
+    return out
+
+
+def _normalise(text: str) -> str:
+    return " ".join(re.sub(r"[^a-z0-9 ]+", " ", text.lower()).split())
+
+
+_LETTER = re.compile(r"^\s*(?:the\s+)?(?:answer|option|choice)?\s*(?:is)?\s*[:\-]?\s*\(?([a-z])\s*(?:[.):]|$)",
+                     re.IGNORECASE)
+
+
+def chosen_letter(qa: dict, prediction: str) -> str | None:
+    """The option letter a prediction picks ("B", "b)", "(B) Two lanes", "Answer: B", or an option's text)."""
+    letters = [c.split(".", 1)[0] for c in qa["choices"]]
+    match = _LETTER.match(prediction)
+    if match and match.group(1).upper() in letters:
+        return match.group(1).upper()
+    said = _normalise(prediction)
+    for choice in qa["choices"]:
+        letter, _, text = choice.partition(".")
+        if said and said in (_normalise(text), _normalise(choice)):
+            return letter
+    return None
+
+
+def answer_is_correct(qa: dict, prediction: str) -> bool | None:
+    """Accuracy of a prediction: yes/no by its first word, choice by its letter (or an option's exact text);
+    None for open questions (scored by the language and judge scores instead)."""
+    if qa["type"] == "open":
+        return None
+    if qa["type"] == "yes_no":
+        words = _normalise(prediction).split()
+        return bool(words) and words[0] == _normalise(qa["answer"]).split()[0]
+    if qa["type"] == "choice":
+        return chosen_letter(qa, prediction) == qa["answer"].split(".", 1)[0]
+    raise ValueError(f"QA {qa.get('qa_id')}: type: expected one of {', '.join(QA_TYPES)}, got {qa['type']!r}")

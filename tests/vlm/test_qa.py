@@ -1,0 +1,132 @@
+"""QA from the simulator's truth: categories, reference answers true to the scene, the accuracy rule."""
+
+from __future__ import annotations
+
+import itertools
+
+import pytest
+
+from lanevil_train.vlm import qa as qa_module
+from lanevil_train.vlm.qa import QA_CATEGORIES, answer_is_correct, chosen_letter, clip_categories, make_qa
+from tests.vlm.truth_fixture import truth
+
+SEGMENTS = ("before", "over", "alongside")
+
+
+def all_kinds(t: dict, seeds=range(40)) -> list[dict]:
+    """Every question kind's output over many rng draws (phrasings and options vary with the rng)."""
+    import numpy as np
+
+    out = []
+    for kinds in qa_module.KINDS.values():
+        for kind, seed in itertools.product(kinds, seeds):
+            out.append(kind(t, np.random.default_rng(seed)))
+    return out
+
+
+def test_five_qa_per_clip_and_one_case_covers_all_six_categories():
+    suite = [qa for seg in SEGMENTS for qa in make_qa(truth(segment=seg), f"case-{seg}", seed=7)]
+    assert len(suite) == 15
+    assert {qa["category"] for qa in suite} == set(QA_CATEGORIES)
+    for seg in SEGMENTS:
+        clip = [qa for qa in suite if qa["base_clip_id"] == f"case-{seg}"]
+        assert len({qa["category"] for qa in clip}) == 5
+        assert [qa["qa_id"] for qa in clip] == [f"case-{seg}-q{k}" for k in range(5)]
+    missing = [set(QA_CATEGORIES) - set(clip_categories(7, seg, 5)) for seg in SEGMENTS]
+    assert len(set().union(*missing)) == 3  # each segment leaves out a different category
+
+
+def test_deterministic_given_seed_and_different_for_another_seed():
+    t = truth()
+    assert make_qa(t, "c", 3) == make_qa(dict(t), "c", 3)
+    assert any(make_qa(t, "c", s) != make_qa(t, "c", 3) for s in range(4, 10))
+
+
+def test_categories_are_not_one_fixed_sentence():
+    questions = {c: set() for c in QA_CATEGORIES}
+    for seed, seg in itertools.product(range(30), SEGMENTS):
+        for qa in make_qa(truth(segment=seg), "c", seed):
+            questions[qa["category"]].add(qa["question"])
+    assert all(len(q) >= 4 for q in questions.values()), {c: len(q) for c, q in questions.items()}
+
+
+@pytest.mark.parametrize("lanes", [2, 3, 4, 5])
+def test_lane_count_is_the_renderers_lane_count(lanes):
+    t = truth(num_lanes=lanes, ego_lane=0, markings=["yellow_solid"] + ["white_dashed"] * (lanes - 1) +
+              ["white_solid"])
+    words = {2: "two", 3: "three", 4: "four", 5: "five"}
+    counts = [qa for qa in all_kinds(t) if qa["question"].startswith(("How many", "Count the"))]
+    assert {qa["type"] for qa in counts} == {"open", "choice"}
+    for qa in counts:
+        assert words[lanes] in qa["answer"].lower()
+        if qa["type"] == "choice":
+            assert answer_is_correct(qa, f"{words[lanes].capitalize()} lanes.")
+            assert not answer_is_correct(qa, f"{words[2 + (lanes - 1) % 4].capitalize()} lanes.")
+
+
+def test_marking_versus_shadow_question_is_answered_by_the_illusion():
+    for illusion, lane, looks, real in (("rail_shadow", "left", "dark straight line in the left lane", "rail"),
+                                        ("road_crack", "ego", "dark jagged line in the ego lane", "crack")):
+        qas = [qa for qa in all_kinds(truth(illusion=illusion, illusion_lane=lane))
+               if qa["category"] == "lane_recognition" and looks in qa["question"]]
+        assert qas and all(qa["type"] == "yes_no" for qa in qas)
+        assert all(qa["answer"].startswith("No.") and real in qa["answer"] for qa in qas)
+    paper = [qa for qa in all_kinds(truth()) if qa["question"] ==
+             "Is the dark straight line in the left lane a lane marking?"]
+    assert paper and paper[0]["answer"].startswith("No. It is the shadow of a rail")
+
+
+def test_answers_follow_the_truth():
+    night = [qa for qa in all_kinds(truth(weather="night", night=True)) if qa["question"] ==
+             "Is this clip recorded at night?"]
+    day = [qa for qa in all_kinds(truth()) if qa["question"] == "Is this clip recorded at night?"]
+    assert night[0]["answer"].startswith("Yes") and day[0]["answer"].startswith("No")
+    ego = [qa for qa in all_kinds(truth(ego_lane=2)) if "lane is the ego vehicle driving in" in qa["question"]]
+    assert all("rightmost" in qa["answer"] or "third lane" in qa["answer"] for qa in ego)
+    # left of ego lane 1 is white_dashed (crossable); ego lane 0's left is the road's left edge
+    change = [qa for qa in all_kinds(truth()) if qa["question"] == "May the ego vehicle change to the lane on its left here?"]
+    assert change[0]["answer"].startswith("Yes") and "dashed white" in change[0]["answer"]
+    solid = truth(markings=["yellow_solid", "white_solid", "white_dashed", "white_solid"])
+    change = [qa for qa in all_kinds(solid) if qa["question"] == "May the ego vehicle change to the lane on its left here?"]
+    assert change[0]["answer"].startswith("No")
+    shapes = [qa for qa in all_kinds(truth(road="uphill", curvature_sign=0)) if qa["category"] == "scene_description"
+              and qa["type"] == "choice" and "uphill" in " ".join(qa["choices"])]
+    assert all(qa["answer"].endswith("climbing uphill.") for qa in shapes)
+
+
+def test_every_answer_has_its_form():
+    for qa in all_kinds(truth(), seeds=range(5)) + all_kinds(truth(illusion="pedestrian"), seeds=range(5)):
+        assert qa["answer"].endswith(".") and qa["answer"][0].isupper()
+        if qa["type"] == "yes_no":
+            assert qa["answer"].split(".")[0] in ("Yes", "No")
+        if qa["type"] == "choice":
+            assert qa["answer"] in qa["choices"]
+            assert [c[0] for c in qa["choices"]] == [chr(65 + i) for i in range(len(qa["choices"]))]
+        else:
+            assert "choices" not in qa
+
+
+def test_accuracy_rule():
+    yes_no = {"type": "yes_no", "answer": "No. It is a shadow."}
+    assert answer_is_correct(yes_no, "no, that is a shadow") is True
+    assert answer_is_correct(yes_no, "  NO!") is True
+    assert answer_is_correct(yes_no, "Yes. It is a lane line.") is False
+    assert answer_is_correct(yes_no, "") is False
+    choice = {"type": "choice", "answer": "B. Two lanes.", "choices": ["A. One lane.", "B. Two lanes.", "C. Three."]}
+    for said in ("B", "b.", "(B) Two lanes", "Answer: B", "The answer is B.", "two lanes", "B. Two lanes."):
+        assert chosen_letter(choice, said) == "B", said
+        assert answer_is_correct(choice, said) is True
+    for said in ("A", "A two lane road", "C. Three.", "D", "I am not sure"):
+        assert answer_is_correct(choice, said) is False, said
+    assert answer_is_correct({"type": "open", "answer": "It is day."}, "It is day.") is None
+
+
+def test_bad_truth_is_named():
+    with pytest.raises(ValueError, match="truth of c: missing keys num_lanes"):
+        make_qa({k: v for k, v in truth().items() if k != "num_lanes"}, "c", 0)
+    with pytest.raises(ValueError, match="illusion_lane: expected one of ego, left"):
+        make_qa(truth(illusion_lane="middle"), "c", 0)
+    with pytest.raises(ValueError, match="markings: expected num_lanes \\+ 1"):
+        make_qa(truth(markings=["white_solid"]), "c", 0)
+    with pytest.raises(ValueError, match="per_clip"):
+        make_qa(truth(), "c", 0, per_clip=0)
