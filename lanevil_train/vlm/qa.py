@@ -402,3 +402,30 @@ def answer_is_correct(qa: dict, prediction: str) -> bool | None:
     if qa["type"] == "choice":
         return chosen_letter(qa, prediction) == qa["answer"].split(".", 1)[0]
     raise ValueError(f"QA {qa.get('qa_id')}: type: expected one of {', '.join(QA_TYPES)}, got {qa['type']!r}")
+
+
+_QA_FIELDS = {"qa_id": str, "base_clip_id": str, "category": str, "type": str, "question": str, "answer": str}
+
+
+def check_qa_record(record, where: str) -> dict:
+    """A QA record as qa.jsonl holds it (the fields make_qa gives), else a ValueError naming `where` and the
+    field."""
+    if not isinstance(record, dict):
+        raise ValueError(f"{where}: expected a QA object, got {type(record).__name__}")
+    for field, kind in _QA_FIELDS.items():
+        if not isinstance(record.get(field), kind) or not record[field]:
+            raise ValueError(f"{where}: {field}: expected a non-empty string, got {record.get(field)!r}")
+    if record["category"] not in QA_CATEGORIES:
+        raise ValueError(f"{where}: category: expected one of {', '.join(QA_CATEGORIES)}, got {record['category']!r}")
+    if record["type"] not in QA_TYPES:
+        raise ValueError(f"{where}: type: expected one of {', '.join(QA_TYPES)}, got {record['type']!r}")
+    choices = record.get("choices")
+    if record["type"] == "choice":
+        if not isinstance(choices, list) or len(choices) < 2 or not all(isinstance(c, str) for c in choices):
+            raise ValueError(f"{where}: choices: a choice question needs a list of at least 2 option strings "
+                             f"(\"A. ...\"), got {choices!r}")
+        if record["answer"].split(".", 1)[0] not in [c.split(".", 1)[0] for c in choices]:
+            raise ValueError(f"{where}: answer: expected one of the choices' letters first, got {record['answer']!r}")
+    elif choices is not None:
+        raise ValueError(f"{where}: choices: only choice questions have choices, this one is {record['type']!r}")
+    return record

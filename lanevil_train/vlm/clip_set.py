@@ -1,0 +1,359 @@
+"""The clip suite: written to disk by `task=build data=clips`, read back as a dataset, or generated on the fly.
+
+On disk (root/): clips/<case>/<segment>/<variant>/<k>.png (6 frames per clip variant, variant `clean` or `s<N>`),
+`clips.jsonl` (one line per clip variant), `qa.jsonl` (one line per QA of a base clip) and `build.json` (the plan,
+the counts, and whether the set is complete).
+
+Safe to kill at any instant, like the image builder (data/illusion_set.py): frames are written atomically, then
+the base clip's QA lines, then its variants' clip lines, each durable before the next, so a clip line promises
+its frames and QA; both JSON-lines files are ResultsLogs (a torn last line is cut on rerun, finished keys are
+skipped); temporaries a kill left are removed first; build.json says "complete": false until the last clip.
+
+Item form shared by ClipSetDataset and SyntheticClipSuite: {"frames": 6 uint8 RGB arrays, "qa": the QA of the
+item's base clip, "meta": {clip_id, base_clip_id, case_id, segment, illusion, category, severity, seed}};
+`clip_meta(i)` and `qa_for(base_clip_id)` give the same without loading or rendering frames.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Callable, Iterator, Sequence
+
+import cv2
+import numpy as np
+from torch.utils.data import Dataset
+
+from lanevil_train.data.formats import load_image
+from lanevil_train.data.formats.atomic import atomic_write_bytes, atomic_write_text, remove_temporaries
+from lanevil_train.illusions.registry import check_severity, get_illusion
+from lanevil_train.progress import progress_counter
+from lanevil_train.results_log import ResultsLog
+from lanevil_train.taxonomy import ILLUSION_CATEGORY, ILLUSION_NAMES
+from lanevil_train.vlm.qa import check_qa_record, make_qa
+
+BUILD_FILE = "build.json"
+CLIPS_FILE = "clips.jsonl"
+QA_FILE = "qa.jsonl"
+SEGMENTS = ("before", "over", "alongside")
+META_KEYS = ("clip_id", "base_clip_id", "case_id", "segment", "illusion", "category", "severity", "seed")
+Paraphraser = Callable[[list], list]
+
+
+def _geometry():
+    """The clip renderer (vlm/clips.py), imported when first needed; tests may replace this function."""
+    from lanevil_train.vlm import clips
+
+    return clips
+
+
+# ---------------------------------------------------------------------------------------------- naming
+
+def base_clip_id(case, segment: str) -> str:
+    return f"{case.case_id}-{segment}"
+
+
+def variant_records(case, segment: str, severities: Sequence[int]) -> list[dict]:
+    """The clips.jsonl records of one base clip: the clean clip first, then each severity of the case's illusion."""
+    base = base_clip_id(case, segment)
+    folder = case.case_id.replace("/", "_").replace(".", "_")
+    out = []
+    for severity in (0, *severities):
+        variant = "clean" if severity == 0 else f"s{severity}"
+        out.append({"clip_id": f"{base}-{variant}", "base_clip_id": base, "case_id": case.case_id,
+                    "segment": segment, "illusion": case.illusion if severity else None,
+                    "category": ILLUSION_CATEGORY[case.illusion] if severity else None, "severity": severity,
+                    "seed": case.seed,
+                    "frames": [f"clips/{folder}/{segment}/{variant}/{k}.png" for k in range(6)]})
+    return out
+
+
+# ---------------------------------------------------------------------------------------------- building
+
+def _write_frame(path: Path, frame: np.ndarray) -> None:
+    ok, encoded = cv2.imencode(".png", cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
+    if not ok:
+        raise OSError(f"cv2 could not encode {path}")
+    atomic_write_bytes(path, encoded.tobytes())
+
+
+def render_base_clip(args: tuple) -> tuple[dict, list[dict]]:
+    """Render one base clip's variants, write the frames of those not yet done; (truth, their records)."""
+    case, segment, severities, size, root, done = args
+    geometry = _geometry()
+    todo = [r for r in variant_records(case, segment, severities) if r["clip_id"] not in done]
+    truth = geometry.clip_truth(case, segment, size=tuple(size))
+    clips = geometry.render_clip(case, segment, list(severities), size=tuple(size)) if todo else {}
+    for record in todo:
+        frames = clips[record["severity"]]
+        if len(frames) != 6:
+            raise ValueError(f"render_clip({record['clip_id']}): expected 6 frames, got {len(frames)}")
+        for path, frame in zip(record["frames"], frames):
+            _write_frame(Path(root) / path, frame)
+    return truth, todo
+
+
+def paraphrase_qa(qas: list[dict], paraphraser: Paraphraser | None) -> list[dict]:
+    """The QA with question texts and open answers rewritten by `paraphraser` (list[str] -> list[str])."""
+    if paraphraser is None or not qas:
+        return qas
+    slots = [(i, "question") for i in range(len(qas))] + [(i, "answer") for i, q in enumerate(qas)
+                                                          if q["type"] == "open"]
+    texts = [qas[i][field] for i, field in slots]
+    out = paraphraser(list(texts))
+    if not isinstance(out, list) or len(out) != len(texts) or not all(isinstance(t, str) and t for t in out):
+        raise ValueError(f"paraphraser: expected a list of {len(texts)} non-empty strings (one per text given), "
+                         f"got {type(out).__name__} of {len(out) if hasattr(out, '__len__') else '?'}")
+    qas = [dict(q) for q in qas]
+    for (i, field), text in zip(slots, out):
+        qas[i][field] = text
+    return qas
+
+
+def _cases_digest(cases) -> str:
+    plain = [[c.case_id, c.seed, c.illusion] for c in cases]
+    return hashlib.sha256(json.dumps(plain).encode("utf-8")).hexdigest()[:16]
+
+
+def _check_build_arguments(cases, severities, size) -> None:
+    if not cases:
+        raise ValueError("build_clip_set: cases: expected at least one case, got none")
+    for case in cases:
+        get_illusion(case.illusion)  # names the known ones
+    if not severities:
+        raise ValueError("severities: expected a non-empty list of integers 1..5, got an empty list")
+    for severity in severities:
+        check_severity(severity)
+    if len(size) != 2 or not all(isinstance(s, int) and s >= 16 for s in size):
+        raise ValueError(f"size: expected (height, width), two integers >= 16, got {tuple(size)}")
+
+
+def build_clip_set(cases: Sequence, severities: Sequence[int], root: str | Path, size: tuple[int, int] = (360, 640),
+                   workers: int = 0, progress: str = "auto", paraphraser: Paraphraser | None = None,
+                   per_clip: int = 5) -> dict:
+    """Write every case's clips (3 segments x clean + severities), QA and records under root, resumably;
+    a summary {root, clips, written, skipped, qa}. `paraphraser` rewrites question texts and open answers."""
+    root, severities, size = Path(root), tuple(severities), tuple(size)
+    _check_build_arguments(cases, severities, size)
+    base_clips = len(cases) * len(SEGMENTS)
+    expected = {"clips": base_clips * (1 + len(severities)), "base_clips": base_clips, "qa": base_clips * per_clip,
+                "cases": len(cases), "plan": {"size": list(size), "severities": list(severities),
+                                              "per_clip": per_clip, "paraphrased": paraphraser is not None,
+                                              "cases_digest": _cases_digest(cases)}}
+    previous = read_build_record(root) if (root / BUILD_FILE).exists() else None
+    if previous is not None and {k: previous.get(k) for k in expected} != expected:
+        raise ValueError(f"{root / BUILD_FILE}: out_dir {root} holds a clip set built with other cases or another "
+                         f"plan ({previous.get('clips')} clips of {previous.get('cases')} cases, plan "
+                         f"{previous.get('plan')}; now {expected['clips']} clips of {len(cases)} cases, plan "
+                         f"{expected['plan']}); rerun with the same settings to finish it, or choose a new out_dir")
+    root.mkdir(parents=True, exist_ok=True)
+    remove_temporaries(root)
+    if previous is None or not previous.get("complete"):
+        _write_build_record(root, expected, complete=False)
+    clip_log, qa_log = ResultsLog(root / CLIPS_FILE, "clip_id"), ResultsLog(root / QA_FILE, "qa_id")
+    done_clips, done_qa = clip_log.resume(), qa_log.resume()
+    clip_log.path.touch()
+    qa_log.path.touch()
+    jobs = [(case, segment, severities, size, str(root), frozenset(done_clips)) for case in cases
+            for segment in SEGMENTS
+            if any(r["clip_id"] not in done_clips for r in variant_records(case, segment, severities))]
+    bar = progress_counter(expected["clips"], len(done_clips), "build", "clips", progress)
+    written = 0
+    for (case, segment, *_), (truth, records) in zip(jobs, _map(render_base_clip, jobs, workers)):
+        qas = [q for q in make_qa(truth, base_clip_id(case, segment), case.seed, per_clip)
+               if q["qa_id"] not in done_qa]
+        qa_log.append(paraphrase_qa(qas, paraphraser))
+        clip_log.append(records)
+        written += len(records)
+        bar.update(len(records))
+    bar.close()
+    _write_build_record(root, expected, complete=True)
+    return {"root": str(root), "clips": expected["clips"], "written": written, "skipped": len(done_clips),
+            "qa": expected["qa"]}
+
+
+def _write_build_record(root: Path, expected: dict, complete: bool) -> None:
+    atomic_write_text(root / BUILD_FILE, json.dumps({**expected, "complete": complete}, indent=1, sort_keys=True)
+                      + "\n")
+
+
+def read_build_record(root: str | Path) -> dict:
+    """The parsed build.json of a clip set, or an error naming it and what it should hold."""
+    path = Path(root) / BUILD_FILE
+    try:
+        record = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as error:
+        raise ValueError(f"{path}: cannot read the clip set's build record ({error}); rerun task=build data=clips "
+                         f"with the same out_dir ({path.parent})") from error
+    if not isinstance(record, dict) or not isinstance(record.get("clips"), int) or \
+            not isinstance(record.get("complete"), bool):
+        raise ValueError(f"{path}: expected a JSON object with an integer 'clips' and a boolean 'complete', got "
+                         f"{str(record)[:120]}")
+    return record
+
+
+def _map(fn, jobs: list, workers: int) -> Iterator:
+    if workers <= 0:
+        yield from map(fn, jobs)
+        return
+    with get_context("spawn").Pool(workers) as pool:
+        yield from pool.imap(fn, jobs)
+
+
+# ---------------------------------------------------------------------------------------------- records
+
+def read_lines(path: Path) -> Iterator[tuple[object, str]]:
+    """(parsed JSON, "file:line") of every line of a JSON-lines file; an error naming the line that is not JSON."""
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: not found (a clip set has {CLIPS_FILE} and {QA_FILE})")
+    with open(path, encoding="utf-8") as handle:
+        for number, line in enumerate(handle, 1):
+            try:
+                yield json.loads(line), f"{path}:{number}"
+            except json.JSONDecodeError as error:
+                raise ValueError(f"{path}:{number}: not a JSON object ({error.msg})") from error
+
+
+def check_clip_record(record, where: str) -> dict:
+    """A clips.jsonl record (variant_records' form), else a ValueError naming `where` and the field."""
+    if not isinstance(record, dict):
+        raise ValueError(f"{where}: expected a clip object, got {type(record).__name__}")
+    for field in ("clip_id", "base_clip_id", "case_id", "segment"):
+        if not isinstance(record.get(field), str) or not record[field]:
+            raise ValueError(f"{where}: {field}: expected a non-empty string, got {record.get(field)!r}")
+    severity = record.get("severity")
+    if isinstance(severity, bool) or not isinstance(severity, int) or not 0 <= severity <= 5:
+        raise ValueError(f"{where}: severity: expected an integer from 0 (clean) to 5, got {severity!r}")
+    for field in ("illusion", "category"):
+        value = record.get(field, "absent")
+        if (severity == 0) != (value is None) or not (value is None or isinstance(value, str)):
+            raise ValueError(f"{where}: {field}: expected null for a clean clip (severity 0) and a name otherwise, "
+                             f"got {value!r} at severity {severity}")
+    if isinstance(record.get("seed"), bool) or not isinstance(record.get("seed"), int):
+        raise ValueError(f"{where}: seed: expected an integer, got {record.get('seed')!r}")
+    frames = record.get("frames")
+    if not isinstance(frames, list) or len(frames) != 6 or not all(isinstance(f, str) and f for f in frames):
+        raise ValueError(f"{where}: frames: expected a list of 6 image paths (relative to the set), got {frames!r}")
+    return record
+
+
+# ---------------------------------------------------------------------------------------------- datasets
+
+def _meta(record: dict) -> dict:
+    return {k: record[k] for k in META_KEYS}
+
+
+class ClipSetDataset(Dataset):
+    """A clip suite written by `task=build data=clips` (or read from a DriveLM JSON with `from_drivelm`).
+
+    Refuses a set whose build.json is missing or not complete, a line of clips.jsonl / qa.jsonl that is not a
+    good record (file:line named), a clip whose base clip has no QA, and frames missing on disk."""
+
+    def __init__(self, root: str | Path):
+        root = Path(root)
+        if not (root / BUILD_FILE).is_file():
+            raise FileNotFoundError(f"clip set {root}: no {BUILD_FILE} (not a directory written by task=build "
+                                    f"data=clips, or the build never started)")
+        build = read_build_record(root)
+        clips = [check_clip_record(r, where) for r, where in read_lines(root / CLIPS_FILE)]
+        qas = [check_qa_record(r, where) for r, where in read_lines(root / QA_FILE)]
+        if not build["complete"] or len(clips) != build["clips"]:
+            raise ValueError(f"clip set {root} is incomplete: {len(clips)} of {build['clips']} clips were built "
+                             f"({BUILD_FILE} complete: {str(build['complete']).lower()}); rerun task=build "
+                             f"data=clips with the same out_dir ({root}) to finish it")
+        self._setup(root, clips, qas, str(root / CLIPS_FILE))
+
+    @classmethod
+    def from_drivelm(cls, path: str | Path, image_root: str | Path | None = None) -> "ClipSetDataset":
+        """A dataset from a DriveLM-style QA JSON (vlm/drivelm.py says which images make a clip); image paths
+        are relative to `image_root` (default: the JSON file's folder)."""
+        from lanevil_train.vlm.drivelm import read_drivelm
+
+        clips, qas = read_drivelm(path)
+        self = cls.__new__(cls)
+        self._setup(Path(image_root) if image_root is not None else Path(path).parent, clips, qas, str(path))
+        return self
+
+    def _setup(self, root: Path, clips: list[dict], qas: list[dict], source: str) -> None:
+        if not clips:
+            raise ValueError(f"{source}: the clip set lists no clips")
+        self.root, self.clips = root, clips
+        self.qa: dict[str, list[dict]] = {}
+        for qa in qas:
+            self.qa.setdefault(qa["base_clip_id"], []).append(qa)
+        no_qa = sorted({c["base_clip_id"] for c in clips} - set(self.qa))
+        if no_qa:
+            raise ValueError(f"{source}: {len(no_qa)} base clips have no QA, e.g. {no_qa[0]}")
+        missing = [str(root / p) for c in clips for p in c["frames"] if not (root / p).is_file()]
+        if missing:
+            raise FileNotFoundError(f"{source}: {len(missing)} frame files are missing under {root}, e.g. "
+                                    f"{', '.join(missing[:3])}")
+
+    def __len__(self) -> int:
+        return len(self.clips)
+
+    def item_key(self, index: int) -> str:
+        return self.clips[index]["clip_id"]
+
+    def clip_meta(self, index: int) -> dict:
+        return _meta(self.clips[index])
+
+    def qa_for(self, base_clip_id: str) -> list[dict]:
+        if base_clip_id not in self.qa:
+            raise KeyError(f"no QA for base clip {base_clip_id!r} in {self.root}")
+        return self.qa[base_clip_id]
+
+    def __getitem__(self, index: int) -> dict:
+        record = self.clips[index]
+        frames = [load_image(self.root / p) for p in record["frames"]]
+        return {"frames": frames, "qa": self.qa_for(record["base_clip_id"]), "meta": _meta(record)}
+
+
+class SyntheticClipSuite(Dataset):
+    """The suite `task=build data=clips` would write, rendered on the fly (nothing on disk). Items run base
+    clip by base clip (clean first); the last base clip's renders are cached, so an unshuffled pass renders each
+    clip once."""
+
+    def __init__(self, num_cases: int, first_seed: int, illusions: str | Sequence[str] = "all",
+                 severities: Sequence[int] = (1, 2, 3, 4, 5), size: Sequence[int] = (360, 640), per_clip: int = 5):
+        if not isinstance(num_cases, int) or num_cases < 1:
+            raise ValueError(f"num_cases: expected an integer >= 1, got {num_cases!r}")
+        names = list(ILLUSION_NAMES) if illusions == "all" else list(illusions)
+        if not names:
+            raise ValueError("illusions: expected 'all' or a non-empty list of illusion names, got an empty list")
+        self.cases = _geometry().clip_cases(num_cases, first_seed, names)
+        self.severities, self.size, self.per_clip = tuple(severities), tuple(size), per_clip
+        _check_build_arguments(self.cases, self.severities, self.size)
+        self.items = [(case, segment, record) for case in self.cases for segment in SEGMENTS
+                      for record in variant_records(case, segment, self.severities)]
+        self.by_base = {base_clip_id(case, segment): (case, segment) for case, segment, _ in self.items}
+        self._qa: dict[str, list[dict]] = {}
+        self._cached: tuple | None = None
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def item_key(self, index: int) -> str:
+        return self.items[index][2]["clip_id"]
+
+    def clip_meta(self, index: int) -> dict:
+        return _meta(self.items[index][2])
+
+    def qa_for(self, base_clip_id: str) -> list[dict]:
+        if base_clip_id not in self._qa:
+            if base_clip_id not in self.by_base:
+                raise KeyError(f"no base clip {base_clip_id!r} in this synthetic suite")
+            case, segment = self.by_base[base_clip_id]
+            truth = _geometry().clip_truth(case, segment, size=self.size)
+            self._qa[base_clip_id] = make_qa(truth, base_clip_id, case.seed, self.per_clip)
+        return self._qa[base_clip_id]
+
+    def __getitem__(self, index: int) -> dict:
+        case, segment, record = self.items[index]
+        key = (case, segment)
+        if self._cached is None or self._cached[0] != key:
+            self._cached = (key, _geometry().render_clip(case, segment, list(self.severities), size=self.size))
+        frames = list(self._cached[1][record["severity"]])
+        return {"frames": frames, "qa": self.qa_for(record["base_clip_id"]), "meta": _meta(record)}
