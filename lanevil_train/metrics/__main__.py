@@ -53,7 +53,22 @@ def _add_culane(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-_SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [_add_tusimple, _add_culane]
+def _add_vqa(subparsers: argparse._SubParsersAction) -> None:
+    """`vqa`: COCO caption scores (BLEU-1..4, ROUGE-L, CIDEr, METEOR) and DriveLM's Language score of answers."""
+    p = subparsers.add_parser("vqa", help="BLEU/ROUGE-L/CIDEr/METEOR and the Language score of VQA answers")
+    p.add_argument("--pred", required=True, help='answers, {"id": "answer"} or [{"id", "answer"}, ...]')
+    p.add_argument("--gt", required=True, help='references, {"id": "reference" or ["reference", ...]}')
+    p.add_argument("--no-meteor", action="store_true", help="skip METEOR (its Java start takes seconds)")
+
+    def run(args: argparse.Namespace) -> dict:
+        from lanevil_train.metrics.vqa import evaluate_vqa_files
+
+        return evaluate_vqa_files(args.pred, args.gt, meteor=not args.no_meteor)
+
+    p.set_defaults(func=run)
+
+
+_SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [_add_tusimple, _add_culane, _add_vqa]
 
 
 def build_parser() -> argparse.ArgumentParser:
