@@ -36,7 +36,7 @@ def score_vs_severity(records, path: str | Path) -> Path:
     """One panel per model, one line per category: x = severity 0 (same items' Original) .. 5, y = the headline
     score."""
     rs = record_set(records)
-    score = rs.spec.headline
+    score = rs.headline
     n = max(len(rs.models), 1)
     fig, axes = plt.subplots(1, n, figsize=(4.5 * n, 3.6), squeeze=False)
     for ax, m in zip(axes[0], rs.models):
@@ -59,7 +59,7 @@ def gap_heatmap(records, path: str | Path) -> Path:
     """Models x illusion types, colour = the headline score's Gap (Perturbed - Original), each cell annotated; red
     is worse than the original whichever way the score points."""
     rs = record_set(records)
-    score = rs.spec.headline
+    score = rs.headline
     grid = np.full((len(rs.models), len(rs.illusions)), np.nan)
     for i, m in enumerate(rs.models):
         for (ill,), pert in rs.groups(m, ("illusion",)):
@@ -98,7 +98,7 @@ def worst_case_pairs(records, k: int = 6) -> list[tuple[dict, dict]]:
     """The k (clean, perturbed) record pairs whose headline score drops most, one per (model, dataset, case_id),
     among pairs whose both image files exist; ties broken by key so the choice is deterministic."""
     rs = record_set(records)
-    score = rs.spec.headline
+    score = rs.headline
     sign = 1.0 if score.higher_is_better else -1.0
     best: dict[tuple, tuple] = {}
     missing = 0
@@ -128,7 +128,7 @@ def worst_cases(records, path: str | Path, k: int = 6) -> Path | None:
     if k < 1:
         raise ValueError(f"worst_cases: k must be >= 1, got {k}")
     rs = record_set(records)
-    score = rs.spec.headline
+    score = rs.headline
     pairs = worst_case_pairs(rs, k)
     if not pairs:
         return None

@@ -45,13 +45,16 @@ class Score:
     """A reported score: its name, its value over a group of records, and its direction.
 
     `needs` names the record fields it reads beyond the spec's required ones: the score is left out of
-    a table when some record lacks them (e.g. CULane counts in a TuSimple-only run).
+    a table when some record lacks them (e.g. CULane counts in a TuSimple-only run). `needs_any`: fields the score
+    reads from the records that have them (e.g. accuracy over yes/no and choice answers only): it is left out when
+    no record has one of them.
     """
 
     name: str
     aggregate: Callable[[Sequence[dict]], float]
     higher_is_better: bool = True
     needs: tuple[str, ...] = ()
+    needs_any: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -61,7 +64,7 @@ class RecordSpec:
     scores: the robustness tables' scores (the first is the headline: plots, relative robustness, worst cases,
     the best defense); summary: the headline table's scores (defaults to `scores`); item_key: the field naming
     an item within a case when a case has several (e.g. a question of a clip); groups: record fields that get a
-    table of their own (e.g. the QA category).
+    table of their own (e.g. the QA category); count_name: what a record is, for the tables' count column.
     """
 
     name: str
@@ -71,6 +74,7 @@ class RecordSpec:
     item_key: str | None = None
     groups: tuple[str, ...] = ()
     unit: str = "%"
+    count_name: str = "images"
 
     @property
     def headline(self) -> Score:
@@ -155,9 +159,10 @@ def item_of(record: dict, spec: RecordSpec) -> tuple:
 
 
 def available_scores(records: Iterable[dict], scores: Sequence[Score]) -> list[Score]:
-    """The scores every record has the fields for."""
+    """The scores the records have the fields for (every record its `needs`, some record each of its `needs_any`)."""
     records = list(records)
-    return [s for s in scores if all(all(r.get(k) is not None for k in s.needs) for r in records)]
+    return [s for s in scores if all(all(r.get(k) is not None for k in s.needs) for r in records)
+            and all(any(r.get(k) is not None for r in records) for k in s.needs_any)]
 
 
 # --------------------------------------------------------------------------------------------------- ordering
@@ -230,8 +235,16 @@ class RecordSet:
             by_model[r["model"]].append(r)
         self.by_model = {m: ModelRecords(m, by_model[m], spec) for m in self.models}
         self.scores = available_scores(self.records, spec.scores)
+        if not self.scores:
+            raise ValueError(f"the {spec.name!r} records carry none of the fields of its scores "
+                             f"{[sc.name for sc in spec.scores]}")
         self.categories = categories_of(self.records)
         self.illusions = illusions_of(self.records)
+
+    @property
+    def headline(self) -> Score:
+        """The first of the spec's scores these records support: plots, relative robustness, worst cases."""
+        return self.scores[0]
 
     def groups(self, model: str, by: Sequence[str], orders: dict[str, Sequence] | None = None):
         """(key values, perturbed records) of `model` grouped by the fields `by`, in table order: categories and

@@ -51,7 +51,7 @@ def severity_table(records) -> list[dict]:
     for m in rs.models:
         for (cat, sev), pert in rs.groups(m, ("category", "severity")):
             values = rs.by_model[m].pog(pert, rs.scores)
-            row = {"model": m, "category": cat, "severity": sev, "images": len(pert)}
+            row = {"model": m, "category": cat, "severity": sev, rs.spec.count_name: len(pert)}
             row.update({s.name: values[f"{s.name}/Perturbed"] for s in rs.scores})
             row.update({f"{s.name}/{kind}": values[f"{s.name}/{kind}"] for kind in ("Original", "Gap")
                         for s in rs.scores})
@@ -63,13 +63,13 @@ def group_table(records, field: str) -> list[dict]:
     """Rows (model, value of `field`, e.g. a QA category): Perturbed / Original / Gap over all perturbed records
     with that value (records without the field are left out)."""
     rs = record_set(records)
-    return [{"model": m, field: value, "images": len(pert), **rs.by_model[m].pog(pert, rs.scores)}
+    return [{"model": m, field: value, rs.spec.count_name: len(pert), **rs.by_model[m].pog(pert, rs.scores)}
             for m in rs.models for (value,), pert in rs.groups(m, (field,)) if value is not None]
 
 
 def _type_severity(index: ModelRecords, rs: RecordSet) -> dict[str, dict]:
     """illusion -> {"category", "orig": the headline score's Original, "sev": {severity: headline score}}."""
-    score = rs.spec.headline
+    score = rs.headline
     out = {}
     for (cat, ill), pert in rs.groups(index.model, ("category", "illusion")):
         by_sev = {}
@@ -96,8 +96,8 @@ def relative_table(records, baseline: str | None = None) -> list[dict]:
     gives NaN.
     """
     rs = record_set(records)
-    higher = rs.spec.headline.higher_is_better
-    name = rs.spec.headline.name
+    higher = rs.headline.higher_is_better
+    name = rs.headline.name
     main = {row["model"]: row for row in main_table(rs)}
     if baseline is not None and baseline not in rs.by_model:
         raise ValueError(f"baseline model {baseline!r} not among the records' models {rs.models}")
@@ -155,7 +155,7 @@ def write_report(records, out_dir: str | Path, baseline: str | None = None) -> d
     rs = record_set(records)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    headline = rs.spec.headline.name
+    headline = rs.headline.name
     tables = {"main": main_table(rs), "per_type": type_table(rs), "per_severity": severity_table(rs)}
     titles = {"main": f"Robustness per category (Perturbed / Original / Gap = Perturbed - Original, {rs.spec.unit})",
               "per_type": "Per illusion type", "per_severity": "Per severity level"}

@@ -12,7 +12,7 @@ from lanevil_train.report.specs import spec_for
 def summarise(records: list[dict], spec=None) -> dict:
     """Scores of a group of per-item records: the item count, then each summary score the records support."""
     spec = spec or spec_for(records)
-    row = {"images": len(records)}
+    row = {spec.count_name: len(records)}
     row.update({s.name: s.aggregate(records) for s in available_scores(records, spec.summary_scores())})
     return row
 

@@ -46,7 +46,70 @@ LANE_SPEC = RecordSpec(
              Score("CULane_F1", _culane_f1, needs=("culane_tp", "culane_fp", "culane_fn"))),
 )
 
-SPECS: dict[str, RecordSpec] = {LANE_SPEC.name: LANE_SPEC}
+
+def mean_present(field: str, scale: float = 1.0):
+    """An aggregate: scale * the mean of one field over the records that carry it (NaN when none does)."""
+
+    def aggregate(records: Sequence[dict]) -> float:
+        values = [r[field] for r in records if r.get(field) is not None]
+        return scale * sum(values) / len(values) if values else NAN
+
+    aggregate.__name__ = f"mean_present_{field}"
+    return aggregate
+
+
+_LANGUAGE_CACHE: dict[tuple, dict] = {}
+
+
+def _language_parts(records: Sequence[dict]) -> dict:
+    """The COCO caption scores of a group of answers from their stored PTB tokens (metrics/vqa.py), memoised per
+    group: a table asks for each part of the same group in turn. CIDEr's document frequencies come from the group."""
+    key = tuple(r["key"] for r in records)
+    if key not in _LANGUAGE_CACHE:
+        from lanevil_train.metrics.vqa import language_scores
+
+        if len(_LANGUAGE_CACHE) > 256:
+            _LANGUAGE_CACHE.clear()
+        _LANGUAGE_CACHE[key] = language_scores({r["key"]: r["answer_tokens"] for r in records},
+                                               {r["key"]: r["reference_tokens"] for r in records},
+                                               meteor=False, tokenized=True)
+    return _LANGUAGE_CACHE[key]
+
+
+def language_part(name: str):
+    """An aggregate: one COCO caption score (x 100) of a group of answers; NaN for no records."""
+
+    def aggregate(records: Sequence[dict]) -> float:
+        return 100.0 * float(_language_parts(records)[name]) if records else NAN
+
+    aggregate.__name__ = f"language_{name}"
+    return aggregate
+
+
+_TOKENS = ("answer_tokens", "reference_tokens")
+LANGUAGE_PARTS = ("BLEU_1", "BLEU_2", "BLEU_3", "BLEU_4", "ROUGE_L", "CIDEr")
+_VQA_SCORES = (Score("GPT_score", mean_present("gpt_score"), needs_any=("gpt_score",)),
+               Score("MiniLM_score", mean_present("minilm_score"), needs_any=("minilm_score",)),
+               Score("Language", language_part("Language"), needs=_TOKENS),
+               Score("Accuracy", mean_present("correct", 100.0), needs_any=("correct",)))
+
+# One record per answer of a VLM to one QA of one clip variant (tasks/vlm_evaluate.py). The item is the QA of a base
+# clip (case_id = base_clip_id, item_key = qa_id), so Original is the same question on the clean clip. GPT_score:
+# an LLM judge on an OpenAI-compatible endpoint (DriveLM's 0-100 rubric); MiniLM_score: the offline embedding judge
+# (cosine of all-MiniLM-L6-v2 embeddings x 100), never called a GPT score; Language: DriveLM's weighted sum of
+# BLEU-1..4, ROUGE-L and CIDEr (metrics/vqa.py), x 100; Accuracy: yes/no and choice questions only.
+VQA_SPEC = RecordSpec(
+    name="vqa",
+    fields=(Field("correct", 0.0, 1.0, required=False), Field("gpt_score", 0.0, 100.0, required=False),
+            Field("minilm_score", 0.0, 100.0, required=False)),
+    scores=_VQA_SCORES,
+    summary=_VQA_SCORES + tuple(Score(name, language_part(name), needs=_TOKENS) for name in LANGUAGE_PARTS),
+    item_key="qa_id",
+    groups=("qa_category", "segment"),
+    count_name="answers",
+)
+
+SPECS: dict[str, RecordSpec] = {LANE_SPEC.name: LANE_SPEC, VQA_SPEC.name: VQA_SPEC}
 
 
 def spec_for(records: Sequence[dict]) -> RecordSpec:
@@ -61,7 +124,8 @@ def spec_for(records: Sequence[dict]) -> RecordSpec:
             raise ValueError(f"records name an unknown spec {name!r}; known: {sorted(SPECS)}")
         return SPECS[name]
     fits = [spec for spec in SPECS.values()
-            if all(isinstance(r, dict) and all(f.name in r for f in spec.fields if f.required) for r in records)]
+            if all(isinstance(r, dict) and all(f.name in r for f in spec.fields if f.required)
+                   and (spec.item_key is None or spec.item_key in r) for r in records)]
     if len(fits) != 1:
         raise ValueError(f"cannot tell which kind of records these are ({len(fits)} specs fit); give each record "
                          f"a 'spec' field, one of {sorted(SPECS)}")

@@ -41,7 +41,7 @@ def write_results(result_files: list[Path], out_dir: Path, baseline: str | None 
                     title=f"Robustness ({rs.spec.unit}): Perturbed / Original / Gap — full table in main.md")
         plots = ", ".join(p.name for p in paths.values() if p.suffix == ".png")
         print(f"Robustness report: {paths['report']} (per type, per severity, relative); plots: {plots}")
-    return rs.spec.headline.aggregate(perturbed or rs.records)
+    return rs.headline.aggregate(perturbed or rs.records)
 
 
 def _checked_record_set(records: list[dict], result_files: list[Path]):
