@@ -23,7 +23,7 @@ QA_CATEGORIES = ("scene_description", "object_recognition", "lane_recognition", 
                  "motion_reasoning", "action")
 QA_TYPES = ("open", "yes_no", "choice")
 SEGMENT_ORDER = ("before", "over", "alongside")
-REQUIRED_TRUTH = ("road", "num_lanes", "ego_lane", "markings", "weather", "night", "wet", "scene_kind",
+REQUIRED_TRUTH = ("curvature_sign", "slope", "num_lanes", "ego_lane", "markings", "weather", "night", "wet", "scene_kind",
                   "illusion", "illusion_lane", "ego_speed_mps", "frame_step_m", "segment")
 
 
@@ -59,8 +59,15 @@ def _ego_lane_words(truth: dict) -> str:
 
 
 def _curve(truth: dict) -> int:
-    sign = truth.get("curvature_sign", 0) or 0
-    return int(np.sign(sign))
+    """-1 the road bends left over the clip, +1 right, 0 straight (clips.clip_truth's curvature_sign)."""
+    return int(np.sign(truth["curvature_sign"] or 0))
+
+
+def _road_shape(truth: dict) -> str:
+    """The road's shape over the clip (a ROAD_SHAPES key): its slope where it climbs or falls, else its bend."""
+    if truth["slope"] in ("uphill", "downhill"):
+        return truth["slope"]
+    return {-1: "left_curve", 0: "straight", 1: "right_curve"}[_curve(truth)]
 
 
 # ---------------------------------------------------------------------------------------------- scene description
@@ -101,7 +108,7 @@ def _road_shape_choice(t, rng):
     q = _pick(rng, ("How does the road run ahead of the ego vehicle?", "What is the shape of the road in this "
                     "clip?", "Which description fits the road geometry here?"))
     shapes = list(ROAD_SHAPES)
-    return _choice_qa("scene_description", q, [ROAD_SHAPES[s] for s in shapes], shapes.index(t["road"]))
+    return _choice_qa("scene_description", q, [ROAD_SHAPES[s] for s in shapes], shapes.index(_road_shape(t)))
 
 
 # ---------------------------------------------------------------------------------------------- object recognition
@@ -200,11 +207,18 @@ def _illusion_motion_open(t, rng):
     facts, place = _cue(t)
     q = _pick(rng, (f"How do the {facts['looks']} {place} move in the images over the clip?",
                     f"Describe how the position of the {facts['looks']} {place} changes from frame to frame."))
-    where = {"before": "they are ahead of the ego vehicle and come closer, moving down the image",
-             "over": "the ego vehicle drives over them, so they slide down and out of the bottom of the image",
-             "alongside": "they pass beside the ego vehicle and drop out of view behind it"}[t["segment"]]
-    return _qa("object_behavior", "open", q, f"They are fixed to the road: {where} as the ego vehicle moves "
-               f"forward.")
+    return _qa("object_behavior", "open", q, f"They stay in place on the road: {_SEEN[facts['traffic']][t['segment']]} "
+               f"as the ego vehicle moves forward.")
+
+
+_SEEN = {  # how a static illusion moves in the images, by segment (clips.py: traffic is passed, never driven over)
+    False: {"before": "they are ahead of the ego vehicle and come closer, moving down the image",
+            "over": "the ego vehicle drives onto them, so they slide down and out of the bottom of the image",
+            "alongside": "the ego vehicle drives along them until their far end"},
+    True: {"before": "they are far ahead and grow slowly as the ego vehicle approaches",
+           "over": "the ego vehicle closes in on them and they grow larger in the image",
+           "alongside": "the ego vehicle comes up beside them and they move to the edge of the image"},
+}
 
 
 def _markings_shift_yes_no(t, rng):
@@ -233,8 +247,9 @@ def _moving_yes_no(t, rng):
 def _speed_choice(t, rng):
     q = _pick(rng, ("About how fast is the ego vehicle driving?", "Which speed range fits the ego vehicle?"))
     kmh = _speed_kmh(t)
-    options = ["Standing still.", "Slower than 30 km/h.", "Between 30 and 60 km/h.", "Faster than 60 km/h."]
-    band = 0 if kmh < 1 else 1 if kmh < 30 else 2 if kmh <= 60 else 3
+    options = ["Standing still.", "Slower than 20 km/h.", "Between 20 and 40 km/h.", "Between 40 and 60 km/h.",
+               "Faster than 60 km/h."]
+    band = 0 if kmh < 1 else 1 if kmh < 20 else 2 if kmh < 40 else 3 if kmh <= 60 else 4
     return _choice_qa("motion_reasoning", q, options, band)
 
 
@@ -242,7 +257,9 @@ def _approach_choice(t, rng):
     facts, place = _cue(t)
     q = _pick(rng, (f"Relative to the {facts['looks']} {place}, what is the ego vehicle doing?",
                     f"Where is the ego vehicle relative to the {facts['looks']} {place} in this clip?"))
-    options = ["Approaching them from a distance.", "Driving over them.", "Passing alongside them."]
+    options = (["Approaching them from a distance.", "Closing in on them, a few metres away.",
+                "Passing right beside them."] if facts["traffic"] else
+               ["Approaching them from a distance.", "Driving over them.", "Passing alongside them."])
     return _choice_qa("motion_reasoning", q, options, SEGMENT_ORDER.index(t["segment"]))
 
 
@@ -336,7 +353,8 @@ def check_truth(truth: dict, where: str = "truth") -> None:
                "an integer from 0 to num_lanes - 1"),
               ("markings", isinstance(truth["markings"], (list, tuple)) and len(truth["markings"]) == n + 1
                if isinstance(n, int) else False, "num_lanes + 1 marking names"),
-              ("road", truth["road"] in ROAD_SHAPES, f"one of {', '.join(ROAD_SHAPES)}"),
+              ("slope", truth["slope"] in ("flat", "uphill", "downhill"), "one of flat, uphill, downhill"),
+              ("curvature_sign", truth["curvature_sign"] in (-1, 0, 1), "-1 (left), 0 or 1 (right)"),
               ("weather", truth["weather"] in WEATHER_TEXT, f"one of {', '.join(WEATHER_TEXT)}"),
               ("scene_kind", truth["scene_kind"] in SCENE_KINDS_TEXT, f"one of {', '.join(SCENE_KINDS_TEXT)}"),
               ("segment", truth["segment"] in SEGMENT_ORDER, f"one of {', '.join(SEGMENT_ORDER)}")]

@@ -64,8 +64,7 @@ ORDINALS = ("first", "second", "third", "fourth", "fifth", "sixth")
 
 ROAD_SHAPES = MappingProxyType({
     "straight": "Straight and level.", "left_curve": "Curving to the left.", "right_curve": "Curving to the right.",
-    "s_curve": "An S-bend, curving one way and then the other.", "uphill": "Straight, climbing uphill.",
-    "downhill": "Straight, going downhill.",
+    "uphill": "Climbing uphill.", "downhill": "Going downhill.",
 })
 
 SCENE_KINDS_TEXT = MappingProxyType({"urban": "An urban street between buildings.",

@@ -89,9 +89,9 @@ def test_answers_follow_the_truth():
     solid = truth(markings=["yellow_solid", "white_solid", "white_dashed", "white_solid"])
     change = [qa for qa in all_kinds(solid) if qa["question"] == "May the ego vehicle change to the lane on its left here?"]
     assert change[0]["answer"].startswith("No")
-    shapes = [qa for qa in all_kinds(truth(road="uphill", curvature_sign=0)) if qa["category"] == "scene_description"
+    shapes = [qa for qa in all_kinds(truth(slope="uphill", curvature_sign=0)) if qa["category"] == "scene_description"
               and qa["type"] == "choice" and "uphill" in " ".join(qa["choices"])]
-    assert all(qa["answer"].endswith("climbing uphill.") for qa in shapes)
+    assert all(qa["answer"].endswith("Climbing uphill.") for qa in shapes)
 
 
 def test_every_answer_has_its_form():
@@ -130,3 +130,14 @@ def test_bad_truth_is_named():
         make_qa(truth(markings=["white_solid"]), "c", 0)
     with pytest.raises(ValueError, match="per_clip"):
         make_qa(truth(), "c", 0, per_clip=0)
+
+
+def test_traffic_is_passed_not_driven_over_and_the_road_shape_is_the_clips():
+    for seg, expected in (("over", "B. Closing in on them"), ("alongside", "C. Passing right beside them")):
+        qas = [qa for qa in all_kinds(truth(illusion="vehicle", illusion_lane="ego", segment=seg))
+               if qa["category"] == "motion_reasoning" and qa["type"] == "choice" and "Relative to" in qa["question"]]
+        assert qas and all(qa["answer"].startswith(expected) for qa in qas)
+    # an s-curve scene whose clip bends right, on the level: the clip's shape, not the scene's road kind
+    shapes = [qa for qa in all_kinds(truth(road="s_curve", curvature_sign=1)) if qa["category"] ==
+              "scene_description" and qa["type"] == "choice" and "Going downhill." in " ".join(qa["choices"])]
+    assert shapes and all(qa["answer"].endswith("Curving to the right.") for qa in shapes)
