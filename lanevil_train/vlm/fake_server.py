@@ -2,7 +2,7 @@
 
     python -m lanevil_train.vlm.fake_server [--port 0] [--mode answer|judge|paraphrase] [--delay-ms 50]
         [--fail-every N] [--fail-first N] [--rate-limit-first N --retry-after S] [--max-images N]
-        [--no-decode] [--idle-exit-s S]
+        [--require-key KEY] [--no-decode] [--idle-exit-s S]
 
 The first stdout line is the bound port. POST /v1/chat/completions answers deterministically from the request:
 - answer mode: "answer: <question> [images=<n> size=<W>x<H> digest=<8 hex>]", the size and an md5 of the decoded
@@ -151,6 +151,8 @@ class Handler(BaseHTTPRequestHandler):
     def respond(self, number: int, raw: bytes) -> tuple[int, dict, dict]:
         """(status, body, headers) for chat request `number`."""
         args = self.state.args
+        if args.require_key and self.headers.get("Authorization") != f"Bearer {args.require_key}":
+            return 401, {"error": {"message": "missing or wrong API key", "type": "invalid_api_key"}}, {}
         if number <= args.rate_limit_first:
             return 429, {"error": {"message": "rate limited"}}, {"Retry-After": str(args.retry_after)}
         if number <= args.fail_first or (args.fail_every and number % args.fail_every == 0):
@@ -210,6 +212,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--rate-limit-first", type=int, default=0, help="the first N chat requests get a 429")
     parser.add_argument("--retry-after", type=float, default=0.05, help="the 429s' Retry-After (seconds)")
     parser.add_argument("--max-images", type=int, default=None, help="refuse (400) more images per request")
+    parser.add_argument("--require-key", default=None, help="refuse (401) requests without this Bearer key")
     parser.add_argument("--no-decode", action="store_true", help="read image sizes from headers, skip the digest")
     parser.add_argument("--idle-exit-s", type=float, default=600.0, help="exit after this long without requests")
     parser.add_argument("--verbose", action="store_true")

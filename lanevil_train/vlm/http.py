@@ -9,6 +9,8 @@ so callers can append each one at once and resume an interrupted run. Only httpx
 
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 import random
 import threading
@@ -18,6 +20,8 @@ from email.utils import parsedate_to_datetime
 from typing import Callable, Iterable, Iterator
 
 import httpx
+
+from lanevil_train.results_log import ResultsLog
 
 RETRY_STATUSES = frozenset({408, 409, 429}) | frozenset(range(500, 600))
 
@@ -168,3 +172,30 @@ class ChatClient:
                     yield i, result
         finally:
             pool.shutdown(wait=False, cancel_futures=True)
+
+
+def cache_key(*parts) -> str:
+    """A stable hash of JSON-able parts (model, settings, texts): the key of a cached reply."""
+    return hashlib.sha256(json.dumps(parts, ensure_ascii=False).encode("utf-8")).hexdigest()[:32]
+
+
+class ReplyCache:
+    """Finished replies by key, kept on disk as JSON lines (ResultsLog) when `path` is given, else in memory, so a
+    rerun sends no request it already made. Appends come from one thread (the consumer of `ChatClient.stream`)."""
+
+    def __init__(self, path=None):
+        self.log = ResultsLog(path) if path is not None else None
+        self.records: dict[str, dict] = {}
+        if self.log is not None:
+            if self.log.resume():
+                self.records = {record["key"]: record for record in self.log.records()}
+
+    def get(self, key: str) -> dict | None:
+        """The cached record for `key`, or None."""
+        return self.records.get(key)
+
+    def add(self, record: dict) -> None:
+        """Remember (and append to disk) a record with a "key"."""
+        self.records[record["key"]] = record
+        if self.log is not None:
+            self.log.append([record])
