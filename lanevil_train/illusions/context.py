@@ -7,15 +7,22 @@ from the annotated lanes, `recover.context_from_lanes`).
 World frame (as in lanevil_train.sim): metres, x right, y up, z forward, camera above the origin.
 Road frame: lateral offset d (+ right of the road centre line) and forward distance z;
 `road.world_point(d, z)` gives the 3D point on the road surface, `road.lateral(x, z)` the inverse.
+
+A frame of a clip (`context_for_frame`) keeps the reference view's road, so an illusion is laid out
+exactly as in the reference image, and draws through a `PoseCamera` that maps reference-world points
+into the moved camera: the illusion stays put on the road while the camera drives. Placement
+decisions that look at the camera or the image (`placement`: draw.in_view, draw.RoadLight) read the
+reference view, so every frame makes the same ones.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from lanevil_train.sim import Camera, RoadGeometry, Scene
+from lanevil_train.sim.sequence import FrameView, PoseCamera
 
 
 @dataclass(frozen=True)
@@ -28,6 +35,21 @@ class IllusionContext:
     sun_direction: np.ndarray      # unit world vector towards the sun (its y < 0: the sun is down)
     night: bool = False            # street lamps and headlights instead of the sun
     wet: float = 0.0               # 0 dry .. 1 soaked (reflections are strong on wet asphalt)
+    view: FrameView | None = None  # a clip frame: the camera moved along the road (None: a single image)
+    placement_image: np.ndarray | None = None  # the reference view's image, which placement reads
+
+    @property
+    def placement(self) -> "IllusionContext":
+        """The context placement decisions read: the reference view of a clip frame, else this one."""
+        if self.view is None:
+            return self
+        return replace(self, camera=self.view.reference.camera, view=None, placement_image=None)
+
+    def frame(self) -> "IllusionContext":
+        """The moved camera's own camera-centric context (for effects that follow the viewer), else this one."""
+        if self.view is None:
+            return self
+        return replace(self, camera=self.view.camera, road=self.view.road, view=None, placement_image=None)
 
     @property
     def image_size(self) -> tuple[int, int]:
@@ -48,3 +70,11 @@ def context_from_scene(scene: Scene) -> IllusionContext:
     return IllusionContext(camera=scene.camera, road=scene.road, lane_offsets=offsets,
                            sun_direction=scene.sun_direction, night=bool(weather["night"]),
                            wet=float(weather["wet"]))
+
+
+def context_for_frame(reference: Scene, s0: float, reference_image: np.ndarray | None = None) -> IllusionContext:
+    """The context of the frame s0 metres along the road from `reference`: illusions are placed as in
+    the reference view (whose clean image `reference_image` placement may read) and drawn from the pose."""
+    view = FrameView.at(reference, s0)
+    return replace(context_from_scene(reference), camera=PoseCamera.of(view), view=view,
+                   placement_image=reference_image)

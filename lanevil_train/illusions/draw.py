@@ -40,6 +40,15 @@ def project(ctx: IllusionContext, points: np.ndarray) -> tuple[np.ndarray, np.nd
     return ctx.camera.project(points, return_depth=True)
 
 
+def in_front(ctx: IllusionContext, points: np.ndarray, near: float = NEAR_Z) -> np.ndarray:
+    """Boolean (...,): world points more than `near` metres ahead of the camera (their forward
+    distance z; in a clip frame, z in the moved camera's world)."""
+    pts = np.asarray(points, dtype=np.float64)
+    if ctx.view is not None:
+        pts = ctx.view.to_current(pts)
+    return pts[..., 2] > near
+
+
 def fill_polygons(shape: tuple[int, int], polygons_px: list[np.ndarray], value: float = 1.0,
                   mask: np.ndarray | None = None) -> np.ndarray:
     """Fill pixel polygons (each (K, 2)) into a float32 mask of `shape` (anti-aliased edges)."""
@@ -152,6 +161,9 @@ class RoadLight:
     """
 
     def __init__(self, image: np.ndarray, ctx: IllusionContext, cell: int = 5):
+        if ctx.view is not None:  # a clip frame: read the reference view, so every frame picks the same
+            image = image if ctx.placement_image is None else ctx.placement_image
+            ctx = ctx.placement
         h, w = ctx.image_size
         self.ctx = ctx
         self.scale = (max(1, w // cell) / w, max(1, h // cell) / h)
@@ -196,6 +208,7 @@ class RoadLight:
 def row_distance(ctx: IllusionContext) -> np.ndarray:
     """Forward distance (m) of the road seen on each image row (H,), along the centre column; inf
     above the horizon. Enough for effects that fade with distance, such as a lamp's reach."""
+    ctx = ctx.frame()  # a clip frame: distances from the moved camera
     h, w = ctx.image_size
     v = np.arange(h, dtype=np.float64)
     z = ctx.camera.ground_intersect(np.full(h, ctx.camera.cx), v, surface=ctx.road)[:, 2]
@@ -203,7 +216,9 @@ def row_distance(ctx: IllusionContext) -> np.ndarray:
 
 
 def in_view(ctx: IllusionContext, d: float, zs: tuple[float, ...] = (8.0, 12.0)) -> bool:
-    """Whether the road line at lateral offset d shows in the image at any of these distances."""
+    """Whether the road line at lateral offset d shows in the image at any of these distances (in the
+    reference view of a clip frame: a placement decision, the same for every frame)."""
+    ctx = ctx.placement
     h, w = ctx.image_size
     pix, depth = project(ctx, road_points(ctx, np.full(len(zs), float(d)), np.asarray(zs, np.float64)))
     ok = (depth > NEAR_Z) & np.all(np.isfinite(pix), axis=1)

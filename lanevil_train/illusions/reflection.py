@@ -73,11 +73,20 @@ _MAX_LIGHTS = 8  # rng draws are made for the most lights of any level, so level
 
 # ---------------------------------------------------------------------------------- geometry
 def _streak(ctx: IllusionContext, layer: np.ndarray, base_xz: tuple[float, float], t_range: tuple[float, float],
-            half_width_m: float, profile: Callable[[np.ndarray], np.ndarray], colour: np.ndarray) -> Box | None:
+            half_width_m: float, profile: Callable[[np.ndarray], np.ndarray], colour: np.ndarray,
+            anchored: bool = True) -> Box | None:
     """Paint one streak into the (H, W, 3) float layer: the ground strip along the line from the
     camera's foot (t=0) to `base_xz` (t=1, under the source), over t in `t_range`, brightness
     `profile(t)` times `colour`; its half-width is `half_width_m` at t=1 and shrinks towards the camera
-    in proportion to t, so the streak keeps a near-constant width in the image, as real ones do."""
+    in proportion to t, so the streak keeps a near-constant width in the image, as real ones do.
+    A mirror image follows the viewer: in a clip frame the streak runs to the moved camera, from the
+    source's place on the road (`anchored`) or, for the sun at infinity, from the same place relative to it."""
+    if ctx.view is not None:
+        if anchored:
+            bx, bz = (float(v) for v in base_xz)  # reference world x, z of the ground under the source
+            foot = ctx.view.to_current(np.array([bx, float(ctx.road.height(bz)), bz]))
+            base_xz = (float(foot[0]), float(foot[2]))
+        ctx = ctx.frame()
     bx, bz = base_xz
     t = np.linspace(t_range[0], t_range[1], _SEGMENTS + 1)
     z = np.maximum(t * bz, draw.NEAR_Z + 0.5)
@@ -223,9 +232,9 @@ def render_sunlight_reflection(image: np.ndarray, ctx: IllusionContext, severity
     # wide soft halo, then the bright core
     fade = SUN_FADE_M / far  # the path fades in over the same metres at every level
     boxes = [_streak(ctx, streaks, base, t_range, hw_far, _bump(t_mirror, 1.5 * sigma, 0.35, t_range, fade),
-                     _SUN * 0.6 * p["intensity"])]
+                     _SUN * 0.6 * p["intensity"], anchored=False)]
     boxes += [_streak(ctx, streaks, base, t_range, 0.45 * hw_far, _bump(t_mirror, sigma, 0.2, t_range, fade),
-                      np.minimum(_SUN * 1.4 * p["intensity"], 1.0))]
+                      np.minimum(_SUN * 1.4 * p["intensity"], 1.0), anchored=False)]
     return _finish(image, ctx, streaks, boxes, None, [], blur_px=0.012 * w, rng=rng, glitter=0.25)
 
 

@@ -236,14 +236,14 @@ def _shadows(out: np.ndarray, ctx: IllusionContext, parts: list[Participant]) ->
             lift = np.maximum(pts[:, 1] - ground_y, 0.0)
             flat = pts - sun[None, :] / sy * lift[:, None]
             flat[:, 1] = ground_y
-            pix, depth = draw.project(ctx, flat[flat[:, 2] > draw.NEAR_Z])
+            pix, depth = draw.project(ctx, flat[draw.in_front(ctx, flat)])
             if len(pix) >= 3 and np.all(np.isfinite(pix)):
                 polys_cast.append(cv2.convexHull(pix.astype(np.float32)).reshape(-1, 2))
         foot = pts.copy()
         foot[:, 1] = ground_y
         c = foot.mean(0)
         foot = c + (foot - c) * 1.12
-        pix, _ = draw.project(ctx, foot[foot[:, 2] > draw.NEAR_Z])
+        pix, _ = draw.project(ctx, foot[draw.in_front(ctx, foot)])
         if len(pix) >= 3 and np.all(np.isfinite(pix)):
             polys_contact.append(cv2.convexHull(pix.astype(np.float32)).reshape(-1, 2))
     if not polys_cast and not polys_contact:
@@ -342,7 +342,7 @@ def render_participants(image: np.ndarray, ctx: IllusionContext, parts: list[Par
     """Draw participants (far to near) and, unless `shadows` is False, their shadows into a copy of `image`."""
     out = np.ascontiguousarray(image.copy())
     cam = ctx.camera.position
-    visible = [p for p in parts if p.z > draw.NEAR_Z + 2.0]
+    visible = [p for p in parts if draw.in_front(ctx, draw.road_points(ctx, p.d, p.z), draw.NEAR_Z + 2.0)]
     if shadows:
         out = _shadows(out, ctx, visible)
     for p in sorted(visible, key=lambda p: -float(np.linalg.norm(draw.road_points(ctx, p.d, p.z) - cam))):
@@ -366,7 +366,7 @@ def footprint_boxes(ctx: IllusionContext, parts: list[Participant]) -> list[tupl
         flat[:, 1] = origin[1]
         c = flat.mean(0)
         allp = np.concatenate([pts, flat, c + (flat - c) * 1.2])
-        pix, _ = draw.project(ctx, allp[allp[:, 2] > draw.NEAR_Z])
+        pix, _ = draw.project(ctx, allp[draw.in_front(ctx, allp)])
         pad = 8 + int(np.ceil(3 * 2.5 * max(1.0, w / 400.0)))
         boxes.append((int(np.floor(pix[:, 0].min())) - pad, int(np.floor(pix[:, 1].min())) - pad,
                       int(np.ceil(pix[:, 0].max())) + pad, int(np.ceil(pix[:, 1].max())) + pad))
