@@ -10,8 +10,9 @@ The first stdout line is the bound port. POST /v1/chat/completions answers deter
   digest=-);
 - judge mode (DriveLM's prompt): 100 when the answer equals the reference, else a stable number from their hash;
   an answer containing JUNK gets "I cannot rate that." and one containing SCOREFMT gets "Score: 85/100";
-- paraphrase mode: "Please tell me: <question>" (yes/no questions keep their first word; a question containing
-  DROPOPTIONS loses its option letters, EMPTY gets an empty reply).
+- paraphrase mode: "Please tell me: <question>" (yes/no questions keep their first word, statements get "In
+  other words: " and a Yes/No answer "<Yes|No> indeed ..."; DROPOPTIONS loses the option letters, FLIPYESNO the
+  leading Yes/No, EMPTY gets an empty reply).
 A question containing BAD_REQUEST gets a 400. GET /v1/models lists the model, GET /stats the request counts.
 """
 
@@ -72,8 +73,8 @@ def judge_reply(prompt: str) -> str:
 
 
 def paraphrase_reply(prompt: str) -> str:
-    """The paraphrase mode's reply: the question after the last 'Question:' marker, reworded trivially."""
-    question = prompt.rsplit("Question:", 1)[-1].strip()
+    """The paraphrase mode's reply: the text after the last 'Text:' marker, reworded trivially."""
+    question = prompt.rsplit("Text:", 1)[-1].strip()
     if "EMPTY" in question:
         return ""
     if "DROPOPTIONS" in question:
@@ -81,6 +82,10 @@ def paraphrase_reply(prompt: str) -> str:
     first, _, rest = question.partition(" ")
     if first.lower() in ("is", "are", "does", "do", "can", "should", "will", "was", "were", "has", "have"):
         return f"{first} it true that {rest[0].lower() + rest[1:] if rest else ''}"
+    if first.lower().strip(",") in ("yes", "no"):
+        return "FLIPPED " + question if "FLIPYESNO" in question else f"{first} indeed {rest}"
+    if "?" not in question:
+        return "In other words: " + question
     return "Please tell me: " + question
 
 

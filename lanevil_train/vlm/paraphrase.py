@@ -1,9 +1,10 @@
-"""The optional paraphrasing pass over generated questions (off by default): any OpenAI-compatible endpoint rewords
-each question, so a VLM is not scored on a handful of template sentences.
+"""The optional paraphrasing pass over generated QA texts (off by default): any OpenAI-compatible endpoint rewords
+each question (and, as the clip-set builder asks, each open answer), so a VLM is not scored on a handful of
+template sentences.
 
 A rewrite is kept only when it passes checks that the meaning-bearing form survived: not empty, not much longer,
-still a question when the original was, still yes/no when the original was (and not yes/no when it was not), and
-the same option letters in the same order for a choice question. Anything else keeps the original text (and is
+still a question when the original was, still yes/no when the original was (and not yes/no when it was not), an
+answer's leading Yes/No kept, and the same option letters in the same order for a choice question. Anything else keeps the original text (and is
 counted), so the pass can only vary the wording, never break a QA pair. Replies are cached per (model, temperature,
 question), so rebuilding a suite asks nothing twice.
 """
@@ -16,11 +17,12 @@ from typing import Sequence
 
 from lanevil_train.vlm.http import ChatClient, ReplyCache, cache_key
 
-SYSTEM_PROMPT = "You rewrite questions about driving scenes without changing what they ask."
-INSTRUCTION = ("Paraphrase the question below. Keep its exact meaning. If it can be answered with yes or no, the "
-               "paraphrase must be a yes/no question too; otherwise it must not be one. Keep every answer option "
-               "with its letter (A., B., ...) unchanged and in the same order. Reply with the paraphrased question "
-               "only.\nQuestion: ")
+SYSTEM_PROMPT = "You reword questions and answers about driving scenes without changing what they say."
+INSTRUCTION = ("Paraphrase the text below (a question or an answer about a driving scene). Keep its exact meaning. "
+               "If it is a question that can be answered with yes or no, the paraphrase must be a yes/no question "
+               "too; otherwise it must not be one. An answer that starts with Yes or No keeps that start. Keep every "
+               "answer option with its letter (A., B., ...) unchanged and in the same order. Reply with the "
+               "paraphrase only.\nText: ")
 YES_NO_STARTS = frozenset("is are am was were do does did can could should would will shall may might must has have "
                           "had".split())
 OPTION = re.compile(r"(?:^|[\s(])([A-H])[.):]\s")
@@ -33,6 +35,12 @@ def is_yes_no(question: str) -> bool:
     return bool(words) and words[0].lower().strip(",") in YES_NO_STARTS
 
 
+def leading_yes_no(text: str) -> str | None:
+    """"yes" or "no" when an answer starts with it ("No, it is a shadow." -> "no"), else None."""
+    match = re.match(r"\W*(yes|no)\b", text, flags=re.I)
+    return match.group(1).lower() if match else None
+
+
 def option_letters(question: str) -> list[str]:
     """The option letters of a choice question in order ("A. left B. right" -> ["A", "B"])."""
     return OPTION.findall(question)
@@ -41,7 +49,7 @@ def option_letters(question: str) -> list[str]:
 def clean_reply(reply: str) -> str:
     """The reply without a "Question:"/"Paraphrase:" lead or wrapping quotes, on one stripped line per line."""
     text = reply.strip()
-    text = re.sub(r"^(?:paraphrased question|paraphrase|question)\s*:\s*", "", text, flags=re.I)
+    text = re.sub(r"^(?:paraphrased (?:question|text|answer)|paraphrase|question|text)\s*:\s*", "", text, flags=re.I)
     if len(text) >= 2 and text[0] in QUOTES and text[-1] in QUOTES:
         text = text[1:-1].strip()
     return text
@@ -57,13 +65,15 @@ def rejection(original: str, paraphrase: str, max_ratio: float) -> str | None:
         return "not a question"
     if is_yes_no(original) != is_yes_no(paraphrase):
         return "changed yes/no-ness"
+    if leading_yes_no(original) != leading_yes_no(paraphrase):
+        return "changed the yes/no answer"
     if option_letters(original) != option_letters(paraphrase):
         return "lost the option letters"
     return None
 
 
 class OpenAIParaphraser:
-    """Callable list[str] -> list[str]: each question reworded through an OpenAI-compatible endpoint, or kept.
+    """Callable list[str] -> list[str]: each question (or open answer) reworded through an OpenAI-compatible endpoint, or kept.
 
     max_ratio: a paraphrase longer than max_ratio x the original (+20 characters) is refused; cache_path: a
     JSON-lines cache of replies (None: in memory). `last_summary` counts kept rewrites and refusals by reason.
@@ -89,16 +99,16 @@ class OpenAIParaphraser:
                              {"role": "user", "content": INSTRUCTION + question}]}
 
     def __call__(self, questions: Sequence[str]) -> list[str]:
-        """The questions reworded where a valid paraphrase came back, else unchanged, in order."""
+        """The texts reworded where a valid paraphrase came back, else unchanged, in order."""
         for i, question in enumerate(questions):
             if not isinstance(question, str):
-                raise ValueError(f"question {i}: expected a string, got {type(question).__name__}")
+                raise ValueError(f"text {i}: expected a string, got {type(question).__name__}")
         keys = [cache_key(self.model, self.temperature, question) for question in questions]
         first = {key: i for i, key in reversed(list(enumerate(keys)))}
         todo = sorted(i for key, i in first.items() if self.cache.get(key) is None)
 
         def work(j: int) -> str:
-            return self.client.complete(self.request_body(questions[todo[j]]), f"paraphrase question {todo[j]}")
+            return self.client.complete(self.request_body(questions[todo[j]]), f"paraphrase text {todo[j]}")
 
         for j, reply in self.client.stream(len(todo), work):
             i = todo[j]
