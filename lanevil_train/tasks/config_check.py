@@ -274,6 +274,14 @@ RULES: dict[str, Rule] = {
     **_for_splits("first_seed", integer(0)),
     **_for_splits("size", int_pair(16)),
     **_for_splits("cache", boolean()),
+    # data=clips (the VLM clip suite)
+    "data.size": int_pair(16),
+    "data.per_clip": integer(1),
+    "data.paraphrase": null_or(target_node()),
+    "data.illusions": illusion_names(),
+    "data.severities": int_list(SEVERITIES[0], SEVERITIES[-1]),
+    **_for_splits("num_cases", integer(1)),
+    **_for_splits("per_clip", integer(1)),
     # model
     "model.name": text(),
     "model.attention_layer": text(),
@@ -417,7 +425,7 @@ def check_cases(cfg: DictConfig) -> list[str]:
     """task.cases=0 means every dataset image, which only task=build on a real dataset has."""
     if _get(cfg, "task.cases") != 0:
         return []
-    if _get(cfg, "task.name") == "build" and _get(cfg, "data.name") != "synthetic":
+    if _get(cfg, "task.name") == "build" and _get(cfg, "data.name") not in ("synthetic", "clips"):
         return []
     return [_problem("task.cases", "an integer >= 1, the number of simulated scenes (0, every image, is only "
                      "for task=build on a real dataset)", 0)]
