@@ -101,18 +101,14 @@ def train_tokenizer(family: str, corpus: Sequence[str] = ()):
                                    additional_special_tokens=[t for t in spec["tokens"] if t not in roles.values()])
 
 
-def build_tiny_vlm(family: str, out_dir: str | os.PathLike, corpus: Sequence[str] = (), seed: int = 0,
-                   image_size: int | None = None) -> Path:
-    """Build, save and return `out_dir`: a random-weight `family` model, its processor and tokenizer, offline."""
+def make_tiny_vlm(family: str, corpus: Sequence[str] = (), seed: int = 0, image_size: int | None = None):
+    """(model, processor) of a tiny random-weight `family` VLM in memory; the same seed gives the same weights."""
     import torch
     from transformers import AutoModelForImageTextToText, GenerationConfig
 
     _family_spec(family)
-    out = Path(out_dir)
-    if out.exists() and any(out.iterdir()):
-        raise FileExistsError(f"out_dir {out}: exists and is not empty; expected a new or empty directory")
-    size = _DEFAULT_IMAGE_SIZE[family] if image_size is None else int(image_size)
-    if size < 8 or size % 8:
+    size = _DEFAULT_IMAGE_SIZE[family] if image_size is None else image_size
+    if isinstance(size, bool) or not isinstance(size, int) or size < 8 or size % 8:
         raise ValueError(f"image_size: expected a multiple of 8 that is at least 8, got {image_size!r}")
     tokenizer = train_tokenizer(family, corpus)
     processor = _BUILDERS[family][0](tokenizer, size)
@@ -120,6 +116,16 @@ def build_tiny_vlm(family: str, out_dir: str | os.PathLike, corpus: Sequence[str
     torch.manual_seed(seed)
     model = AutoModelForImageTextToText.from_config(config).eval()
     model.generation_config = GenerationConfig(**_token_roles(tokenizer))
+    return model, processor
+
+
+def build_tiny_vlm(family: str, out_dir: str | os.PathLike, corpus: Sequence[str] = (), seed: int = 0,
+                   image_size: int | None = None) -> Path:
+    """Build, save and return `out_dir`: a random-weight `family` model, its processor and tokenizer, offline."""
+    out = Path(out_dir)
+    if out.exists() and any(out.iterdir()):
+        raise FileExistsError(f"out_dir {out}: exists and is not empty; expected a new or empty directory")
+    model, processor = make_tiny_vlm(family, corpus, seed, image_size)
     out.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent))
     try:  # saved whole into a staging folder, then renamed: a kill never leaves a half-saved model at out_dir
