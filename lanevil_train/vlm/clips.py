@@ -56,6 +56,7 @@ STANDING = frozenset(("pedestrian", "vehicle", "bicycle", "guard_rail"))  # foot
 OBSTACLES = frozenset(("pedestrian", "vehicle", "bicycle"))  # the car passes them, never drives over them
 MAX_EXTENT_M = 60.0  # the illusion's far end is taken at most this far beyond its near end
 DEFAULT_SIZE = (360, 640)
+FOOTPRINT_THRESHOLD = 24  # RGB-sum change that counts for the footprint: cuts the faint tails of soft edges
 
 
 @dataclass(frozen=True)
@@ -146,10 +147,10 @@ def footprint(scene: Scene, clean: np.ndarray, perturbed: np.ndarray, standing: 
     return Footprint(near_m=near, far_m=max(far, near), lane=lane_of(scene, cd), found=True)
 
 
-def changed_road_points(scene: Scene, clean: np.ndarray, perturbed: np.ndarray,
-                        standing: bool = False) -> tuple[np.ndarray, np.ndarray]:
+def changed_road_points(scene: Scene, clean: np.ndarray, perturbed: np.ndarray, standing: bool = False,
+                        threshold: int = FOOTPRINT_THRESHOLD) -> tuple[np.ndarray, np.ndarray]:
     """Road coordinates (s, d) of the changed pixels of a render of `scene` that hit its road."""
-    mask = changed_pixels(clean, perturbed)
+    mask = changed_pixels(clean, perturbed, threshold)
     if standing:
         cols = np.flatnonzero(mask.any(axis=0))
         rows = mask.shape[0] - 1 - np.argmax(mask[::-1, cols], axis=0)
