@@ -1,4 +1,5 @@
-"""task=build: write an illusion test set (images, labels, manifest) from data.test, resumably."""
+"""task=build: write an illusion test set (images, labels, manifest) from data.test, or with data=clips the VLM clip
+suite (frames, clips.jsonl, qa.jsonl), resumably."""
 
 from __future__ import annotations
 
@@ -15,6 +16,8 @@ def build(cfg: DictConfig) -> None:
     """Synthetic data: cases are test-split scene seeds; TuSimple/CULane: the test split's images."""
     task = cfg.task
     names = tuple(ILLUSIONS) if task.illusions == "all" else tuple(task.illusions)
+    if cfg.data.name == "clips":
+        return build_clips(cfg, names)
     root = Path(task.out_dir) if task.out_dir else output_dir(cfg) / "illusion_set"
     if cfg.data.name == "synthetic":
         if task.cases < 1:
@@ -30,4 +33,28 @@ def build(cfg: DictConfig) -> None:
                 fallback=task.fallback)
     summary = build_illusion_set(cases, plan, root, workers=task.workers, progress=cfg.progress)
     print(f"illusion set: {summary['images']} images in {summary['root']} "
+          f"({summary['written']} written now, {summary['skipped']} already there)")
+
+
+def build_clips(cfg: DictConfig, names: tuple[str, ...]) -> None:
+    """data=clips: task.cases scene videos from data.test.first_seed, each cut into 3 clips (clean + every
+    severity), with their QA; `data.paraphrase` (a _target_ node, e.g. vlm.paraphrase.OpenAIParaphraser) rewords
+    questions and open answers, its replies cached in the out_dir."""
+    from hydra.utils import instantiate
+
+    from lanevil_train.vlm.clip_set import build_clip_set
+    from lanevil_train.vlm.clips import clip_cases
+
+    task = cfg.task
+    root = Path(task.out_dir) if task.out_dir else output_dir(cfg) / "clip_set"
+    if task.cases < 1:
+        raise ValueError(f"task.cases: building the clip suite needs task.cases >= 1 scene videos, got {task.cases}")
+    paraphraser = None
+    if cfg.data.get("paraphrase") is not None:
+        cache = {} if "cache_path" in cfg.data.paraphrase else {"cache_path": str(root / "paraphrase_cache.jsonl")}
+        paraphraser = instantiate(cfg.data.paraphrase, **cache)
+    cases = clip_cases(task.cases, cfg.data.test.first_seed, list(names))
+    summary = build_clip_set(cases, tuple(task.severities), root, size=tuple(cfg.data.size), workers=task.workers,
+                             progress=cfg.progress, paraphraser=paraphraser, per_clip=cfg.data.per_clip)
+    print(f"clip set: {summary['clips']} clips ({summary['qa']} QA) in {summary['root']} "
           f"({summary['written']} written now, {summary['skipped']} already there)")

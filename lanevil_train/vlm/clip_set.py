@@ -85,7 +85,7 @@ def render_base_clip(args: tuple) -> tuple[dict, list[dict]]:
     geometry = _geometry()
     todo = [r for r in variant_records(case, segment, severities) if r["clip_id"] not in done]
     truth = geometry.clip_truth(case, segment, size=tuple(size))
-    clips = geometry.render_clip(case, segment, list(severities), size=tuple(size)) if todo else {}
+    clips = geometry.render_clip(case, segment, [0, *severities], size=tuple(size)) if todo else {}
     for record in todo:
         frames = clips[record["severity"]]
         if len(frames) != 6:
@@ -354,6 +354,6 @@ class SyntheticClipSuite(Dataset):
         case, segment, record = self.items[index]
         key = (case, segment)
         if self._cached is None or self._cached[0] != key:
-            self._cached = (key, _geometry().render_clip(case, segment, list(self.severities), size=self.size))
+            self._cached = (key, _geometry().render_clip(case, segment, [0, *self.severities], size=self.size))
         frames = list(self._cached[1][record["severity"]])
         return {"frames": frames, "qa": self.qa_for(record["base_clip_id"]), "meta": _meta(record)}

@@ -28,8 +28,8 @@ def render_clip(case, segment, severities, size=(360, 640)) -> dict[int, list[np
     CALLS["render"] += 1
     rng = np.random.default_rng([case.seed, ("before", "over", "alongside").index(segment)])
     clean = [rng.integers(0, 256, (*size, 3), dtype=np.uint8) for _ in range(6)]
-    out = {0: clean}
-    for s in severities:
+    out = {0: clean} if 0 in severities else {}
+    for s in (s for s in severities if s):
         frames = [f.copy() for f in clean]
         for f in frames:
             f[: 2 * s, : 3 * s] = 0  # the "illusion": a dark patch growing with severity

@@ -48,7 +48,7 @@ def test_build_writes_clips_qa_and_a_complete_record(tmp_path):
     data = ClipSetDataset(tmp_path)
     assert len(data) == 18 and data.item_key(1) == "case-0000500-before-s2"
     item = data[1]
-    rendered = fake_clips.render_clip(cases()[0], "before", [2, 4], SIZE)
+    rendered = fake_clips.render_clip(cases()[0], "before", [0, 2, 4], SIZE)
     assert all(np.array_equal(a, b) for a, b in zip(item["frames"], rendered[2]))  # PNG is lossless
     assert item["qa"] == data[0]["qa"] and len(item["qa"]) == 5  # shared by the clean clip and its variants
     assert item["meta"] == {k: clips[1][k] for k in clip_set.META_KEYS}
