@@ -112,6 +112,12 @@ class Corpus:
         return ng.sentence[mask] - shift, ng.gram[mask], ng.count[mask], ng.order[mask]
 
 
+def _sorted_unique(values: np.ndarray) -> np.ndarray:
+    """np.unique by sorting (numpy's hash-based unique is several times slower on large int arrays)."""
+    values = np.sort(values)
+    return values[np.concatenate([[True], values[1:] != values[:-1]])] if len(values) else values
+
+
 def _lookup(keys: np.ndarray, table_keys: np.ndarray, table_values: np.ndarray) -> np.ndarray:
     """table_values at each of `keys` in the sorted unique `table_keys`, 0 where a key is absent."""
     if len(table_keys) == 0:
@@ -188,7 +194,7 @@ def cider_d(corpus: Corpus, sigma: float = CIDER_SIGMA, n: int = NGRAM_ORDER) ->
     g = corpus.ngrams.n_grams
     hs, hg, hc, ho = corpus.entries(hypotheses=True)
     rs, rg, rc, ro = corpus.entries(hypotheses=False)
-    item_grams = np.unique(corpus.ref_item[rs] * g + rg)  # each n-gram once per item: its document frequency
+    item_grams = _sorted_unique(corpus.ref_item[rs] * g + rg)  # each n-gram once per item: document frequency
     if len(item_grams) == 0:
         return 0.0  # no reference n-gram at all (pycocoevalcap fails here: max() of no frequencies)
     df = np.bincount(item_grams % g, minlength=g).astype(np.float64)
@@ -217,7 +223,8 @@ class MeteorRun:
     """METEOR of all answers in one meteor-1.5.jar process, started at once so Java loads while Python scores.
 
     The exchange is pycocoevalcap's (one ``SCORE ||| refs ||| answer`` line per item, then ``EVAL ||| stats``),
-    but the lines are written by a thread while this one reads, instead of one round trip per item."""
+    but the lines are written by a thread while this one reads, instead of one round trip per item; the
+    statistics lines of several processes (parts of the answers) can be evaluated by one."""
 
     def __init__(self, java: str):
         jar = coco_file("meteor", "meteor-1.5.jar")
@@ -256,16 +263,20 @@ class MeteorRun:
             raise RuntimeError(f"METEOR (meteor-1.5.jar) stopped with exit code {self._proc.returncode}: {tail}")
         return line.decode("utf-8").strip()
 
-    def result(self) -> float:
-        """The corpus METEOR (waits for the process, then ends it)."""
+    def stats(self) -> list[str]:
+        """The per-item METEOR statistics lines of the answers sent, in order."""
+        if self._writer is None:
+            raise RuntimeError("MeteorRun.stats called before send")
+        stats = [self._line() for _ in range(self._count)]
+        self._writer.join()
+        return stats
+
+    def evaluate(self, stats: Sequence[str]) -> float:
+        """The corpus METEOR of statistics lines (from this process or others), then the process ends."""
         try:
-            if self._writer is None:
-                raise RuntimeError("MeteorRun.result called before send")
-            stats = [self._line() for _ in range(self._count)]
-            self._writer.join()
             self._proc.stdin.write(("EVAL ||| " + " ||| ".join(stats) + "\n").encode("utf-8"))
             self._proc.stdin.close()
-            for _ in range(self._count):
+            for _ in range(len(stats)):
                 self._line()  # per-item scores
             return float(self._line())
         finally:
@@ -325,7 +336,7 @@ def language_scores(predictions: Mapping[str, str], references: Mapping[str, str
     answers, refs = _check_inputs(predictions, references, names)
     java = java_executable() if meteor and coco_file("meteor", "meteor-1.5.jar") else None
     notes = [SPICE_NOTE] + ([METEOR_NOTE] if meteor and not java else [])
-    run = MeteorRun(java) if java else None  # Java loads METEOR's tables while the text is tokenised
+    runs = [MeteorRun(java)] if java else []  # Java loads METEOR's tables while the text is tokenised
     try:
         if tokenized:
             backend = "pretokenized"
@@ -334,15 +345,16 @@ def language_scores(predictions: Mapping[str, str], references: Mapping[str, str
             tokens = ptb_tokenize(answers + [r for group in refs for r in group])
             answers, flat = tokens[: len(answers)], iter(tokens[len(answers):])
             refs = [[next(flat) for _ in group] for group in refs]
-        if run:
-            run.send(answers, refs)
+        cuts = np.linspace(0, len(answers), len(runs) + 1).astype(int)
+        for run, lo, hi in zip(runs, cuts[:-1], cuts[1:]):
+            run.send(answers[lo:hi], refs[lo:hi])
         corpus = Corpus(answers, refs)
         scores = {f"BLEU_{k}": s for k, s in enumerate(bleu(corpus), 1)}
         scores["ROUGE_L"] = rouge_l(corpus)
         scores["CIDEr"] = cider_d(corpus)
-        scores["METEOR"] = run.result() if run else None
+        scores["METEOR"] = runs[0].evaluate([line for run in runs for line in run.stats()]) if runs else None
     finally:
-        if run:
+        for run in runs:
             run.close()
     scores["SPICE"] = None
     scores["Language"] = language_score(scores)
