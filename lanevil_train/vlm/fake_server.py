@@ -23,6 +23,7 @@ import base64
 import hashlib
 import json
 import re
+import socket
 import struct
 import subprocess
 import sys
@@ -118,6 +119,12 @@ class Handler(BaseHTTPRequestHandler):
     protocol_version = "HTTP/1.1"
     state: FakeState
 
+    def setup(self):
+        super().setup()
+        # headers and body go out in two writes: without TCP_NODELAY, Nagle's algorithm and the client's delayed
+        # ACK hold the body back ~40 ms on keep-alive connections
+        self.connection.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+
     def log_message(self, format, *args):  # noqa: A002 - quiet unless asked
         if self.state.args.verbose:
             super().log_message(format, *args)
@@ -173,14 +180,17 @@ class Handler(BaseHTTPRequestHandler):
         if args.max_images is not None and len(images) > args.max_images:
             return 400, {"error": {"message": f"At most {args.max_images} image(s) may be provided in one request"}}, {}
         content = {"judge": judge_reply, "paraphrase": paraphrase_reply}.get(args.mode, None)
-        text = content(prompt) if content else self.describe(prompt, images)
+        try:
+            text = content(prompt) if content else self.describe(prompt, images)
+        except ValueError as error:  # base64 or image bytes that do not decode (binascii.Error is a ValueError)
+            return 400, {"error": {"message": f"bad image: {error}", "type": "invalid_request_error"}}, {}
         return 200, {"id": f"fake-{number}", "object": "chat.completion", "model": request.get("model"),
                      "choices": [{"index": 0, "message": {"role": "assistant", "content": text},
                                   "finish_reason": "stop"}]}, {}
 
     @staticmethod
-    def read_messages(messages: list) -> tuple[list[str], list[bytes]]:
-        """The user messages' text and the decoded bytes of their image_url data URLs."""
+    def read_messages(messages: list) -> tuple[list[str], list[str]]:
+        """The user messages' text and the base64 payloads of their image_url data URLs."""
         texts, images = [], []
         for message in messages:
             if message.get("role") != "user":
@@ -193,12 +203,17 @@ class Handler(BaseHTTPRequestHandler):
                     header, _, data = part["image_url"]["url"].partition(",")
                     if not header.startswith("data:image/") or not header.endswith(";base64"):
                         raise ValueError(f"image_url is not a base64 data URL: {header[:40]!r}")
-                    images.append(base64.b64decode(data, validate=True))
+                    images.append(data)
         return texts, images
 
-    def describe(self, question: str, images: list[bytes]) -> str:
-        """The answer mode's reply: the question, the image count, size and pixel digest."""
-        sizes = {image_size(data) for data in images}
+    def describe(self, question: str, images: list[str]) -> str:
+        """The answer mode's reply: the question, the image count, size and pixel digest (--no-decode: only the
+        first 3 KiB of each image are decoded, for the size in its header)."""
+        if self.state.args.no_decode:
+            sizes = {image_size(base64.b64decode(data[:4096])) for data in images}
+        else:
+            images = [base64.b64decode(data, validate=True) for data in images]
+            sizes = {image_size(data) for data in images}
         size = "x".join(map(str, sizes.pop())) if len(sizes) == 1 else "mixed" if sizes else "none"
         digest = "-" if self.state.args.no_decode or not images else \
             hashlib.md5("".join(decoded_digest(d) for d in images).encode()).hexdigest()[:8]

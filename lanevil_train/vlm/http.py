@@ -118,13 +118,15 @@ class ChatClient:
         with self._random_lock:
             return self._random.uniform(0.0, min(self.backoff_max_s, self.backoff_s * 2 ** attempt))
 
-    def post(self, body: dict, where: str) -> dict:
-        """One chat-completions request with retries; the decoded JSON reply, else an EndpointError naming `where`."""
+    def post(self, body: dict | bytes, where: str) -> dict:
+        """One chat-completions request (a body, or its JSON already encoded) with retries; the decoded JSON reply,
+        else an EndpointError naming `where`."""
+        payload = body if isinstance(body, bytes) else json.dumps(body).encode("utf-8")
         last = ""
         for attempt in range(self.max_retries + 1):
             wait_s = None
             try:
-                response = self._http.post(self.url, json=body)
+                response = self._http.post(self.url, content=payload)
             except httpx.TransportError as error:  # connection refused/reset, timeouts, protocol errors
                 last = f"{type(error).__name__}: {error}"
             else:
@@ -146,7 +148,7 @@ class ChatClient:
             time.sleep(min(wait_s, self.backoff_max_s) if wait_s is not None else self._backoff(attempt))
         raise EndpointError(f"{where}: {self.url} failed {self.max_retries + 1} times; last: {last}")
 
-    def complete(self, body: dict, where: str) -> str:
+    def complete(self, body: dict | bytes, where: str) -> str:
         """The reply text of one request (see `post` and `reply_text`)."""
         return reply_text(self.post(body, where), where)
 

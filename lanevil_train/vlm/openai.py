@@ -10,6 +10,7 @@ One request per (clip, question): one user message whose content is the clip's f
 from __future__ import annotations
 
 import base64
+import json
 import threading
 from typing import Iterator, Sequence
 
@@ -35,23 +36,31 @@ def encode_frame(frame: np.ndarray, image_format: str = "png", jpeg_quality: int
 
 
 class _ClipEncoder:
-    """Encodes each clip of one call once (the QA of a clip share its frames), from many threads."""
+    """Encodes each clip of one call once (the QA of a clip share its frames), from many threads: the JSON of its
+    image_url parts, ready to splice into each request's body (serialising megabytes of base64 per request would
+    hold the GIL for milliseconds)."""
 
     def __init__(self, clips: Sequence[Frames], image_format: str, jpeg_quality: int):
         self.clips, self.image_format, self.jpeg_quality = clips, image_format, jpeg_quality
-        self._done: dict[int, list[str]] = {}
+        self._done: dict[int, str] = {}
         self._locks: dict[int, threading.Lock] = {}
         self._guard = threading.Lock()
 
-    def urls(self, i: int) -> list[str]:
-        """The data URLs of clip i's frames (encoded at the first request that needs them)."""
+    def parts_json(self, i: int) -> str:
+        """The JSON list of clip i's image_url parts (encoded at the first request that needs them)."""
         key = id(self.clips[i])  # stable: `clips` holds every clip for the whole call
         with self._guard:
             lock = self._locks.setdefault(key, threading.Lock())
         with lock:
             if key not in self._done:
-                self._done[key] = [encode_frame(f, self.image_format, self.jpeg_quality) for f in self.clips[i]]
+                urls = [encode_frame(f, self.image_format, self.jpeg_quality) for f in self.clips[i]]
+                self._done[key] = json.dumps(image_parts(urls))
             return self._done[key]
+
+
+def image_parts(frame_urls: Sequence[str]) -> list[dict]:
+    """The image_url content parts of a clip's frames, in order."""
+    return [{"type": "image_url", "image_url": {"url": url}} for url in frame_urls]
 
 
 class OpenAIVLM(VLM):
@@ -90,12 +99,22 @@ class OpenAIVLM(VLM):
 
     def request_body(self, frame_urls: Sequence[str], question: str) -> dict:
         """The chat-completions body for one clip (as data URLs) and question."""
-        content = [{"type": "image_url", "image_url": {"url": url}} for url in frame_urls]
-        content.append({"type": "text", "text": question})
+        content = image_parts(frame_urls) + [{"type": "text", "text": question}]
         messages = [{"role": "system", "content": self.system_prompt}] if self.system_prompt else []
         messages.append({"role": "user", "content": content})
         return {"model": self.model, "messages": messages, "max_tokens": self.max_new_tokens,
                 "temperature": self.temperature}
+
+    def request_bytes(self, parts_json: str, question: str) -> bytes:
+        """`request_body` as JSON bytes, with the clip's image parts spliced in already serialised: the same JSON
+        value, built without re-serialising the frames for every question."""
+        marker = "\u0000IMAGES\u0000"  # a text no question contains: it holds the parts' place
+        text = json.dumps(self.request_body([marker], question))
+        placeholder = json.dumps(image_parts([marker]))[1:-1]
+        head, found, tail = text.partition(placeholder)
+        if not found:
+            raise AssertionError("request_bytes: the image placeholder vanished from the body")
+        return (head + parts_json[1:-1] + tail).encode("utf-8")
 
     def answer_stream(self, clips: Sequence[Frames], questions: Sequence[str]) -> Iterator[tuple[int, str]]:
         """(index, answer) as each reply arrives; the first failed request raises an EndpointError naming it."""
@@ -104,7 +123,7 @@ class OpenAIVLM(VLM):
 
         def ask(i: int) -> str:
             where = f"{self.model} request {i} (question {questions[i][:60]!r})"
-            return self.client.complete(self.request_body(encoder.urls(i), questions[i]), where)
+            return self.client.complete(self.request_bytes(encoder.parts_json(i), questions[i]), where)
 
         yield from self.client.stream(len(questions), ask)
 

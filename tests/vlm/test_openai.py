@@ -1,6 +1,7 @@
 """The OpenAI-compatible backend against a real local HTTP server process (vlm/fake_server.py), not a mock."""
 
 import hashlib
+import json
 
 import numpy as np
 import pytest
@@ -63,6 +64,11 @@ def test_request_layout_is_vllms():
     parts = body["messages"][1]["content"]
     assert [p["type"] for p in parts] == ["image_url"] * 6 + ["text"]
     assert parts[-1]["text"] == "Why?" and body["max_tokens"] == 7 and body["temperature"] == 0.0
+    # the bytes actually sent splice pre-serialised image parts into the same JSON value
+    urls = ["data:image/png;base64,AA==", "data:image/png;base64,BB=="]
+    parts_json = json.dumps([{"type": "image_url", "image_url": {"url": url}} for url in urls])
+    question = 'Is the "line" a marking? \\ \u00e9 \u0000IMAGES'
+    assert json.loads(vlm.request_bytes(parts_json, question)) == vlm.request_body(urls, question)
 
 
 def test_500s_and_429s_are_retried(start_server):
