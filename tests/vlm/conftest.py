@@ -7,7 +7,7 @@ import importlib.util
 import numpy as np
 import pytest
 
-from lanevil_train.vlm.tiny import FAMILIES, build_tiny_vlm
+from lanevil_train.vlm.tiny import build_tiny_vlm
 
 # SmolVLM's processor refuses to start without the num2words package.
 NEEDS = {"smolvlm": "num2words"}
@@ -55,5 +55,3 @@ def small_clips():
     rng = np.random.default_rng(7)
     return [[rng.integers(0, 256, (32, 48, 3), dtype=np.uint8) for _ in range(6)] for _ in range(2)]
 
-
-__all__ = ["FAMILIES"]
