@@ -61,14 +61,14 @@ def mean_present(field: str, scale: float = 1.0):
 _LANGUAGE_CACHE: dict[tuple, dict] = {}
 
 
-def _language_parts(records: Sequence[dict]) -> dict:
-    """The COCO caption scores of a group of answers from their stored PTB tokens (metrics/vqa.py), memoised per
-    group: a table asks for each part of the same group in turn. CIDEr's document frequencies come from the group."""
+def _corpus_scores(records: Sequence[dict]) -> dict:
+    """The COCO caption scores of one corpus of answers from their stored PTB tokens (metrics/vqa.py), memoised:
+    a table asks for each part of the same group in turn."""
     key = tuple(r["key"] for r in records)
     if key not in _LANGUAGE_CACHE:
         from lanevil_train.metrics.vqa import language_scores
 
-        if len(_LANGUAGE_CACHE) > 256:
+        if len(_LANGUAGE_CACHE) > 1024:
             _LANGUAGE_CACHE.clear()
         _LANGUAGE_CACHE[key] = language_scores({r["key"]: r["answer_tokens"] for r in records},
                                                {r["key"]: r["reference_tokens"] for r in records},
@@ -77,10 +77,23 @@ def _language_parts(records: Sequence[dict]) -> dict:
 
 
 def language_part(name: str):
-    """An aggregate: one COCO caption score (x 100) of a group of answers; NaN for no records."""
+    """An aggregate: one COCO caption score (x 100) of a group of answers; NaN for no records.
+
+    BLEU and CIDEr are corpus scores (CIDEr's document frequencies come from the corpus scored), so pooling the
+    answers of several severities would count each question several times and change the score even for identical
+    answers. A group is therefore split into corpora that hold each question once, one per (case illusion,
+    severity), and the corpus scores are averaged weighted by their sizes: an answer unchanged by the illusion has
+    a Gap of exactly 0.
+    """
 
     def aggregate(records: Sequence[dict]) -> float:
-        return 100.0 * float(_language_parts(records)[name]) if records else NAN
+        if not records:
+            return NAN
+        parts: dict[tuple, list[dict]] = {}
+        for r in records:
+            parts.setdefault((r.get("case_illusion") or r.get("illusion"), r["severity"]), []).append(r)
+        total = sum(float(_corpus_scores(part)[name]) * len(part) for part in parts.values())
+        return 100.0 * total / len(records)
 
     aggregate.__name__ = f"language_{name}"
     return aggregate

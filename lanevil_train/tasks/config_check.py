@@ -194,17 +194,24 @@ def illusion_names() -> Rule:
     return Rule("'all' or a non-empty list of illusion names", test)
 
 
+SUITE_FILES = {"manifest.jsonl": "an illusion image set", "clips.jsonl": "a clip suite"}
+
+
 def illusion_suite() -> Rule:
-    """task.suite: null, synthetic, or a set written by task=build (a directory holding manifest.jsonl)."""
+    """task.suite: null, synthetic, a set written by task=build (a directory holding manifest.jsonl, or clips.jsonl
+    for VLM clips), or a DriveLM-style QA JSON file (VLMs)."""
     def test(v):
         if v is None or v == "synthetic":
             return None
         if not isinstance(v, str) or not v:
             return ""
+        if Path(v).is_file() and Path(v).suffix == ".json":
+            return None
         if not Path(v).is_dir():
             return "no such directory"
-        return None if (Path(v) / "manifest.jsonl").is_file() else "it holds no manifest.jsonl"
-    return Rule("null, synthetic, or a directory written by task=build (holding manifest.jsonl)", test)
+        return None if any((Path(v) / name).is_file() for name in SUITE_FILES) else "it holds no manifest.jsonl"
+    return Rule("null, synthetic, a directory written by task=build (holding manifest.jsonl, or clips.jsonl for a "
+                "VLM), or a DriveLM QA .json file", test)
 
 
 def defense_names() -> Rule:
@@ -226,6 +233,11 @@ def defense_names() -> Rule:
         return None if len(v) >= 2 else "nothing to compare 'none' with"
     return Rule(f"a list of defense names from {', '.join(known)}, each once, with none and at least one other",
                 test)
+
+
+def http_url() -> Rule:
+    return Rule("an http(s) URL, e.g. http://127.0.0.1:8000/v1",
+                lambda v: _ok(isinstance(v, str) and re.match(r"^https?://[^\s/]+", v) is not None))
 
 
 def target_node() -> Rule:
@@ -304,6 +316,33 @@ RULES: dict[str, Rule] = {
     "model.decode.conf_threshold": number(0, 1),
     "model.decode.nms_threshold": number(0),
     "model.decode.nms_topk": null_or(integer(1)),
+    # model=vlm/<backend> (VLMs)
+    "model.path": existing_dir("directory of a saved Hugging Face model (save_pretrained)"),
+    "model.base_url": http_url(),
+    "model.dtype": one_of("auto", "float32", "bfloat16", "float16"),
+    "model.device": text(),
+    "model.max_new_tokens": integer(1),
+    "model.batch_size": integer(1),
+    "model.frames_as": one_of("auto", "images", "video"),
+    "model.system_prompt": null_or(text()),
+    "model.api_key_env": text(),
+    "model.concurrency": integer(1),
+    "model.max_retries": integer(0),
+    "model.timeout_s": number(0, low_open=True),
+    "model.temperature": number(0, 2),
+    "model.image_format": one_of("png", "jpeg"),
+    "model.jpeg_quality": integer(1, 100),
+    "model.label": null_or(text()),
+    # judge (VLM answers)
+    "judge.base_url": http_url(),
+    "judge.model": text(),
+    "judge.api_key_env": text(),
+    "judge.cache_path": null_or(text()),
+    "judge.concurrency": integer(1),
+    "judge.max_retries": integer(0),
+    "judge.model_dir": null_or(existing_dir("sentence-transformers model directory")),
+    "judge.device": text(),
+    "judge.batch_size": integer(1),
     # backbone
     "backbone": target_node(),
     "backbone.name": one_of(*STAGE_STRIDES),
@@ -431,8 +470,35 @@ def check_cases(cfg: DictConfig) -> list[str]:
                      "for task=build on a real dataset)", 0)]
 
 
+def _is_vlm(cfg: DictConfig) -> bool:
+    """model=vlm/<backend>: a model node with its own _target_ (tasks.builders.is_vlm)."""
+    model = _get(cfg, "model")
+    return isinstance(model, dict) and model.get("_target_") is not None
+
+
+def check_vlm_task(cfg: DictConfig) -> list[str]:
+    """A VLM is evaluated on clips (task=evaluate) or reported (task=report); its suite is a clip suite."""
+    if not _is_vlm(cfg):
+        suite = _get(cfg, "task.suite")
+        if isinstance(suite, str) and (Path(suite) / "clips.jsonl").is_file():
+            return [_problem("task.suite", "an illusion image set (manifest.jsonl) for a lane detector", suite,
+                             "that is a VLM clip suite: evaluate it with model=vlm/<backend>")]
+        return []
+    task = _get(cfg, "task.name")
+    if task not in ("evaluate", "report"):
+        return [f"task: task={task} with a VLM (model={_get(cfg, 'model._target_')}) is not available; VLMs are "
+                f"evaluated with task=evaluate (and reported with task=report)"]
+    suite = _get(cfg, "task.suite")
+    if isinstance(suite, str) and Path(suite).is_dir() and not (Path(suite) / "clips.jsonl").is_file():
+        return [_problem("task.suite", "a clip suite written by task=build data=clips (holding clips.jsonl), "
+                         "synthetic, or a DriveLM QA .json file", suite, "a VLM answers questions about clips")]
+    return []
+
+
 def check_checkpoint_given(cfg: DictConfig) -> list[str]:
     task = _get(cfg, "task.name")
+    if _is_vlm(cfg):
+        return []  # a VLM backend loads its own weights (model.path, model.base_url)
     if task in ("evaluate", "cross_domain") and _get(cfg, "ckpt_path") is None:
         return [f"ckpt_path: task={task} scores a checkpoint; expected the path of a Lightning checkpoint file, "
                 f"got null"]
@@ -446,13 +512,14 @@ def check_training_ends(cfg: DictConfig) -> list[str]:
     return []
 
 
-CROSS_CHECKS = (check_feature_map, check_backbone_weights, check_cases, check_checkpoint_given, check_training_ends)
+CROSS_CHECKS = (check_feature_map, check_backbone_weights, check_cases, check_checkpoint_given, check_training_ends,
+                check_vlm_task)
 
 
 # ---------------------------------------------------------------------------------------------- _target_ nodes
 
 # Where config nodes with a `_target_` are: single nodes, lists of them, and mappings of named ones.
-TARGET_NODES = ("model.head", "backbone", "defense.mixer", "defense.callback", "logger",
+TARGET_NODES = ("model", "model.head", "backbone", "defense.mixer", "defense.callback", "logger", "judge",
                 *(f"data.{split}" for split in SPLITS))
 TARGET_LISTS = ("data.train_transforms", "defense.transforms")
 TARGET_MAPS = ("callbacks",)
@@ -470,8 +537,8 @@ def _target_nodes(cfg: DictConfig) -> list[tuple[str, DictConfig]]:
             found += [(f"{key}[{i}]", item) for i, item in enumerate(node)]
         elif key in TARGET_MAPS and isinstance(node, DictConfig):
             found += [(f"{key}.{name}", item) for name, item in node.items_ex(resolve=False)]
-        elif key in TARGET_NODES:
-            found.append((key, node))
+        elif key in TARGET_NODES and (key not in ("model", "judge") or _is_vlm(cfg)):
+            found.append((key, node))  # the model node is a _target_ node, and the judge used, for a VLM only
     return found
 
 

@@ -16,7 +16,8 @@ from lanevil_train.data.suites import IllusionSetDataset, SyntheticIllusionSuite
 from lanevil_train.errors import prefixed
 from lanevil_train.models.detector import LaneDetector
 from lanevil_train.report.specs import LANE_SPEC
-from lanevil_train.tasks.builders import build_logger, build_model, build_split, model_config, output_dir
+from lanevil_train.tasks.builders import (build_logger, build_model, build_split, is_vlm, model_config,
+                                          output_dir)
 from lanevil_train.tasks.results import log_results, write_results
 from lanevil_train.tasks.scoring import RESULTS, read_records
 from lanevil_train.tasks.streaming import stream_evaluate
@@ -61,8 +62,13 @@ def synthetic_suite(cfg: DictConfig) -> SyntheticIllusionSuite:
 
 
 def evaluate(cfg: DictConfig) -> float:
-    """Score the checkpoint; returns the Accuracy (%) over the perturbed images (all images if none)."""
+    """Score the checkpoint; returns the Accuracy (%) over the perturbed images (all images if none). A VLM
+    (model=vlm/<backend>) is evaluated on clips instead (tasks/vlm_evaluate.py)."""
     pl.seed_everything(cfg.seed, workers=True)
+    if is_vlm(cfg):
+        from lanevil_train.tasks.vlm_evaluate import evaluate_vlm
+
+        return evaluate_vlm(cfg)
     model = load_checkpoint(cfg)
     dataset, dataset_name = test_dataset(cfg)
     out = Path(cfg.task.out_dir) if cfg.task.out_dir else output_dir(cfg)

@@ -9,18 +9,22 @@ from omegaconf import DictConfig
 from lanevil_train.tasks.builders import build_logger, output_dir
 from lanevil_train.tasks.results import log_results, write_results
 from lanevil_train.tasks.scoring import RESULTS
+from lanevil_train.vlm.evaluation import PER_ANSWER
+
+RESULT_FILES = (RESULTS, PER_ANSWER)  # a lane detector's per-image scores, a VLM's per-answer scores
 
 
 def results_files(runs: list[str]) -> list[Path]:
-    """Every per_image.jsonl under the run directories (a run, an evaluation, a training run with its
-    robustness/ suite, a multirun sweep or a compare directory), each file once, in path order."""
+    """Every per_image.jsonl (lane detectors) and per_answer.jsonl (VLMs) under the run directories (a run, an
+    evaluation, a training run with its robustness/ suite, a multirun sweep or a compare directory), each file
+    once, in path order."""
     files: dict[Path, None] = {}
     for run in map(Path, runs):
         if not run.is_dir():
             raise FileNotFoundError(f"task.runs: {run} is not a directory")
-        found = sorted(run.rglob(RESULTS))
+        found = sorted(path for name in RESULT_FILES for path in run.rglob(name))
         if not found:
-            raise FileNotFoundError(f"task.runs: no {RESULTS} in {run} or its subdirectories")
+            raise FileNotFoundError(f"task.runs: no {' or '.join(RESULT_FILES)} in {run} or its subdirectories")
         files.update(dict.fromkeys(path.resolve() for path in found))
     return list(files)
 
@@ -28,7 +32,8 @@ def results_files(runs: list[str]) -> list[Path]:
 def report(cfg: DictConfig) -> float:
     """Combine the runs' per-image results into the report in this run's directory."""
     if not cfg.task.runs:
-        raise ValueError("task=report needs task.runs=[run_dir, ...] (directories holding per_image.jsonl)")
+        raise ValueError("task=report needs task.runs=[run_dir, ...] (directories holding per_image.jsonl or "
+                         "per_answer.jsonl)")
     value = write_results(results_files(list(cfg.task.runs)), output_dir(cfg), baseline=cfg.task.baseline)
     log_results(build_logger(cfg), output_dir(cfg))
     return value

@@ -19,7 +19,7 @@ from tests.tasks.cli_helpers import REPO, TINY
 
 CONF = Path(lanevil_train.conf.__file__).parent
 GROUPS = ("data", "model", "backbone", "defense", "task", "trainer", "callbacks", "logger", "experiment",
-          "hparams_search")
+          "hparams_search", "judge")
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -60,7 +60,8 @@ def only_problem(*overrides: str) -> str:
 # ------------------------------------------------------------------------------------------- shipped configs
 
 def shipped_options() -> list[tuple[str, str]]:
-    return [(group, path.stem) for group in GROUPS for path in sorted((CONF / group).glob("*.yaml"))]
+    return [(group, path.relative_to(CONF / group).with_suffix("").as_posix())
+            for group in GROUPS for path in sorted((CONF / group).rglob("*.yaml"))]
 
 
 def needs(group: str, option: str, files: Path) -> list[str]:
@@ -69,6 +70,12 @@ def needs(group: str, option: str, files: Path) -> list[str]:
         return [f"data.root={files / 'dataset'}"]
     if group == "task" and option in ("evaluate", "cross_domain"):
         return [f"ckpt_path={files / 'model.ckpt'}"]
+    if group == "model" and option == "vlm/hf":
+        return ["task=evaluate", f"model.path={files / 'dataset'}"]
+    if group == "model" and option == "vlm/openai":
+        return ["task=evaluate", "model.base_url=http://127.0.0.1:8000/v1", "model.name=some-vlm"]
+    if group == "judge" and option == "openai":
+        return ["judge.base_url=http://127.0.0.1:8000/v1", "judge.model=some-llm"]
     return []
 
 
@@ -162,6 +169,26 @@ BAD = [
     (["model.decode.conf_threshold=1.5"], "model.decode.conf_threshold: expected a number in [0, 1], got 1.5"),
     (["model.decode.nms_threshold=-1"], "model.decode.nms_threshold: expected a number >= 0, got -1"),
     (["model.decode.nms_topk=0"], "model.decode.nms_topk: expected null or an integer >= 1, got 0"),
+    # model=vlm/<backend>
+    (["task=evaluate", "model=vlm/hf"],
+     "model.path: is not set (??? in the config); set it to the path of an existing directory of a saved Hugging "
+     "Face model (save_pretrained): model.path=..."),
+    (["task=evaluate", "model=vlm/hf", "model.path=/no/such/model"],
+     "model.path: expected the path of an existing directory of a saved Hugging Face model (save_pretrained), got "
+     "'/no/such/model' (no such directory)"),
+    (["task=evaluate", "model=vlm/openai", "model.base_url=localhost:8000", "model.name=m"],
+     "model.base_url: expected an http(s) URL, e.g. http://127.0.0.1:8000/v1, got 'localhost:8000'"),
+    (["task=evaluate", "model=vlm/openai", "model.base_url=http://h/v1", "model.name=m", "model.concurrency=0"],
+     "model.concurrency: expected an integer >= 1, got 0"),
+    (["task=train", "model=vlm/openai", "model.base_url=http://h/v1", "model.name=m"],
+     "task: task=train with a VLM (model=lanevil_train.vlm.openai.OpenAIVLM) is not available; VLMs are evaluated "
+     "with task=evaluate (and reported with task=report)"),
+    (["task=evaluate", "model=vlm/openai", "model.base_url=http://h/v1", "model.name=m", "+model.top_p=0.9"],
+     "model.top_p: not a parameter of lanevil_train.vlm.openai.OpenAIVLM; it accepts base_url"),
+    (["task=evaluate", "model=vlm/openai", "model.base_url=http://h/v1", "model.name=m", "judge=openai",
+      "judge.model=gpt-4o-mini"],
+     "judge.base_url: is not set (??? in the config); set it to an http(s) URL, e.g. http://127.0.0.1:8000/v1: "
+     "judge.base_url=..."),
     # backbone
     (["backbone.name=resnet9"],
      "backbone.name: expected one of resnet18, resnet34, resnet50, resnet101, vgg16, got 'resnet9'"),
@@ -207,7 +234,8 @@ BAD = [
      "task.init_from: expected null or the path of an existing checkpoint file, got '/no/such/init.ckpt' "
      "(no such file)"),
     (["task.suite=/no/such/set"],
-     "task.suite: expected null, synthetic, or a directory written by task=build (holding manifest.jsonl), got "
+     "task.suite: expected null, synthetic, a directory written by task=build (holding manifest.jsonl, or "
+     "clips.jsonl for a VLM), or a DriveLM QA .json file, got "
      "'/no/such/set' (no such directory)"),
     (["task=build", "task.workers=-1"], "task.workers: expected an integer >= 0, got -1"),
     (["task=build", "task.frames=0"], "task.frames: expected an integer >= 1, got 0"),
@@ -255,6 +283,19 @@ BAD = [
 @pytest.mark.parametrize("overrides, message", BAD, ids=[" ".join(o) for o, _ in BAD])
 def test_a_bad_value_is_named_with_what_was_expected_and_given(overrides, message):
     assert only_problem(*overrides).startswith(message)
+
+
+def test_a_suite_of_the_other_model_kind_is_named(files):
+    (files / "clips").mkdir()
+    (files / "clips" / "clips.jsonl").write_text("")
+    vlm = ["task=evaluate", "model=vlm/openai", "model.base_url=http://h/v1", "model.name=m"]
+    assert only_problem(*vlm, f"task.suite={files / 'set'}") == (
+        f"task.suite: expected a clip suite written by task=build data=clips (holding clips.jsonl), synthetic, or a "
+        f"DriveLM QA .json file, got '{files / 'set'}' (a VLM answers questions about clips)")
+    assert problems(*vlm, f"task.suite={files / 'clips'}") == []
+    assert only_problem("task=evaluate", f"ckpt_path={files / 'model.ckpt'}", f"task.suite={files / 'clips'}") == (
+        f"task.suite: expected an illusion image set (manifest.jsonl) for a lane detector, got '{files / 'clips'}' "
+        f"(that is a VLM clip suite: evaluate it with model=vlm/<backend>)")
 
 
 def test_paths_of_the_wrong_kind_are_named(files):

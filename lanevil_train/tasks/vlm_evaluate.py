@@ -1,0 +1,117 @@
+"""task=evaluate for a VLM (model=vlm/<backend>): every QA on every clip variant of a clip suite, answered, scored and
+reported in the paper's layout (Perturbed / Original / Gap per illusion category, QA category, type, severity).
+
+    python -m lanevil_train task=evaluate model=vlm/hf model.path=DIR task.suite=synthetic
+    python -m lanevil_train task=evaluate model=vlm/openai model.base_url=URL model.name=NAME task.suite=DIR
+
+Answers stream to answers.jsonl, scored records to per_answer.jsonl (both resumable); tables and plots follow.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from omegaconf import DictConfig
+
+from lanevil_train.data.formats.atomic import atomic_write_text
+from lanevil_train.errors import prefixed
+from lanevil_train.tasks.builders import build_logger, instantiate_at, output_dir
+from lanevil_train.tasks.results import log_results, write_results
+from lanevil_train.tasks.streaming import claim_results
+from lanevil_train.vlm.base import VLM
+from lanevil_train.vlm.evaluation import ANSWERS, PER_ANSWER, evaluate_clips
+
+
+def build_vlm(cfg: DictConfig) -> VLM:
+    """The VLM backend cfg.model configures (a node with a `_target_`), built now: a bad path fails here."""
+    vlm = instantiate_at(cfg.model, "model")
+    if not isinstance(vlm, VLM):
+        raise ValueError(f"model._target_={cfg.model._target_}: built a {type(vlm).__name__}, expected a "
+                         f"lanevil_train.vlm.base.VLM")
+    return vlm
+
+
+def build_judge(cfg: DictConfig, out: Path):
+    """The judge cfg.judge configures, or None (judge=none); an LLM judge's reply cache defaults to
+    out/judge_cache.jsonl."""
+    node = cfg.get("judge")
+    if node is None or node.get("_target_") is None:
+        return None
+    extra = {"cache_path": str(out / "judge_cache.jsonl")} if "cache_path" in node and node.cache_path is None else {}
+    return instantiate_at(node, "judge", **extra)
+
+
+def clip_suite(cfg: DictConfig):
+    """(dataset, name) of the clips to evaluate on: task.suite=synthetic (rendered on the fly), a folder written by
+    task=build data=clips, a DriveLM-style QA JSON file, or (task.suite=null) data=clips' test split on the fly."""
+    from lanevil_train.vlm.clip_set import ClipSetDataset, SyntheticClipSuite
+
+    suite = cfg.task.suite
+    task = cfg.task
+    if suite is None and cfg.data.name != "clips":
+        raise ValueError("task.suite: a VLM answers questions about clips: give task.suite=synthetic, a clip suite "
+                         "folder (task=build data=clips) or a DriveLM QA JSON file, or use data=clips")
+    if suite is None or suite == "synthetic":
+        test = cfg.data.test if cfg.data.name == "clips" else {"first_seed": 1000000}
+        size = tuple(cfg.data.size) if cfg.data.name == "clips" else (360, 640)
+        illusions = task.illusions if task.illusions != "all" else "all"
+        try:
+            dataset = SyntheticClipSuite(task.cases, test["first_seed"], illusions, tuple(task.severities), size)
+        except ValueError as error:
+            raise prefixed(error, "task.suite=synthetic") from None
+        return dataset, "synthetic-clips"
+    path = Path(suite)
+    try:
+        if path.is_file() and path.suffix == ".json":
+            return ClipSetDataset.from_drivelm(path), path.stem
+        return ClipSetDataset(path), path.name
+    except (FileNotFoundError, ValueError) as error:
+        raise prefixed(error, f"task.suite={suite}") from None
+
+
+def run_identity(vlm: VLM, judge, label: dict) -> dict:
+    """What makes two VLM evaluations the same: the label, the backend's identity, the judge."""
+    return {**{k: str(v) for k, v in label.items()}, **{f"vlm.{k}": v for k, v in vlm.identity().items()},
+            "judge": getattr(judge, "name", None)}
+
+
+def evaluate_vlm(cfg: DictConfig) -> float:
+    """Evaluate the VLM; returns its headline score (the judge's, else Language) over the perturbed answers."""
+    dataset, dataset_name = clip_suite(cfg)  # read and checked before the model is loaded
+    out = Path(cfg.task.out_dir) if cfg.task.out_dir else output_dir(cfg)
+    vlm = build_vlm(cfg)
+    judge = build_judge(cfg, out)
+    label = {"model": cfg.task.label or vlm.name, "dataset": dataset_name}
+    identity = run_identity(vlm, judge, label)
+    for name in (ANSWERS, PER_ANSWER):
+        path = out / name
+        claim_results(path, identity, resuming=path.is_file() and path.stat().st_size > 0)
+    results = evaluate_clips(vlm, dataset, out, label, judge=judge, progress=cfg.progress)
+    value = write_results([results], out, baseline=cfg.task.baseline)
+    write_language_summary(results, out)
+    log_results(build_logger(cfg), out)
+    return value
+
+
+def write_language_summary(results: Path, out: Path) -> Path:
+    """language_scores.json: every COCO caption score (METEOR too, which needs Java) of the original and the
+    perturbed answers of each model, with the Language score beside its parts; SPICE is not computed (its
+    Stanford models cannot be had offline)."""
+    from lanevil_train.metrics.vqa import language_scores
+    from lanevil_train.tasks.scoring import read_records
+
+    groups: dict[tuple, dict] = {}
+    for record in read_records(results, keep_lanes=False):
+        kind = "original" if record["severity"] == 0 else "perturbed"
+        group = groups.setdefault((record["model"], record["dataset"], kind), {"pred": {}, "refs": {}})
+        group["pred"][record["key"]] = record["answer_tokens"]
+        group["refs"][record["key"]] = record["reference_tokens"]
+    rows = [{"model": m, "dataset": d, "answers_kind": kind, "answers": len(g["pred"]),
+             **language_scores(g["pred"], g["refs"], meteor=True, tokenized=True),
+             "SPICE": None, "SPICE_note": "not computed: SPICE needs Stanford CoreNLP models that cannot be had "
+                                          "offline"}
+            for (m, d, kind), g in groups.items()]
+    path = out / "language_scores.json"
+    atomic_write_text(path, json.dumps(rows, indent=1) + "\n")
+    return path
