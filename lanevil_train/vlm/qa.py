@@ -13,11 +13,13 @@ from __future__ import annotations
 
 import re
 import zlib
+from functools import lru_cache
 
 import numpy as np
 
-from lanevil_train.vlm.qa_facts import (ILLUSION_FACTS, LANE_PLACES, NUMBER_WORDS, ORDINALS, ROAD_SHAPES,
-                                        SCENE_KINDS_TEXT, WEATHER_TEXT, crossing_allowed, marking_text)
+from lanevil_train.vlm.qa_facts import (ILLUSION_FACTS, LANE_PLACES, MARKING_NAMES, NUMBER_WORDS, ORDINALS,
+                                        ROAD_SHAPES, SCENE_KIND_DISTRACTOR, SCENE_KINDS_TEXT, SPEED_BANDS,
+                                        WEATHER_TEXT, crossing_allowed, marking_text)
 
 QA_CATEGORIES = ("scene_description", "object_recognition", "lane_recognition", "object_behavior",
                  "motion_reasoning", "action")
@@ -29,24 +31,54 @@ REQUIRED_TRUTH = ("curvature_sign", "slope", "num_lanes", "ego_lane", "markings"
 
 # ---------------------------------------------------------------------------------------------- helpers
 
+CHOICE_OPTIONS = 4  # every choice question has this many options; the correct one's letter is uniform over them
+
+
 def _pick(rng: np.random.Generator, options):
     return options[int(rng.integers(len(options)))]
 
 
-def _choice_qa(category: str, question: str, options: list[str], correct: int) -> dict:
-    """A choice QA: options lettered A, B, ...; the answer is the correct option with its letter."""
-    choices = [f"{chr(65 + i)}. {text}" for i, text in enumerate(options)]
-    return {"category": category, "type": "choice", "question": question, "answer": choices[correct],
-            "choices": choices}
+def _choice_qa(category: str, question: str, correct: str, distractors, rng: np.random.Generator,
+               letter: int | None = None) -> dict:
+    """A choice QA of CHOICE_OPTIONS options, the correct one and distractors drawn from `distractors`, shuffled
+    with the rng so that the correct letter is uniform over A.. and no answer prior pays; the correct one goes
+    to index `letter` when the case plan gives one."""
+    pool = [d for d in dict.fromkeys(distractors) if d != correct]
+    if len(pool) < CHOICE_OPTIONS - 1:
+        raise ValueError(f"{category} choice {question!r}: expected {CHOICE_OPTIONS - 1} distractors, got {pool}")
+    options = [correct, *(pool[i] for i in rng.choice(len(pool), CHOICE_OPTIONS - 1, replace=False))]
+    order = [int(i) for i in rng.permutation(CHOICE_OPTIONS)]
+    if letter is not None:
+        order.remove(0)
+        order.insert(letter, 0)
+    choices = [f"{chr(65 + k)}. {options[i]}" for k, i in enumerate(order)]
+    return {"category": category, "type": "choice", "question": question,
+            "answer": choices[order.index(0)], "choices": choices}
 
 
 def _qa(category: str, kind: str, question: str, answer: str) -> dict:
     return {"category": category, "type": kind, "question": question, "answer": answer}
 
 
+def _yes_wanted(rng: np.random.Generator) -> bool:
+    """A fair coin for the true answer of a yes/no question; the kind then phrases the question so that the
+    truth answers it that way, which balances a suite's yes and no answers."""
+    return bool(rng.random() < 0.5)
+
+
+def _yes_no(category: str, question: str, yes: bool, reason: str) -> dict:
+    return _qa(category, "yes_no", question, f"{'Yes' if yes else 'No'}. {reason}")
+
+
 def _cue(truth: dict) -> tuple[dict, str]:
     """The illusion's facts and where it lies, as words ("in the left lane")."""
     return ILLUSION_FACTS[truth["illusion"]], LANE_PLACES[truth["illusion_lane"]]
+
+
+def _other_identity(truth: dict, rng: np.random.Generator) -> str:
+    """What another illusion type really is (a false identity for the clip's illusion)."""
+    own = ILLUSION_FACTS[truth["illusion"]]["is"]
+    return _pick(rng, [f["is"] for f in ILLUSION_FACTS.values() if f["is"] != own])
 
 
 def _ego_lane_words(truth: dict) -> str:
@@ -70,6 +102,11 @@ def _road_shape(truth: dict) -> str:
     return {-1: "left_curve", 0: "straight", 1: "right_curve"}[_curve(truth)]
 
 
+def _boundary(truth: dict, side: str) -> str:
+    """The marking on `side` ("left"/"right") of the ego lane."""
+    return truth["markings"][truth["ego_lane"] + (0 if side == "left" else 1)]
+
+
 # ---------------------------------------------------------------------------------------------- scene description
 
 def _weather_open(t, rng):
@@ -80,49 +117,46 @@ def _weather_open(t, rng):
     return _qa("scene_description", "open", q, f"{WEATHER_TEXT[t['weather']]} The road surface is {surface}.")
 
 
-def _night_yes_no(t, rng):
+def _night_yes_no(t, rng, yes=None):
+    yes = _yes_wanted(rng) if yes is None else yes
     q = _pick(rng, ("Is this clip recorded at night?", "Is it night-time in this scene?",
-                    "Is the ego vehicle driving in the dark?"))
-    a = "Yes. It is night; the road is lit only by lamps and headlights." if t["night"] else \
-        "No. It is daytime."
-    return _qa("scene_description", "yes_no", q, a)
+                    "Is the ego vehicle driving in the dark?") if yes == t["night"] else
+              ("Is this clip recorded in daylight?", "Is it daytime in this scene?",
+               "Is the scene lit by daylight?"))
+    a = "It is night; the road is lit only by lamps and headlights." if t["night"] else "It is daytime."
+    return _yes_no("scene_description", q, yes, a)
 
 
-def _wet_yes_no(t, rng):
-    q = _pick(rng, ("Is the road surface wet?", "Does the asphalt look wet in this clip?",
-                    "Is the road dry?"))
-    dry_asked = q == "Is the road dry?"
-    yes = (not t["wet"]) if dry_asked else t["wet"]
-    state = "wet" if t["wet"] else "dry"
-    return _qa("scene_description", "yes_no", q, f"{'Yes' if yes else 'No'}. The road surface is {state}.")
+def _wet_yes_no(t, rng, yes=None):
+    yes, wet = _yes_wanted(rng) if yes is None else yes, bool(t["wet"])
+    q = _pick(rng, ("Is the road surface wet?", "Does the asphalt look wet in this clip?") if yes == wet else
+              ("Is the road dry?", "Is the asphalt dry in this clip?"))
+    return _yes_no("scene_description", q, yes, f"The road surface is {'wet' if wet else 'dry'}.")
 
 
-def _scene_kind_choice(t, rng):
+def _scene_kind_choice(t, rng, letter=None):
     q = _pick(rng, ("What kind of road environment is this?", "Where is the ego vehicle driving?",
                     "Which setting best describes this scene?"))
-    kinds = list(SCENE_KINDS_TEXT)
-    return _choice_qa("scene_description", q, [SCENE_KINDS_TEXT[k] for k in kinds], kinds.index(t["scene_kind"]))
+    return _choice_qa("scene_description", q, SCENE_KINDS_TEXT[t["scene_kind"]],
+                      [*SCENE_KINDS_TEXT.values(), SCENE_KIND_DISTRACTOR], rng, letter)
 
 
-def _road_shape_choice(t, rng):
+def _road_shape_choice(t, rng, letter=None):
     q = _pick(rng, ("How does the road run ahead of the ego vehicle?", "What is the shape of the road in this "
                     "clip?", "Which description fits the road geometry here?"))
-    shapes = list(ROAD_SHAPES)
-    return _choice_qa("scene_description", q, [ROAD_SHAPES[s] for s in shapes], shapes.index(_road_shape(t)))
+    return _choice_qa("scene_description", q, ROAD_SHAPES[_road_shape(t)], list(ROAD_SHAPES.values()), rng, letter)
 
 
 # ---------------------------------------------------------------------------------------------- object recognition
 
-def _illusion_identity_choice(t, rng):
+def _illusion_identity_choice(t, rng, letter=None):
     facts, place = _cue(t)
     q = _pick(rng, (f"What are the {facts['looks']} {place}?", f"What causes the {facts['looks']} {place}?",
                     f"Which of these best explains the {facts['looks']} {place}?"))
-    others = [f["is"] for name, f in ILLUSION_FACTS.items() if f["is"] != facts["is"]]
-    distractors = list(rng.choice(others, size=2, replace=False))
-    options = ["Lane markings painted on the road", facts["is"].capitalize(), *(d.capitalize() for d in distractors)]
-    order = rng.permutation(len(options))
-    shuffled = [options[i] + "." for i in order]
-    return _choice_qa("object_recognition", q, shuffled, int(np.where(order == 1)[0][0]))
+    others = [f["is"].capitalize() + "." for f in ILLUSION_FACTS.values() if f["is"] != facts["is"]]
+    options = [others[i] for i in rng.choice(len(others), CHOICE_OPTIONS - 2, replace=False)]
+    return _choice_qa("object_recognition", q, facts["is"].capitalize() + ".",
+                      ["Lane markings painted on the road.", *options], rng, letter)
 
 
 def _illusion_identity_open(t, rng):
@@ -132,75 +166,99 @@ def _illusion_identity_open(t, rng):
     return _qa("object_recognition", "open", q, f"They are {facts['is']}, not lane markings. {facts['note']}")
 
 
-def _illusion_is_object_yes_no(t, rng):
+def _illusion_is_object_yes_no(t, rng, yes=None):
     facts, place = _cue(t)
-    q = _pick(rng, (f"Are the {facts['looks']} {place} painted road markings?",
-                    f"Are the {facts['looks']} {place} part of the lane markings?"))
-    return _qa("object_recognition", "yes_no", q, f"No. They are {facts['is']}; the lane markings are unchanged.")
+    yes = _yes_wanted(rng) if yes is None else yes
+    if yes:
+        q = _pick(rng, (f"Are the {facts['looks']} {place} {facts['is']}?",
+                        f"Are the {facts['looks']} {place} {facts['is']} rather than lane markings?"))
+    else:
+        q = _pick(rng, (f"Are the {facts['looks']} {place} painted road markings?",
+                        f"Are the {facts['looks']} {place} part of the lane markings?",
+                        f"Are the {facts['looks']} {place} {_other_identity(t, rng)}?"))
+    return _yes_no("object_recognition", q, yes, f"They are {facts['is']}; the lane markings are unchanged.")
 
 
 # ---------------------------------------------------------------------------------------------- lane recognition
 
-def _lane_count(t, rng):
+def _lane_count(t, rng, letter=None):
     n = t["num_lanes"]
     q = _pick(rng, ("How many lanes does this road have?", "How many driving lanes can you count on the road?",
                     "Count the lanes of the road in this clip."))
     if rng.random() < 0.5:
-        options = [f"{NUMBER_WORDS[k].capitalize()} lanes." for k in range(2, 6)]
-        return _choice_qa("lane_recognition", q, options, n - 2)
+        return _choice_qa("lane_recognition", q, f"{NUMBER_WORDS[n].capitalize()} lanes.",
+                          [f"{NUMBER_WORDS[k].capitalize()} lanes." for k in range(2, 6)], rng, letter)
     return _qa("lane_recognition", "open", q, f"The road has {NUMBER_WORDS[n]} lanes.")
 
 
-def _ego_lane(t, rng):
+def _ego_lane(t, rng, letter=None):
     n, ego = t["num_lanes"], t["ego_lane"]
     q = _pick(rng, ("Which lane is the ego vehicle driving in?", "In which lane is the camera car?",
                     "Counting from the left, which lane does the ego vehicle occupy?"))
     if rng.random() < 0.5:
-        options = [f"The {ORDINALS[k]} lane from the left." for k in range(n)]
-        return _choice_qa("lane_recognition", q, options, ego)
+        lanes = [f"The {ORDINALS[k]} lane from the left." for k in range(max(n, CHOICE_OPTIONS))]
+        return _choice_qa("lane_recognition", q, lanes[ego], lanes, rng, letter)
     return _qa("lane_recognition", "open", q,
                f"The ego vehicle is in {_ego_lane_words(t)}; the road has {NUMBER_WORDS[n]} lanes.")
 
 
 def _boundary_marking_open(t, rng):
     side = _pick(rng, ("left", "right"))
-    index = t["ego_lane"] + (0 if side == "left" else 1)
     q = _pick(rng, (f"What marking is on the {side} side of the ego lane?",
                     f"Describe the line that bounds the ego lane on the {side}."))
     return _qa("lane_recognition", "open", q,
-               f"On the {side} of the ego lane there is {marking_text(t['markings'][index])}.")
+               f"On the {side} of the ego lane there is {marking_text(_boundary(t, side))}.")
 
 
-def _marking_vs_illusion_yes_no(t, rng):
+MARKING_QUESTIONS_NO = ("a lane marking?", "mark a lane boundary?", "be read as a lane line?")
+
+
+def _marking_vs_illusion_yes_no(t, rng, yes=None):
     facts, place = _cue(t)
-    q = _pick(rng, (f"Is the {facts['looks_one']} {place} a lane marking?",
-                    f"Does the {facts['looks_one']} {place} mark a lane boundary?",
-                    f"Should the {facts['looks_one']} {place} be read as a lane line?"))
-    return _qa("lane_recognition", "yes_no", q, f"No. It is {facts['is_one']}, not a lane marking; the road "
-               f"still has {NUMBER_WORDS[t['num_lanes']]} lanes.")
+    one, lanes = facts["looks_one"], NUMBER_WORDS[t["num_lanes"]]
+    yes = _yes_wanted(rng) if yes is None else yes
+    if yes:
+        q = _pick(rng, (f"Is the {one} {place} really {facts['is_one']}?",
+                        f"Should the {one} {place} be ignored when counting the lanes?",
+                        f"Does the road still have {lanes} lanes despite the {one} {place}?"))
+    else:
+        q = _pick(rng, (f"Is the {one} {place} {MARKING_QUESTIONS_NO[0]}",
+                        f"Does the {one} {place} {MARKING_QUESTIONS_NO[1]}",
+                        f"Should the {one} {place} {MARKING_QUESTIONS_NO[2]}"))
+    return _yes_no("lane_recognition", q, yes, f"It is {facts['is_one']}, not a lane marking; the road still has "
+                   f"{lanes} lanes.")
 
 
-def _boundary_color_yes_no(t, rng):
-    side = _pick(rng, ("left", "right"))
-    colour = _pick(rng, ("yellow", "white"))
-    marking = t["markings"][t["ego_lane"] + (0 if side == "left" else 1)]
-    q = f"Is the line on the {side} of the ego lane {colour}?"
+def _boundary_color_yes_no(t, rng, yes=None):
+    yes, side = _yes_wanted(rng) if yes is None else yes, _pick(rng, ("left", "right"))
+    marking = _boundary(t, side)
     if marking == "none":
-        return _qa("lane_recognition", "yes_no", q, f"No. There is no painted line on the {side} of the ego lane; "
-                   f"the lane ends at the road edge.")
-    actual = "yellow" if marking.startswith("yellow") else "white"
-    return _qa("lane_recognition", "yes_no", q,
-               f"{'Yes' if actual == colour else 'No'}. It is {marking_text(marking)}.")
+        q = (f"Does the ego lane end at the bare road edge on its {side}?" if yes else
+             f"Is there a painted line on the {side} of the ego lane?")
+        return _yes_no("lane_recognition", q, yes, f"There is no painted line on the {side} of the ego lane; "
+                       f"the lane ends at the road edge.")
+    if rng.random() < 0.5:
+        actual = "yellow" if marking.startswith("yellow") else "white"
+        colour = actual if yes else {"yellow": "white", "white": "yellow"}[actual]
+        q = _pick(rng, (f"Is the line on the {side} of the ego lane {colour}?",
+                        f"Is the ego lane bounded on the {side} by a {colour} line?"))
+    else:
+        asked = marking if yes else _pick(rng, [m for m in MARKING_NAMES if m != marking])
+        q = f"Is the ego lane marked on its {side} by {marking_text(asked)}?"
+    return _yes_no("lane_recognition", q, yes, f"It is {marking_text(marking)}.")
 
 
 # ---------------------------------------------------------------------------------------------- object behaviour
 
-def _illusion_static_yes_no(t, rng):
+def _illusion_static_yes_no(t, rng, yes=None):
     facts, place = _cue(t)
-    q = _pick(rng, (f"Do the {facts['looks']} {place} move along with the traffic?",
-                    f"Are the {facts['looks']} {place} moving?"))
-    return _qa("object_behavior", "yes_no", q, f"No. They are {facts['is']}, which stay in place on the road "
-               f"while the ego vehicle drives past.")
+    yes = _yes_wanted(rng) if yes is None else yes
+    q = _pick(rng, (f"Do the {facts['looks']} {place} stay in place on the road as the ego vehicle drives on?",
+                    f"Are the {facts['looks']} {place} standing still on the road?") if yes else
+              (f"Do the {facts['looks']} {place} move along with the traffic?",
+               f"Are the {facts['looks']} {place} moving?"))
+    return _yes_no("object_behavior", q, yes, f"They are {facts['is']}, which stay in place on the road while the "
+                   f"ego vehicle drives past.")
 
 
 def _illusion_motion_open(t, rng):
@@ -221,11 +279,14 @@ _SEEN = {  # how a static illusion moves in the images, by segment (clips.py: tr
 }
 
 
-def _markings_shift_yes_no(t, rng):
-    q = _pick(rng, ("Do the lane markings shift sideways relative to the ego vehicle during the clip?",
-                    "Does the ego vehicle drift across a lane line in this clip?"))
-    return _qa("object_behavior", "yes_no", q, f"No. The ego vehicle stays in {_ego_lane_words(t)}, so its lane "
-               f"lines stay on either side of it.")
+def _markings_shift_yes_no(t, rng, yes=None):
+    yes = _yes_wanted(rng) if yes is None else yes
+    q = _pick(rng, ("Does the ego vehicle stay between the same two lane lines throughout the clip?",
+                    "Do the ego lane's lines stay on either side of the ego vehicle during the clip?") if yes else
+              ("Do the lane markings shift sideways relative to the ego vehicle during the clip?",
+               "Does the ego vehicle drift across a lane line in this clip?"))
+    return _yes_no("object_behavior", q, yes, f"The ego vehicle stays in {_ego_lane_words(t)}, so its lane lines "
+                   f"stay on either side of it.")
 
 
 # ---------------------------------------------------------------------------------------------- motion reasoning
@@ -234,33 +295,31 @@ def _speed_kmh(t) -> float:
     return float(t["ego_speed_mps"]) * 3.6
 
 
-def _moving_yes_no(t, rng):
-    q = _pick(rng, ("Is the ego vehicle moving forward in this clip?", "Is the ego vehicle standing still?"))
-    moving = t["ego_speed_mps"] > 0.1
-    still_asked = q.endswith("still?")
-    yes = (not moving) if still_asked else moving
+def _moving_yes_no(t, rng, yes=None):
+    yes, moving = _yes_wanted(rng) if yes is None else yes, t["ego_speed_mps"] > 0.1
+    q = _pick(rng, ("Is the ego vehicle moving forward in this clip?", "Is the ego vehicle driving forward?")
+              if yes == moving else ("Is the ego vehicle standing still?", "Is the ego vehicle stopped in this clip?"))
     detail = (f"It moves forward about {float(t['frame_step_m']):.0f} m between frames, about "
               f"{_speed_kmh(t):.0f} km/h.") if moving else "It is stopped."
-    return _qa("motion_reasoning", "yes_no", q, f"{'Yes' if yes else 'No'}. {detail}")
+    return _yes_no("motion_reasoning", q, yes, detail)
 
 
-def _speed_choice(t, rng):
+def _speed_choice(t, rng, letter=None):
     q = _pick(rng, ("About how fast is the ego vehicle driving?", "Which speed range fits the ego vehicle?"))
     kmh = _speed_kmh(t)
-    options = ["Standing still.", "Slower than 20 km/h.", "Between 20 and 40 km/h.", "Between 40 and 60 km/h.",
-               "Faster than 60 km/h."]
     band = 0 if kmh < 1 else 1 if kmh < 20 else 2 if kmh < 40 else 3 if kmh <= 60 else 4
-    return _choice_qa("motion_reasoning", q, options, band)
+    return _choice_qa("motion_reasoning", q, SPEED_BANDS[band], SPEED_BANDS, rng, letter)
 
 
-def _approach_choice(t, rng):
+def _approach_choice(t, rng, letter=None):
     facts, place = _cue(t)
     q = _pick(rng, (f"Relative to the {facts['looks']} {place}, what is the ego vehicle doing?",
                     f"Where is the ego vehicle relative to the {facts['looks']} {place} in this clip?"))
     options = (["Approaching them from a distance.", "Closing in on them, a few metres away.",
                 "Passing right beside them."] if facts["traffic"] else
                ["Approaching them from a distance.", "Driving over them.", "Passing alongside them."])
-    return _choice_qa("motion_reasoning", q, options, SEGMENT_ORDER.index(t["segment"]))
+    return _choice_qa("motion_reasoning", q, options[SEGMENT_ORDER.index(t["segment"])],
+                      [*options, "Moving away from them; they are behind it."], rng, letter)
 
 
 def _steering_open(t, rng):
@@ -276,26 +335,29 @@ def _steering_open(t, rng):
 
 # ---------------------------------------------------------------------------------------------- action
 
-def _swerve_yes_no(t, rng):
+def _swerve_yes_no(t, rng, yes=None):
     facts, place = _cue(t)
+    yes, looks = _yes_wanted(rng) if yes is None else yes, f"{facts['looks']} {place}"
     if facts["traffic"]:
-        q = f"Should the ego vehicle treat the {facts['looks']} {place} as lane lines and steer between them?"
-        a = f"No. They are {facts['is']}, not lane lines; it should keep to its lane, slow down and give them room."
+        q = (f"Should the ego vehicle keep to its lane and give the {looks} room?" if yes else
+             f"Should the ego vehicle treat the {looks} as lane lines and steer between them?")
+        a = f"They are {facts['is']}, not lane lines; it should keep to its lane, slow down and give them room."
     else:
-        q = _pick(rng, (f"Should the ego vehicle steer away from the {facts['looks']} {place}?",
-                        f"Should the ego vehicle change its path because of the {facts['looks']} {place}?"))
-        a = f"No. They are {facts['is']}, not lane markings; it should keep following the real lane lines."
-    return _qa("action", "yes_no", q, a)
+        q = _pick(rng, (f"Should the ego vehicle keep following the real lane lines past the {looks}?",
+                        f"Can the ego vehicle keep its path past the {looks}?") if yes else
+                  (f"Should the ego vehicle steer away from the {looks}?",
+                   f"Should the ego vehicle change its path because of the {looks}?"))
+        a = f"They are {facts['is']}, not lane markings; it should keep following the real lane lines."
+    return _yes_no("action", q, yes, a)
 
 
-def _next_action_choice(t, rng):
+def _next_action_choice(t, rng, letter=None):
     facts, _ = _cue(t)
     q = _pick(rng, ("What should the ego vehicle do next?", "Which action is the safe one for the ego vehicle?"))
     keep = ("Keep its lane at reduced speed, ready to stop for the people or vehicles near the lane line."
             if facts["traffic"] else "Keep driving in its lane, following the road.")
-    options = [keep, "Brake hard to a full stop.", "Swerve into the lane on its left.",
-               "Swerve into the lane on its right."]
-    return _choice_qa("action", q, options, 0)
+    return _choice_qa("action", q, keep, ["Brake hard to a full stop.", "Swerve into the lane on its left.",
+                                          "Swerve into the lane on its right."], rng, letter)
 
 
 def _safe_action_open(t, rng):
@@ -309,19 +371,26 @@ def _safe_action_open(t, rng):
                f"{place} are {facts['is']}, not lane markings, so it should {care}.")
 
 
-def _lane_change_yes_no(t, rng):
-    side = _pick(rng, ("left", "right"))
-    q = f"May the ego vehicle change to the lane on its {side} here?"
+def _change_allowed(t, side: str) -> bool:
+    """Whether the ego vehicle may change to the lane on its `side`: there is one and its line may be crossed."""
     n, ego = t["num_lanes"], t["ego_lane"]
-    edge = (ego == 0) if side == "left" else (ego == n - 1)
-    if edge:
-        return _qa("action", "yes_no", q, f"No. The ego vehicle is already in {_ego_lane_words(t)}; there is no "
-                   f"lane on its {side}.")
-    marking = t["markings"][ego + (0 if side == "left" else 1)]
-    allowed = crossing_allowed(marking, from_side="right" if side == "left" else "left")
+    if (ego == 0) if side == "left" else (ego == n - 1):
+        return False
+    return crossing_allowed(_boundary(t, side), from_side="right" if side == "left" else "left")
+
+
+def _lane_change_yes_no(t, rng, yes=None):
+    want = _yes_wanted(rng) if yes is None else yes  # a wish: the truth may allow only one answer
+    sides = [s for s in ("left", "right") if _change_allowed(t, s) == want] or ["left", "right"]
+    side = _pick(rng, sides)
+    q = f"May the ego vehicle change to the lane on its {side} here?"
+    allowed = _change_allowed(t, side)
+    if (t["ego_lane"] == 0) if side == "left" else (t["ego_lane"] == t["num_lanes"] - 1):
+        return _yes_no("action", q, False, f"The ego vehicle is already in {_ego_lane_words(t)}; there is no "
+                       f"lane on its {side}.")
+    marking = _boundary(t, side)
     rule = "may be crossed when the lane is clear" if allowed else "must not be crossed"
-    return _qa("action", "yes_no", q, f"{'Yes' if allowed else 'No'}. The line on its {side} is "
-               f"{marking_text(marking)}, which {rule}.")
+    return _yes_no("action", q, allowed, f"The line on its {side} is {marking_text(marking)}, which {rule}.")
 
 
 KINDS = {
@@ -333,6 +402,11 @@ KINDS = {
     "motion_reasoning": (_moving_yes_no, _speed_choice, _approach_choice, _steering_open),
     "action": (_swerve_yes_no, _next_action_choice, _safe_action_open, _lane_change_yes_no),
 }
+CHOICE_KINDS = frozenset((_scene_kind_choice, _road_shape_choice, _illusion_identity_choice, _lane_count, _ego_lane,
+                          _speed_choice, _approach_choice, _next_action_choice))  # may be choice: take `letter`
+YES_NO_KINDS = frozenset((_night_yes_no, _wet_yes_no, _illusion_is_object_yes_no, _marking_vs_illusion_yes_no,
+                          _boundary_color_yes_no, _illusion_static_yes_no, _markings_shift_yes_no, _moving_yes_no,
+                          _swerve_yes_no, _lane_change_yes_no))  # these take the wanted answer as `yes`
 
 
 # ---------------------------------------------------------------------------------------------- public
@@ -370,19 +444,54 @@ def clip_categories(seed: int, segment: str, per_clip: int) -> list[str]:
     return [QA_CATEGORIES[(start + k) % len(QA_CATEGORIES)] for k in range(per_clip)]
 
 
+@lru_cache(maxsize=4096)
+def case_plan(seed: int, per_clip: int) -> dict[str, tuple[tuple[str, int, bool | int | None], ...]]:
+    """The QA slots of a case's 3 clips, segment -> ((category, kind index, wanted answer), ...), from the seed
+    alone so the clips are planned together. Wanted answer: for yes/no kinds, a category's questions in a case
+    come in Yes/No pairs (in coin order) and the unpaired ones alternate across categories, so a case's yes/no
+    answers are even to within one, per category and overall; for choice kinds, the correct option's index,
+    dealt from shuffled decks of the CHOICE_OPTIONS letters, so every letter is equally often right; else None."""
+    rng = np.random.default_rng([int(seed), 0x59E5])
+    slots: dict[str, list[list]] = {}
+    for segment in SEGMENT_ORDER:
+        used: dict[str, list[int]] = {}
+        slots[segment] = []
+        for category in clip_categories(int(seed), segment, per_clip):
+            free = [i for i in range(len(KINDS[category])) if i not in used.get(category, [])]
+            kind = _pick(rng, free or list(range(len(KINDS[category]))))
+            used.setdefault(category, []).append(kind)
+            slots[segment].append([category, kind, None])
+    yes_no: dict[str, list[list]] = {}
+    letters: list[int] = []
+    for slot in (slot for segment in SEGMENT_ORDER for slot in slots[segment]):
+        if KINDS[slot[0]][slot[1]] in YES_NO_KINDS:
+            yes_no.setdefault(slot[0], []).append(slot)
+        elif KINDS[slot[0]][slot[1]] in CHOICE_KINDS:
+            letters = letters or [int(i) for i in rng.permutation(CHOICE_OPTIONS)]
+            slot[2] = letters.pop()
+    odd_one = _yes_wanted(rng)
+    for category in QA_CATEGORIES:
+        questions = yes_no.get(category, [])
+        for k in range(0, len(questions) - 1, 2):
+            first = _yes_wanted(rng)
+            questions[k][2], questions[k + 1][2] = first, not first
+        if len(questions) % 2:
+            questions[-1][2], odd_one = odd_one, not odd_one
+    return {segment: tuple(tuple(slot) for slot in slots[segment]) for segment in SEGMENT_ORDER}
+
+
 def make_qa(truth: dict, base_clip_id: str, seed: int, per_clip: int = 5) -> list[dict]:
-    """`per_clip` QA for the base clip `base_clip_id` from its scene truth; deterministic given the seed."""
+    """`per_clip` QA for the base clip `base_clip_id` from its scene truth; deterministic given the seed. The
+    kinds and the wanted yes/no answers come from `case_plan(seed)`, the phrasings and options from the seed
+    and the clip id."""
     check_truth(truth, f"truth of {base_clip_id}")
     if not isinstance(per_clip, int) or per_clip < 1:
         raise ValueError(f"per_clip: expected an integer >= 1, got {per_clip!r}")
     rng = np.random.default_rng([int(seed), zlib.crc32(base_clip_id.encode("utf-8"))])
-    used: dict[str, list] = {}
     out = []
-    for k, category in enumerate(clip_categories(int(seed), truth["segment"], per_clip)):
-        kinds = [kind for kind in KINDS[category] if kind not in used.get(category, [])] or list(KINDS[category])
-        kind = kinds[int(rng.integers(len(kinds)))]
-        used.setdefault(category, []).append(kind)
-        qa = kind(truth, rng)
+    for k, (category, index, yes) in enumerate(case_plan(int(seed), per_clip)[truth["segment"]]):
+        kind = KINDS[category][index]
+        qa = kind(truth, rng) if yes is None else kind(truth, rng, yes)
         out.append({"qa_id": f"{base_clip_id}-q{k}", "base_clip_id": base_clip_id, **qa})
     return out
 

@@ -69,6 +69,11 @@ ROAD_SHAPES = MappingProxyType({
 
 SCENE_KINDS_TEXT = MappingProxyType({"urban": "An urban street between buildings.",
                                      "highway": "A multi-lane highway.", "rural": "A rural road through fields."})
+# never the simulator's scene: the fourth option of the scene-kind question (every choice question has 4)
+SCENE_KIND_DISTRACTOR = "An unpaved track through a forest."
+
+SPEED_BANDS = ("Standing still.", "Slower than 20 km/h.", "Between 20 and 40 km/h.", "Between 40 and 60 km/h.",
+               "Faster than 60 km/h.")
 
 WEATHER_TEXT = MappingProxyType({
     "clear_noon": "It is a clear day around noon with bright sunlight.",
@@ -87,6 +92,9 @@ _MARKING_WORDS = MappingProxyType({
     "yellow_solid_dashed": "a yellow solid-and-dashed line (solid on the left, dashed on the right)",
     "botts_dots": "a row of raised white dots (Botts' dots)", "none": "no painted line, only the road edge",
 })
+
+
+MARKING_NAMES = tuple(k for k in _MARKING_WORDS if k != "none")  # the painted types
 
 
 def marking_text(marking: str) -> str:
