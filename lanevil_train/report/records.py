@@ -234,7 +234,9 @@ class RecordSet:
         for r in self.records:
             by_model[r["model"]].append(r)
         self.by_model = {m: ModelRecords(m, by_model[m], spec) for m in self.models}
-        self.scores = available_scores(self.records, spec.scores)
+        # the scores every model's records support: a judge that scored one run only does not head a comparison
+        self.scores = [s for s in available_scores(self.records, spec.scores)
+                       if all(available_scores(by_model[m], (s,)) for m in self.models)]
         if not self.scores:
             raise ValueError(f"the {spec.name!r} records carry none of the fields of its scores "
                              f"{[sc.name for sc in spec.scores]}")

@@ -16,7 +16,7 @@ from omegaconf import DictConfig
 
 from lanevil_train.data.formats.atomic import atomic_write_text
 from lanevil_train.errors import prefixed
-from lanevil_train.tasks.builders import build_logger, instantiate_at, output_dir
+from lanevil_train.tasks.builders import build_logger, build_split, instantiate_at, output_dir
 from lanevil_train.tasks.results import log_results, write_results
 from lanevil_train.tasks.streaming import claim_results
 from lanevil_train.vlm.base import VLM
@@ -43,21 +43,23 @@ def build_judge(cfg: DictConfig, out: Path):
 
 
 def clip_suite(cfg: DictConfig):
-    """(dataset, name) of the clips to evaluate on: task.suite=synthetic (rendered on the fly), a folder written by
-    task=build data=clips, a DriveLM-style QA JSON file, or (task.suite=null) data=clips' test split on the fly."""
+    """(dataset, name) of the clips to evaluate on: task.suite=synthetic (task.cases scenes rendered on the fly with
+    task.illusions and task.severities), a folder written by task=build data=clips, a DriveLM-style QA JSON file, or
+    (task.suite=null) data=clips' test split."""
     from lanevil_train.vlm.clip_set import ClipSetDataset, SyntheticClipSuite
 
-    suite = cfg.task.suite
-    task = cfg.task
-    if suite is None and cfg.data.name != "clips":
-        raise ValueError("task.suite: a VLM answers questions about clips: give task.suite=synthetic, a clip suite "
-                         "folder (task=build data=clips) or a DriveLM QA JSON file, or use data=clips")
-    if suite is None or suite == "synthetic":
-        test = cfg.data.test if cfg.data.name == "clips" else {"first_seed": 1000000}
-        size = tuple(cfg.data.size) if cfg.data.name == "clips" else (360, 640)
-        illusions = task.illusions if task.illusions != "all" else "all"
+    suite, task, clips = cfg.task.suite, cfg.task, cfg.data.name == "clips"
+    if suite is None:
+        if not clips:
+            raise ValueError("task.suite: a VLM answers questions about clips: give task.suite=synthetic, a clip "
+                             "suite folder (task=build data=clips) or a DriveLM QA JSON file, or use data=clips")
+        return build_split(cfg, "test"), "clips-test"
+    if suite == "synthetic":
+        first_seed = cfg.data.test.first_seed if clips else 1000000
+        size = tuple(cfg.data.size) if clips else (360, 640)
+        illusions = "all" if task.illusions == "all" else list(task.illusions)
         try:
-            dataset = SyntheticClipSuite(task.cases, test["first_seed"], illusions, tuple(task.severities), size)
+            dataset = SyntheticClipSuite(task.cases, first_seed, illusions, tuple(task.severities), size)
         except ValueError as error:
             raise prefixed(error, "task.suite=synthetic") from None
         return dataset, "synthetic-clips"

