@@ -6,7 +6,11 @@ marking, so the lanes, markings, weather and the safe action do not change with 
 illusion's cue (what it looks like and where), as the paper asks: "Is the dark straight line in the left lane a
 lane marking?" -> "No. It is the shadow of a rail ...". Categories rotate with the seed and the segment, so the
 3 clips of a case together cover all six; each category has several question kinds and each kind several
-phrasings. `answer_is_correct` is the accuracy rule for yes/no and choice questions.
+phrasings. The benchmark pays no answer prior: `case_plan` draws each yes/no question's true answer so that a
+case's Yes and No are even (per category and overall, to within one) and each yes/no kind phrases its question
+so the truth answers it that way ("Is it daytime?" / "Is it night?"); every choice question has CHOICE_OPTIONS
+options with the correct letter dealt evenly. `answer_is_correct` is the accuracy rule for yes/no and choice
+questions.
 """
 
 from __future__ import annotations

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import itertools
 
+import numpy as np
+
 import pytest
 
 from lanevil_train.vlm import qa as qa_module
@@ -15,8 +17,6 @@ SEGMENTS = ("before", "over", "alongside")
 
 def all_kinds(t: dict, seeds=range(40)) -> list[dict]:
     """Every question kind's output over many rng draws (phrasings and options vary with the rng)."""
-    import numpy as np
-
     out = []
     for kinds in qa_module.KINDS.values():
         for kind, seed in itertools.product(kinds, seeds):
@@ -144,3 +144,117 @@ def test_traffic_is_passed_not_driven_over_and_the_road_shape_is_the_clips():
     shapes = [qa for qa in all_kinds(truth(road="s_curve", curvature_sign=1)) if qa["category"] ==
               "scene_description" and qa["type"] == "choice" and "Going downhill." in " ".join(qa["choices"])]
     assert shapes and all(qa["answer"].endswith("Curving to the right.") for qa in shapes)
+
+
+# ---------------------------------------------------------------------------------------------- fairness on a suite
+
+@pytest.fixture(scope="module")
+def suite_qa():
+    """(truth, QA) of every base clip of the 28-case suite with all 14 illusions (truths only: no frames)."""
+    from lanevil_train.vlm.clip_set import SyntheticClipSuite
+    from lanevil_train.vlm.clips import clip_truth
+
+    suite = SyntheticClipSuite(28, 1000000, "all", (3,), (72, 128))
+    out = []
+    for base in sorted(suite.by_base):
+        case, segment = suite.by_base[base]
+        out.append((clip_truth(case, segment, size=suite.size), suite.qa_for(base)))
+    return out
+
+
+def test_yes_no_answers_are_balanced_over_the_suite_and_per_category(suite_qa):
+    answers = {c: [] for c in QA_CATEGORIES}
+    for _, qas in suite_qa:
+        for qa in qas:
+            if qa["type"] == "yes_no":
+                answers[qa["category"]].append(qa["answer"].split(".")[0])
+    every = [a for said in answers.values() for a in said]
+    assert len(every) >= 150
+    assert 0.45 <= every.count("Yes") / len(every) <= 0.55  # the old generator: 36 of 195 (18 %)
+    for category, said in answers.items():
+        if len(said) >= 20:
+            share = said.count("Yes") / len(said)
+            assert 0.35 <= share <= 0.65, (category, said.count("Yes"), len(said))
+
+
+def test_choice_letters_are_uniform_and_every_choice_has_four_options(suite_qa):
+    choices = [qa for _, qas in suite_qa for qa in qas if qa["type"] == "choice"]
+    assert len(choices) >= 100 and {len(qa["choices"]) for qa in choices} == {qa_module.CHOICE_OPTIONS}
+    letters = [qa["answer"][0] for qa in choices]
+    for letter in "ABCD":  # the old generator: A 44 %, B 15 %, and a stray E
+        assert 0.2 <= letters.count(letter) / len(letters) <= 0.3, (letter, letters.count(letter), len(letters))
+
+
+def _yes(qa: dict) -> bool:
+    return qa["answer"].startswith("Yes.")
+
+
+def _check_against_truth(t: dict, qa: dict) -> bool | None:
+    """Whether a QA whose truth a test can read agrees with the clip truth `t`; None for other questions."""
+    q, n = qa["question"], t["num_lanes"]
+    words = ("two", "three", "four", "five")
+    if q.startswith(("How many", "Count the")):
+        said = [w for w in words if w in qa["answer"].lower()]
+        return said == [words[n - 2]]
+    if q in ("Is this clip recorded at night?", "Is it night-time in this scene?", "Is the ego vehicle driving in "
+             "the dark?"):
+        return _yes(qa) == t["night"]
+    if q in ("Is this clip recorded in daylight?", "Is it daytime in this scene?", "Is the scene lit by daylight?"):
+        return _yes(qa) != t["night"]
+    if "lane is the ego vehicle driving in" in q or "lane is the camera car" in q or "lane does the ego" in q:
+        ordinal = ("first", "second", "third", "fourth", "fifth")[t["ego_lane"]]
+        edge = {0: "leftmost", n - 1: "rightmost"}.get(t["ego_lane"], ordinal)
+        return f"{ordinal} lane" in qa["answer"] or edge in qa["answer"]
+    for side in ("left", "right"):
+        marking = t["markings"][t["ego_lane"] + (side == "right")]
+        if q.startswith(f"Is the ego lane marked on its {side} by "):
+            asked = q[len(f"Is the ego lane marked on its {side} by "):-1]
+            return _yes(qa) == (asked == qa_module.marking_text(marking))
+        for colour in ("yellow", "white"):
+            if q in (f"Is the line on the {side} of the ego lane {colour}?",
+                     f"Is the ego lane bounded on the {side} by a {colour} line?"):
+                return marking != "none" and _yes(qa) == (t["marking_colors"][t["ego_lane"] + (side == "right")]
+                                                          == colour)
+    return None
+
+
+def test_reference_answers_match_the_renderers_truth(suite_qa):
+    checked = {}
+    for t, qas in suite_qa:
+        for qa in qas:
+            verdict = _check_against_truth(t, qa)
+            if verdict is not None:
+                assert verdict, (t["case_id"], t["segment"], qa)
+                checked[qa["question"].split()[0]] = checked.get(qa["question"].split()[0], 0) + 1
+    assert sum(checked.values()) >= 30, checked
+
+
+@pytest.mark.parametrize("night", [False, True])
+def test_every_yes_no_kind_says_both_yes_and_no_and_stays_true(night):
+    t = truth(weather="night" if night else "clear_noon", night=night)
+    for kind in qa_module.YES_NO_KINDS:
+        if kind is qa_module._lane_change_yes_no:  # its answer is the markings', the wish only picks the side
+            continue
+        said = {kind(t, np.random.default_rng(s), yes)["answer"].split(".")[0]: yes for s in range(8)
+                for yes in (False, True)}
+        assert said == {"Yes": True, "No": False}, kind.__name__
+    assert _check_against_truth(t, {"question": "Is it daytime in this scene?", "answer": "No. It is night."}) \
+        is night
+
+
+def test_case_plan_pairs_yes_and_no_and_deals_letters_evenly():
+    for seed in range(40):
+        plan = qa_module.case_plan(seed, 5)
+        wants = {}
+        letters = []
+        for segment in SEGMENTS:
+            for category, index, want in plan[segment]:
+                kind = qa_module.KINDS[category][index]
+                if kind in qa_module.YES_NO_KINDS:
+                    wants.setdefault(category, []).append(want)
+                elif kind in qa_module.CHOICE_KINDS:
+                    letters.append(want)
+        per_category = [said.count(True) - said.count(False) for said in wants.values()]
+        assert all(abs(d) <= 1 for d in per_category) and abs(sum(per_category)) <= 1, (seed, wants)
+        counts = [letters.count(k) for k in range(qa_module.CHOICE_OPTIONS)]
+        assert max(counts) - min(counts) <= 1, (seed, letters)
