@@ -56,5 +56,18 @@ def build_clips(cfg: DictConfig, names: tuple[str, ...]) -> None:
     cases = clip_cases(task.cases, cfg.data.test.first_seed, list(names))
     summary = build_clip_set(cases, tuple(task.severities), root, size=tuple(cfg.data.size), workers=task.workers,
                              progress=cfg.progress, paraphraser=paraphraser, per_clip=cfg.data.per_clip)
+    drivelm = write_suite_drivelm(root)
     print(f"clip set: {summary['clips']} clips ({summary['qa']} QA) in {summary['root']} "
-          f"({summary['written']} written now, {summary['skipped']} already there)")
+          f"({summary['written']} written now, {summary['skipped']} already there); DriveLM layout: {drivelm}")
+
+
+def write_suite_drivelm(root: Path) -> Path:
+    """root/drivelm.json: the finished suite's QA in the DriveLM-nuScenes layout (vlm/drivelm.py), for tools that
+    read DriveLM data; rewritten from clips.jsonl and qa.jsonl after every build."""
+    from lanevil_train.results_log import ResultsLog
+    from lanevil_train.vlm.clip_set import CLIPS_FILE, QA_FILE
+    from lanevil_train.vlm.drivelm import write_drivelm
+
+    path = root / "drivelm.json"
+    write_drivelm(path, ResultsLog(root / CLIPS_FILE, "clip_id").records(), ResultsLog(root / QA_FILE, "qa_id").records())
+    return path
