@@ -24,15 +24,15 @@ from __future__ import annotations
 import json
 import os
 from dataclasses import asdict, dataclass
-from multiprocessing import get_context
 from pathlib import Path
-from typing import Iterator
 
 import cv2
 import numpy as np
 
 from lanevil_train.data.formats import load_image, write_culane_lanes
-from lanevil_train.data.formats.atomic import atomic_write_bytes, atomic_write_text, remove_temporaries
+from lanevil_train.data.formats import builds
+from lanevil_train.data.formats.atomic import atomic_write_bytes, atomic_write_text
+from lanevil_train.data.formats.builds import map_jobs, write_build_record
 from lanevil_train.data.formats.manifest import manifest_record, read_manifest
 from lanevil_train.errors import prefixed
 from lanevil_train.illusions import (ILLUSIONS, GroundPlaneError, context_from_lanes, context_from_scene, fallback_context,
@@ -212,17 +212,7 @@ def build_illusion_set(cases: list[Case], plan: Plan, root: str | Path, workers:
     check_photo_cases(cases, plan)
     total = sum(len(variants(c, plan)) for c in cases)
     expected = {"images": total, "cases": len(cases), "plan": asdict(plan)}
-    previous = read_build_record(root) if (root / BUILD_FILE).exists() else None
-    if previous is not None and {k: previous.get(k) for k in expected} != json.loads(json.dumps(expected)):
-        raise ValueError(
-            f"{root / BUILD_FILE}: out_dir {root} holds a set built with other cases or another plan "
-            f"({previous.get('images')} images of {previous.get('cases')} cases, plan {previous.get('plan')}; "
-            f"now {total} images of {len(cases)} cases, plan {expected['plan']}); rerun with the same settings to "
-            f"finish it, or choose a new out_dir")
-    root.mkdir(parents=True, exist_ok=True)
-    remove_temporaries(root)
-    if previous is None or not previous.get("complete"):
-        _write_build_record(root, expected, complete=False)
+    builds.begin_build(root, expected, "images", "set", "task=build")
     manifest = ResultsLog(root / "manifest.jsonl", key_field="image")
     done = manifest.resume()
     manifest.path.touch()  # a set without images still has its (empty) manifest
@@ -231,7 +221,7 @@ def build_illusion_set(cases: list[Case], plan: Plan, root: str | Path, workers:
     jobs = [(case, plan, str(root), frozenset(done)) for case in cases]
     bar = progress_counter(total, skipped, "build", "img", progress)
     written = 0
-    for records in _map(render_case, jobs, workers):
+    for records in map_jobs(render_case, jobs, workers):
         for record in records:
             if plan.label_format == "tusimple":
                 _append_line(root / "labels.json", json.dumps(record["label"]))
@@ -242,32 +232,13 @@ def build_illusion_set(cases: list[Case], plan: Plan, root: str | Path, workers:
     if plan.label_format == "culane":
         images = [r["image"] for r in read_manifest(manifest.path)]
         atomic_write_text(root / "list" / "test.txt", "".join(f"/{image}\n" for image in images))
-    _write_build_record(root, expected, complete=True)
+    write_build_record(root, expected, complete=True)
     return {"root": str(root), "images": total, "written": written, "skipped": skipped}
 
 
-BUILD_FILE = "build.json"
-
-
-def _write_build_record(root: Path, expected: dict, complete: bool) -> None:
-    """build.json: what the set should hold and whether it is whole; no timestamps (reruns end byte-identical)."""
-    atomic_write_text(root / BUILD_FILE, json.dumps({**expected, "complete": complete}, indent=1, sort_keys=True)
-                      + "\n")
-
-
 def read_build_record(root: str | Path) -> dict:
-    """The parsed build.json of a set, or an error naming it and what it should hold."""
-    path = Path(root) / BUILD_FILE
-    try:
-        record = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as error:
-        raise ValueError(f"{path}: cannot read the set's build record ({error}); rerun task=build with the same "
-                         f"out_dir ({path.parent}) to rewrite it") from error
-    if not isinstance(record, dict) or not isinstance(record.get("images"), int) or \
-            not isinstance(record.get("complete"), bool):
-        raise ValueError(f"{path}: expected a JSON object with an integer 'images' and a boolean 'complete', got "
-                         f"{str(record)[:120]}")
-    return record
+    """The parsed build.json of an illusion set, or an error naming it and what it should hold."""
+    return builds.read_build_record(root, "images", "set", "task=build")
 
 
 def _append_line(path: Path, line: str) -> None:
@@ -293,11 +264,3 @@ def _repair_labels(root: Path, plan: Plan, done: set[str]) -> None:
         if isinstance(obj, dict) and obj.get("raw_file") in done:
             kept.append(line + "\n")
     atomic_write_text(path, "".join(kept))
-
-
-def _map(fn, jobs: list, workers: int) -> Iterator:
-    if workers <= 0:
-        yield from map(fn, jobs)
-        return
-    with get_context("spawn").Pool(workers) as pool:
-        yield from pool.imap(fn, jobs)

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-from multiprocessing import get_context
 from pathlib import Path
 from typing import Callable, Iterator, Sequence
 
@@ -27,14 +26,15 @@ import numpy as np
 from torch.utils.data import Dataset
 
 from lanevil_train.data.formats import load_image
-from lanevil_train.data.formats.atomic import atomic_write_bytes, atomic_write_text, remove_temporaries
+from lanevil_train.data.formats.builds import BUILD_FILE, map_jobs, write_build_record
+from lanevil_train.data.formats import builds
+from lanevil_train.data.formats.atomic import atomic_write_bytes
 from lanevil_train.illusions.registry import check_severity, get_illusion
 from lanevil_train.progress import progress_counter
 from lanevil_train.results_log import ResultsLog
 from lanevil_train.taxonomy import ILLUSION_CATEGORY, ILLUSION_NAMES
 from lanevil_train.vlm.qa import check_qa_record, make_qa
 
-BUILD_FILE = "build.json"
 CLIPS_FILE = "clips.jsonl"
 QA_FILE = "qa.jsonl"
 SEGMENTS = ("before", "over", "alongside")
@@ -142,16 +142,7 @@ def build_clip_set(cases: Sequence, severities: Sequence[int], root: str | Path,
                 "cases": len(cases), "plan": {"size": list(size), "severities": list(severities),
                                               "per_clip": per_clip, "paraphrased": paraphraser is not None,
                                               "cases_digest": _cases_digest(cases)}}
-    previous = read_build_record(root) if (root / BUILD_FILE).exists() else None
-    if previous is not None and {k: previous.get(k) for k in expected} != expected:
-        raise ValueError(f"{root / BUILD_FILE}: out_dir {root} holds a clip set built with other cases or another "
-                         f"plan ({previous.get('clips')} clips of {previous.get('cases')} cases, plan "
-                         f"{previous.get('plan')}; now {expected['clips']} clips of {len(cases)} cases, plan "
-                         f"{expected['plan']}); rerun with the same settings to finish it, or choose a new out_dir")
-    root.mkdir(parents=True, exist_ok=True)
-    remove_temporaries(root)
-    if previous is None or not previous.get("complete"):
-        _write_build_record(root, expected, complete=False)
+    builds.begin_build(root, expected, "clips", "clip set", "task=build data=clips")
     clip_log, qa_log = ResultsLog(root / CLIPS_FILE, "clip_id"), ResultsLog(root / QA_FILE, "qa_id")
     done_clips, done_qa = clip_log.resume(), qa_log.resume()
     clip_log.path.touch()
@@ -161,7 +152,7 @@ def build_clip_set(cases: Sequence, severities: Sequence[int], root: str | Path,
             if any(r["clip_id"] not in done_clips for r in variant_records(case, segment, severities))]
     bar = progress_counter(expected["clips"], len(done_clips), "build", "clips", progress)
     written = 0
-    for (case, segment, *_), (truth, records) in zip(jobs, _map(render_base_clip, jobs, workers)):
+    for (case, segment, *_), (truth, records) in zip(jobs, map_jobs(render_base_clip, jobs, workers)):
         qas = [q for q in make_qa(truth, base_clip_id(case, segment), case.seed, per_clip)
                if q["qa_id"] not in done_qa]
         qa_log.append(paraphrase_qa(qas, paraphraser))
@@ -169,37 +160,14 @@ def build_clip_set(cases: Sequence, severities: Sequence[int], root: str | Path,
         written += len(records)
         bar.update(len(records))
     bar.close()
-    _write_build_record(root, expected, complete=True)
+    write_build_record(root, expected, complete=True)
     return {"root": str(root), "clips": expected["clips"], "written": written, "skipped": len(done_clips),
             "qa": expected["qa"]}
 
 
-def _write_build_record(root: Path, expected: dict, complete: bool) -> None:
-    atomic_write_text(root / BUILD_FILE, json.dumps({**expected, "complete": complete}, indent=1, sort_keys=True)
-                      + "\n")
-
-
 def read_build_record(root: str | Path) -> dict:
     """The parsed build.json of a clip set, or an error naming it and what it should hold."""
-    path = Path(root) / BUILD_FILE
-    try:
-        record = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as error:
-        raise ValueError(f"{path}: cannot read the clip set's build record ({error}); rerun task=build data=clips "
-                         f"with the same out_dir ({path.parent})") from error
-    if not isinstance(record, dict) or not isinstance(record.get("clips"), int) or \
-            not isinstance(record.get("complete"), bool):
-        raise ValueError(f"{path}: expected a JSON object with an integer 'clips' and a boolean 'complete', got "
-                         f"{str(record)[:120]}")
-    return record
-
-
-def _map(fn, jobs: list, workers: int) -> Iterator:
-    if workers <= 0:
-        yield from map(fn, jobs)
-        return
-    with get_context("spawn").Pool(workers) as pool:
-        yield from pool.imap(fn, jobs)
+    return builds.read_build_record(root, "clips", "clip set", "task=build data=clips")
 
 
 # ---------------------------------------------------------------------------------------------- records

@@ -21,6 +21,7 @@ from pathlib import Path
 import pytest
 
 import lanevil_train.data.formats.atomic as atomic
+import lanevil_train.data.formats.builds as builds
 import lanevil_train.data.illusion_set as illusion_set
 from lanevil_train.data.formats.atomic import atomic_write_bytes, atomic_write_text, temporary_path
 from lanevil_train.data.formats.manifest import read_manifest
@@ -140,8 +141,9 @@ def kill_before_write(monkeypatch, step: int | None) -> list[str]:
             return write(*args, **kwargs)
         return wrapped
 
-    for name in ("atomic_write_bytes", "atomic_write_text", "write_culane_lanes", "_append_line"):
+    for name in ("atomic_write_bytes", "atomic_write_text", "write_culane_lanes", "_append_line", "write_build_record"):
         monkeypatch.setattr(illusion_set, name, wrap(name, getattr(illusion_set, name)))
+    monkeypatch.setattr(builds, "write_build_record", wrap("write_build_record", builds.write_build_record))
     monkeypatch.setattr(ResultsLog, "append", wrap("manifest", ResultsLog.append))
     return calls
 
@@ -155,13 +157,13 @@ def test_a_kill_between_any_two_writes_then_rerun_equals_the_uninterrupted_build
         steps = kill_before_write(monkeypatch, None)
         build_illusion_set(cases, plan, tmp_path / "whole", progress="none")
     whole = snapshot(tmp_path / "whole")
-    # build.json (not complete) first and (complete) last, written by atomic_write_text
+    # build.json (not complete) first and (complete) last
     if label_format == "tusimple":  # a case's images, then per image its label line and its manifest line
-        assert steps == ["atomic_write_text"] + ["atomic_write_bytes"] * 5 + ["_append_line", "manifest"] * 5 \
-            + ["atomic_write_text"]
+        assert steps == ["write_build_record"] + ["atomic_write_bytes"] * 5 + ["_append_line", "manifest"] * 5 \
+            + ["write_build_record"]
     else:                           # per image its .lines.txt and the image, then the manifest lines, the list
-        assert steps == ["atomic_write_text"] + ["write_culane_lanes", "atomic_write_bytes"] * 5 + ["manifest"] * 5 \
-            + ["atomic_write_text"] * 2
+        assert steps == ["write_build_record"] + ["write_culane_lanes", "atomic_write_bytes"] * 5 \
+            + ["manifest"] * 5 + ["atomic_write_text", "write_build_record"]
     for step in range(1, len(steps) + 1):
         root = tmp_path / f"killed_before_{step}"
         with pytest.MonkeyPatch.context() as monkeypatch, pytest.raises(Killed):
