@@ -33,7 +33,8 @@ from lanevil_train.illusions.registry import check_severity, get_illusion
 from lanevil_train.progress import progress_counter
 from lanevil_train.results_log import ResultsLog
 from lanevil_train.taxonomy import ILLUSION_CATEGORY, ILLUSION_NAMES
-from lanevil_train.vlm.qa import check_qa_record, make_qa
+from lanevil_train.vlm.qa import make_qa
+from lanevil_train.vlm.qa_records import check_qa_record
 
 CLIPS_FILE = "clips.jsonl"
 QA_FILE = "qa.jsonl"

@@ -26,7 +26,7 @@ import re
 from pathlib import Path
 
 from lanevil_train.data.formats.atomic import atomic_write_text
-from lanevil_train.vlm.qa import check_qa_record
+from lanevil_train.vlm.qa_records import check_qa_record
 
 SECTIONS = ("perception", "prediction", "planning", "behavior")
 CATEGORY_TO_DRIVELM = {"scene_description": "perception", "object_recognition": "perception",

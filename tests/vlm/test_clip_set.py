@@ -9,7 +9,7 @@ import pytest
 
 from lanevil_train.vlm import clip_set
 from lanevil_train.vlm.clip_set import ClipSetDataset, SyntheticClipSuite, build_clip_set
-from lanevil_train.vlm.qa import QA_CATEGORIES
+from lanevil_train.vlm.qa_records import QA_CATEGORIES
 from tests.vlm import fake_clips
 
 SIZE = (24, 40)

@@ -16,7 +16,7 @@ from lanevil_train.tasks.results import write_results
 from lanevil_train.vlm.base import VLM
 from lanevil_train.vlm.clip_set import SyntheticClipSuite
 from lanevil_train.vlm.evaluation import ANSWERS, PER_ANSWER, evaluate_clips, pair_key
-from lanevil_train.vlm.qa import answer_is_correct
+from lanevil_train.vlm.qa_records import answer_is_correct
 
 LABEL = {"model": "brightness", "dataset": "tiny-clips"}
 

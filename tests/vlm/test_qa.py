@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from lanevil_train.vlm import qa as qa_module
-from lanevil_train.vlm.qa import QA_CATEGORIES, answer_is_correct, chosen_letter, clip_categories, make_qa
+from lanevil_train.vlm.qa import clip_categories, make_qa
+from lanevil_train.vlm.qa_records import QA_CATEGORIES, answer_is_correct, chosen_letter
 from tests.vlm.truth_fixture import truth
 
 SEGMENTS = ("before", "over", "alongside")
