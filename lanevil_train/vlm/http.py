@@ -75,6 +75,13 @@ def reply_text(body, where: str) -> str:
     return content.strip()
 
 
+_STREAM = threading.local()  # per worker thread: the stop event of the stream it works for
+
+
+def _bind_stream(stop: threading.Event) -> None:
+    _STREAM.stop = stop
+
+
 class ChatClient:
     """POSTs chat-completions bodies to `base_url` + /chat/completions with retries; thread-safe.
 
@@ -145,7 +152,10 @@ class ChatClient:
             if attempt == self.max_retries:
                 break
             self.retries += 1
-            time.sleep(min(wait_s, self.backoff_max_s) if wait_s is not None else self._backoff(attempt))
+            stop = getattr(_STREAM, "stop", None)  # set when the stream this request belongs to was abandoned
+            pause = min(wait_s, self.backoff_max_s) if wait_s is not None else self._backoff(attempt)
+            if stop.wait(pause) if stop is not None else time.sleep(pause):
+                raise EndpointError(f"{where}: cancelled (the run stopped) after: {last}")
         raise EndpointError(f"{where}: {self.url} failed {self.max_retries + 1} times; last: {last}")
 
     def complete(self, body: dict | bytes, where: str) -> str:
@@ -155,7 +165,9 @@ class ChatClient:
     def stream(self, count: int, work: Callable[[int], object]) -> Iterator[tuple[int, object]]:
         """(i, work(i)) for i in range(count) as each finishes, `concurrency` at a time. The first error is raised
         after cancelling the work not yet started; closing the iterator early cancels it too."""
-        pool = ThreadPoolExecutor(max_workers=self.concurrency, thread_name_prefix="chat")
+        stop = threading.Event()  # an abandoned or failed stream stops its requests' retries at once
+        pool = ThreadPoolExecutor(max_workers=self.concurrency, thread_name_prefix="chat",
+                                  initializer=_bind_stream, initargs=(stop,))
         pending: dict[Future, int] = {}
         upcoming: Iterable[int] = iter(range(count))
         try:
@@ -173,6 +185,7 @@ class ChatClient:
                         pending[pool.submit(work, nxt)] = nxt
                     yield i, result
         finally:
+            stop.set()
             pool.shutdown(wait=False, cancel_futures=True)
 
 

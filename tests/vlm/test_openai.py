@@ -186,3 +186,18 @@ def test_identity_loss_and_bad_arguments():
         OpenAIVLM("http://x/v1", "m", concurrency=0)
     with pytest.raises(ValueError, match="clip 0: frame 0 must be a uint8"):
         vlm.answer([[np.zeros((4, 4, 3), np.float32)] * 6], ["q"])
+
+
+def test_a_failed_stream_stops_the_retries_of_its_other_requests(start_server):
+    import threading
+    import time
+
+    # every 2nd request gets a 500 (retried after a long backoff), the others a 400 (an error at once)
+    server = start_server("--fail-every", "2")
+    vlm = OpenAIVLM(server.url, "fake-vlm", concurrency=4, max_retries=5, backoff_s=20.0)
+    with pytest.raises(EndpointError, match="HTTP 400"):
+        list(vlm.answer_stream([make_clip(i) for i in range(4)], [f"BAD_REQUEST {i}" for i in range(4)]))
+    start = time.monotonic()
+    while any(t.name.startswith("chat") for t in threading.enumerate()) and time.monotonic() - start < 10:
+        time.sleep(0.05)
+    assert time.monotonic() - start < 3.0  # not the 20 s backoff: the waiting retries were cancelled
