@@ -92,8 +92,46 @@ def evaluate_vlm(cfg: DictConfig) -> float:
     results = evaluate_clips(vlm, dataset, out, label, judge=judge, progress=cfg.progress)
     value = write_results([results], out, baseline=cfg.task.baseline)
     write_language_summary(results, out)
+    write_worst_answers(results, out)
     log_results(build_logger(cfg), out)
     return value
+
+
+def _cell(text: str) -> str:
+    """Text as one markdown table cell."""
+    return " ".join(str(text).split()).replace("|", "\\|")
+
+
+def write_worst_answers(results: Path, out: Path, k: int = 12) -> Path | None:
+    """worst_answers.md: the k questions whose answer got most worse under an illusion (by the judge's score,
+    else by accuracy), each with its reference, the clean clip's answer and the perturbed clip's; None when no
+    answer got worse."""
+    from lanevil_train.report.tables import markdown_table
+    from lanevil_train.tasks.scoring import read_records
+
+    records = read_records(results, keep_lanes=False)
+    field = next((f for f in ("gpt_score", "minilm_score", "correct") if any(r.get(f) is not None for r in records)),
+                 None)
+    if field is None:
+        return None
+    clean = {(r["model"], r["dataset"], r["case_id"], r["qa_id"]): r for r in records if r["severity"] == 0}
+    drops = []
+    for r in records:
+        c = clean.get((r["model"], r["dataset"], r["case_id"], r["qa_id"]))
+        if r["severity"] > 0 and c is not None and r.get(field) is not None and c.get(field) is not None \
+                and r[field] < c[field]:
+            drops.append((c[field] - r[field], r["key"], c, r))
+    if not drops:
+        return None
+    scale = 100.0 if field == "correct" else 1.0
+    rows = [{"model": r["model"], "illusion": f"{r['illusion']} s{r['severity']}", "segment": r.get("segment"),
+             "QA category": r["qa_category"], "question": _cell(r["question"]), "reference": _cell(r["reference"]),
+             "clean answer": _cell(c["answer"]), "perturbed answer": _cell(r["answer"]),
+             f"{field} clean -> perturbed": f"{scale * c[field]:.0f} -> {scale * r[field]:.0f}"}
+            for _, _, c, r in sorted(drops, key=lambda d: (-d[0], d[1]))[:k]]
+    path = out / "worst_answers.md"
+    atomic_write_text(path, f"# The {len(rows)} answers an illusion hurt most ({field})\n\n{markdown_table(rows)}\n")
+    return path
 
 
 def write_language_summary(results: Path, out: Path) -> Path:

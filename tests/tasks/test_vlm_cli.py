@@ -63,6 +63,8 @@ def test_a_server_model_is_evaluated_on_a_built_suite_judged_and_reported_with_t
     assert len(records) == ANSWERS and all(0 <= r["gpt_score"] <= 100 and r["judge"] == "fake-judge" for r in records)
     assert all(r["answer"].startswith("answer: ") and "images=6 size=80x48" in r["answer"] for r in records)
     assert len(ResultsLog(out / "judge_cache.jsonl").records()) == judged == ANSWERS
+    worst = (out / "worst_answers.md").read_text()  # the fake judge rates clean and perturbed answers differently
+    assert worst.startswith("# The ") and "| fake-vlm | road_repair s3 |" in worst
     scores = json.loads((out / "test_scores.json").read_text())
     assert {"GPT_score", "Language", "BLEU_4", "CIDEr"} <= set(scores[0])
 
