@@ -24,4 +24,5 @@ def summary_rows(records: list[dict], spec=None) -> list[dict]:
     for record in records:
         kind = "original" if record.get("severity", 0) == 0 else "perturbed"
         groups[(record.get("model", ""), record.get("dataset", ""), kind)].append(record)
-    return [{"model": m, "dataset": d, "images_kind": k, **summarise(rs, spec)} for (m, d, k), rs in groups.items()]
+    return [{"model": m, "dataset": d, f"{spec.count_name}_kind": k, **summarise(rs, spec)}
+            for (m, d, k), rs in groups.items()]

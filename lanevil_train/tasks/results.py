@@ -79,7 +79,8 @@ def log_results(logger, out_dir: Path) -> None:
             logger.log_image(key="evaluate/plots", images=[str(p) for p in pngs], caption=[p.stem for p in pngs])
     else:
         for row in tables.get("test_scores", []):
-            prefix = f"{row['dataset']}/{row['images_kind']}"
+            kind = next(value for key, value in row.items() if key.endswith("_kind"))  # images_kind, answers_kind
+            prefix = f"{row['dataset']}/{kind}"
             logger.log_metrics({f"{prefix}/{k}": v for k, v in row.items() if isinstance(v, (int, float))})
     logger.save()
     if hasattr(logger, "experiment") and hasattr(logger.experiment, "finish"):

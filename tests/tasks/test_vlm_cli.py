@@ -67,6 +67,7 @@ def test_a_server_model_is_evaluated_on_a_built_suite_judged_and_reported_with_t
     assert worst.startswith("# The ") and "| fake-vlm | road_repair s3 |" in worst
     scores = json.loads((out / "test_scores.json").read_text())
     assert {"GPT_score", "Language", "BLEU_4", "CIDEr"} <= set(scores[0])
+    assert [(row["answers_kind"], row["answers"]) for row in scores] == [("original", 15), ("perturbed", 15)]
 
     hf = tmp_path / "hf"
     run_cli(["task=evaluate", "model=vlm/hf", f"model.path={tiny_model}", "model.max_new_tokens=4",
