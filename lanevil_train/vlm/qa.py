@@ -273,7 +273,7 @@ _SEEN = {  # how a static illusion moves in the images, by segment (clips.py: tr
     False: {"before": "they are ahead of the ego vehicle and come closer, moving down the image",
             "over": "the ego vehicle drives onto them, so they slide down and out of the bottom of the image",
             "alongside": "the ego vehicle drives along them until their far end"},
-    True: {"before": "they are far ahead and grow slowly as the ego vehicle approaches",
+    True: {"before": "they are far ahead and grow slowly in the image",
            "over": "the ego vehicle closes in on them and they grow larger in the image",
            "alongside": "the ego vehicle comes up beside them and they move to the edge of the image"},
 }
