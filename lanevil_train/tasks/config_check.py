@@ -370,6 +370,7 @@ RULES: dict[str, Rule] = {
     "task.init_from": null_or(existing_file("checkpoint file")),
     "task.suite": illusion_suite(),
     "task.label": null_or(text()),
+    "task.blind": boolean(),
     "task.baseline": null_or(text()),
     "task.runs": string_list(),
     "task.defenses": defense_names(),

@@ -19,7 +19,7 @@ from lanevil_train.errors import prefixed
 from lanevil_train.tasks.builders import build_logger, build_split, instantiate_at, output_dir
 from lanevil_train.tasks.results import log_results, write_results
 from lanevil_train.tasks.streaming import claim_results
-from lanevil_train.vlm.base import VLM
+from lanevil_train.vlm.base import VLM, BlindVLM
 from lanevil_train.vlm.evaluation import ANSWERS, PER_ANSWER, evaluate_clips
 
 
@@ -84,17 +84,27 @@ def evaluate_vlm(cfg: DictConfig) -> float:
     out = Path(cfg.task.out_dir) if cfg.task.out_dir else output_dir(cfg)
     vlm = build_vlm(cfg)
     judge = build_judge(cfg, out)
-    label = {"model": cfg.task.label or vlm.name, "dataset": dataset_name}
+    name = cfg.task.label or vlm.name
+    results = evaluate_into(vlm, dataset, judge, out, {"model": name, "dataset": dataset_name}, cfg.progress)
+    files = [results]
+    if cfg.task.get("blind"):  # the same questions on grey frames, reported beside the model
+        blind = BlindVLM(vlm)
+        files.append(evaluate_into(blind, dataset, judge, out / "blind",
+                                   {"model": f"{name}-blind", "dataset": dataset_name}, cfg.progress))
+    value = write_results(files, out, baseline=cfg.task.baseline)
+    write_language_summary(files, out)
+    write_worst_answers(results, out)
+    log_results(build_logger(cfg), out)
+    return value
+
+
+def evaluate_into(vlm: VLM, dataset, judge, out: Path, label: dict, progress: str) -> Path:
+    """evaluate_clips into `out`, after checking that results already there come from this same evaluation."""
     identity = run_identity(vlm, judge, label)
     for name in (ANSWERS, PER_ANSWER):
         path = out / name
         claim_results(path, identity, resuming=path.is_file() and path.stat().st_size > 0)
-    results = evaluate_clips(vlm, dataset, out, label, judge=judge, progress=cfg.progress)
-    value = write_results([results], out, baseline=cfg.task.baseline)
-    write_language_summary(results, out)
-    write_worst_answers(results, out)
-    log_results(build_logger(cfg), out)
-    return value
+    return evaluate_clips(vlm, dataset, out, label, judge=judge, progress=progress)
 
 
 def _cell(text: str) -> str:
@@ -134,7 +144,7 @@ def write_worst_answers(results: Path, out: Path, k: int = 12) -> Path | None:
     return path
 
 
-def write_language_summary(results: Path, out: Path) -> Path:
+def write_language_summary(results: list[Path], out: Path) -> Path:
     """language_scores.json: every COCO caption score (METEOR too, which needs Java) of the original and the
     perturbed answers of each model, with the Language score beside its parts; SPICE is not computed (its
     Stanford models cannot be had offline)."""
@@ -142,7 +152,7 @@ def write_language_summary(results: Path, out: Path) -> Path:
     from lanevil_train.tasks.scoring import read_records
 
     groups: dict[tuple, dict] = {}
-    for record in read_records(results, keep_lanes=False):
+    for record in (r for path in results for r in read_records(path, keep_lanes=False)):
         kind = "original" if record["severity"] == 0 else "perturbed"
         group = groups.setdefault((record["model"], record["dataset"], kind), {"pred": {}, "refs": {}})
         group["pred"][record["key"]] = record["answer_tokens"]

@@ -76,3 +76,32 @@ class VLM(ABC):
         """What makes two evaluations by this backend the same (a resumed results file must come from the same
         model and generation settings): plain JSON values."""
         return {"backend": type(self).__name__, "name": self.name}
+
+
+class BlindVLM(VLM):
+    """A VLM's "blind" baseline: the same model asked the same questions with every frame replaced by a uniform grey
+    image of the same size. Driving VLMs often answer from text priors (DriveBench: text-only scores sit close to
+    clean ones), so a score is only evidence of seeing when it beats this baseline."""
+
+    GREY = 128
+
+    def __init__(self, vlm: VLM):
+        self.vlm = vlm
+        self.name = f"{vlm.name}-blind"
+        self.batch_size = vlm.batch_size
+
+    def _grey(self, clips: Sequence[Frames]) -> list[list[np.ndarray]]:
+        return [[np.full_like(frame, self.GREY) for frame in check_frames(clip, f"clip {i}")]
+                for i, clip in enumerate(clips)]
+
+    def answer(self, clips: Sequence[Frames], questions: Sequence[str]) -> list[str]:
+        return self.vlm.answer(self._grey(clips), questions)
+
+    def answer_stream(self, clips: Sequence[Frames], questions: Sequence[str]) -> Iterator[tuple[int, str]]:
+        yield from self.vlm.answer_stream(self._grey(clips), questions)
+
+    def answer_loss(self, clips: Sequence[Frames], questions: Sequence[str], answers: Sequence[str]):
+        return self.vlm.answer_loss(self._grey(clips), questions, answers)
+
+    def identity(self) -> dict:
+        return {**self.vlm.identity(), "blind": True}

