@@ -110,10 +110,11 @@ def answer_records(pairs: Sequence[tuple[dict, dict]], answers: Sequence[str], l
 
 
 def evaluate_clips(vlm: VLM, dataset, out_dir: str | Path, label: dict, judge=None, progress: str = "auto",
-                   pairs_per_chunk: int = 64) -> Path:
-    """Answer and score every (clip variant, QA) pair of `dataset` not yet in out_dir/per_answer.jsonl; returns
-    that file. `label` ({"model", "dataset"}) is copied into every record; `dataset` is a clip suite
-    (vlm/clip_set.py: clip_meta, qa_for, item frames)."""
+                   pairs_per_chunk: int | None = None) -> Path:
+    """Answer and score every (clip variant, QA) pair of `dataset` not yet in out_dir/per_answer.jsonl, in chunks
+    of about `pairs_per_chunk` pairs (default: 64, or 4 backend batches when larger); returns that file.
+    `label` ({"model", "dataset"}) is copied into every record; `dataset` is a clip suite (vlm/clip_set.py:
+    clip_meta, qa_for, item frames)."""
     out_dir = Path(out_dir)
     answer_log, score_log = ResultsLog(out_dir / ANSWERS), ResultsLog(out_dir / PER_ANSWER)
     scored = score_log.resume()
@@ -123,6 +124,9 @@ def evaluate_clips(vlm: VLM, dataset, out_dir: str | Path, label: dict, judge=No
     # the illusion each base clip's variants show: the clean records carry it too (report/specs.py language_part)
     case_illusion = {meta["base_clip_id"]: meta["illusion"] for meta in metas if meta.get("illusion")}
     bar = progress_counter(total, len(scored), "evaluate", "answer", progress)
+    # a chunk is answered, then scored (one Java call to tokenise, one judge pass): big enough that scoring is a
+    # small part of it and several backend batches fill it (a server keeps its requests in flight)
+    pairs_per_chunk = pairs_per_chunk or max(64, 4 * int(getattr(vlm, "batch_size", 1) or 1))
     for chunk in _chunks(dataset, scored, pairs_per_chunk):
         _ask(vlm, dataset, chunk, answers, answer_log)
         pairs = [({**meta, "case_illusion": case_illusion.get(meta["base_clip_id"])}, qa) for _, meta, qa in chunk]
