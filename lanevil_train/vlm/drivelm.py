@@ -26,7 +26,7 @@ import re
 from pathlib import Path
 
 from lanevil_train.data.formats.atomic import atomic_write_text
-from lanevil_train.vlm.qa_records import check_qa_record
+from lanevil_train.vlm.qa_records import OPTIONS_LEAD, check_qa_record, prompt_text
 
 SECTIONS = ("perception", "prediction", "planning", "behavior")
 CATEGORY_TO_DRIVELM = {"scene_description": "perception", "object_recognition": "perception",
@@ -35,14 +35,12 @@ CATEGORY_TO_DRIVELM = {"scene_description": "perception", "object_recognition": 
 DRIVELM_TO_CATEGORY = {"perception": "object_recognition", "prediction": "object_behavior",
                        "planning": "action", "behavior": "motion_reasoning"}
 NUSCENES_CAMERAS = ("CAM_FRONT_LEFT", "CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_RIGHT", "CAM_BACK", "CAM_BACK_LEFT")
-OPTIONS_LEAD = " Please select the correct answer from the following options: "
 _OPTION = re.compile(r"(?:^|\s)([A-Z])\.\s+(.*?)(?=\s+[A-Z]\.\s|$)", re.DOTALL)
 
 
 def _item(qa: dict) -> dict:
     """One DriveLM QA item for our QA record (ours kept whole under "lanevil")."""
-    question = qa["question"] + (OPTIONS_LEAD + " ".join(qa["choices"]) if qa["type"] == "choice" else "")
-    return {"Q": question, "A": qa["answer"], "C": None, "con_up": None, "con_down": None, "cluster": None,
+    return {"Q": prompt_text(qa), "A": qa["answer"], "C": None, "con_up": None, "con_down": None, "cluster": None,
             "layer": None, "lanevil": dict(qa)}
 
 

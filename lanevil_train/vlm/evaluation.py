@@ -17,6 +17,7 @@ from lanevil_train.progress import progress_counter
 from lanevil_train.report.specs import VQA_SPEC
 from lanevil_train.results_log import ResultsLog
 from lanevil_train.vlm.base import VLM
+from lanevil_train.vlm.qa_records import prompt_text
 
 ANSWERS = "answers.jsonl"
 PER_ANSWER = "per_answer.jsonl"
@@ -70,7 +71,7 @@ def _ask(vlm: VLM, dataset, pairs: list[tuple[int, dict, dict]], answers: dict[s
             if index not in frames:
                 frames[index] = dataset[index]["frames"]
         clips = [frames[index] for index, _, _ in batch]
-        for i, text in vlm.answer_stream(clips, [qa["question"] for _, _, qa in batch]):
+        for i, text in vlm.answer_stream(clips, [prompt_text(qa) for _, _, qa in batch]):
             _, meta, qa = batch[i]
             key = pair_key(meta["clip_id"], qa["qa_id"])
             answers[key] = text

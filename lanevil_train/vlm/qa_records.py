@@ -11,6 +11,14 @@ import re
 QA_CATEGORIES = ("scene_description", "object_recognition", "lane_recognition", "object_behavior",
                  "motion_reasoning", "action")
 QA_TYPES = ("open", "yes_no", "choice")
+# How a choice question's options follow it in the text a model is asked (DriveLM's multiple-choice layout).
+OPTIONS_LEAD = " Please select the correct answer from the following options: "
+
+
+def prompt_text(qa: dict) -> str:
+    """The text a model is asked for a QA: the question, and for a choice question its options after it (a model
+    cannot pick letter B without seeing the options)."""
+    return qa["question"] + (OPTIONS_LEAD + " ".join(qa["choices"]) if qa["type"] == "choice" else "")
 
 
 def _normalise(text: str) -> str:

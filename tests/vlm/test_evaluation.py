@@ -16,7 +16,7 @@ from lanevil_train.tasks.results import write_results
 from lanevil_train.vlm.base import VLM, BlindVLM
 from lanevil_train.vlm.clip_set import SyntheticClipSuite
 from lanevil_train.vlm.evaluation import ANSWERS, PER_ANSWER, evaluate_clips, pair_key
-from lanevil_train.vlm.qa_records import answer_is_correct
+from lanevil_train.vlm.qa_records import answer_is_correct, prompt_text
 
 LABEL = {"model": "brightness", "dataset": "tiny-clips"}
 
@@ -152,3 +152,21 @@ def test_the_blind_baseline_asks_the_same_model_on_grey_frames(suite):
     assert answer == "Yes. The road is bright (128.00)."  # the wrapped model saw a uniform grey clip
     assert len(seen[0]) == 6 and all(f.shape == clip[0].shape and (f == 128).all() for f in seen[0])
     assert blind.name == "brightness-blind" and blind.identity()["blind"] is True
+
+
+def test_a_choice_question_is_asked_with_its_options(suite, tmp_path):
+    asked = []
+
+    class Recording(BrightnessVLM):
+        def answer(self, clips, questions):
+            asked.extend(questions)
+            return super().answer(clips, questions)
+
+    evaluate_clips(Recording(), suite, tmp_path, LABEL, progress="none")
+    qas = [qa for i in range(len(suite)) for qa in suite.qa_for(suite.clip_meta(i)["base_clip_id"])]
+    choice = next(qa for qa in qas if qa["type"] == "choice")
+    text = prompt_text(choice)
+    assert text in asked and text.startswith(choice["question"])
+    assert all(option in text for option in choice["choices"])
+    yes_no = next(qa for qa in qas if qa["type"] == "yes_no")
+    assert yes_no["question"] in asked  # other questions are asked as they are
