@@ -143,6 +143,8 @@ def build_trainer(cfg: DictConfig, callbacks: list | None = None, logger=True) -
     from lanevil_train.tasks.trainer_progress import progress_callback
 
     args = OmegaConf.to_container(cfg.trainer, resolve=True)
+    if isinstance(args.get("strategy"), dict):  # a strategy object from its config node (trainer=fsdp, deepspeed)
+        args["strategy"] = instantiate_at(cfg.trainer.strategy, "trainer.strategy")
     callbacks = list(callbacks or [])
     bar = progress_callback(cfg.progress)
     if bar is not None:
