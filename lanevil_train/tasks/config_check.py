@@ -496,6 +496,25 @@ def check_vlm_task(cfg: DictConfig) -> list[str]:
     return []
 
 
+def check_split_seeds(cfg: DictConfig) -> list[str]:
+    """Simulated splits are seed ranges [first_seed, first_seed + num_scenes or num_cases): no two may overlap, or
+    a model would be tested on scenes it was trained on."""
+    ranges = []
+    for split in SPLITS:
+        first = _get(cfg, f"data.{split}.first_seed")
+        count = _get(cfg, f"data.{split}.num_cases")
+        count = _get(cfg, f"data.{split}.num_scenes") if count is _ABSENT else count
+        if _is_int(first) and _is_int(count):
+            ranges.append((split, first, first + count))
+    problems = []
+    for i, (a, a0, a1) in enumerate(ranges):
+        for b, b0, b1 in ranges[i + 1:]:
+            if a0 < b1 and b0 < a1:
+                problems.append(f"data.{b}.first_seed: the {b} split's seeds [{b0}, {b1}) overlap the {a} split's "
+                                f"[{a0}, {a1}); splits must not share scenes: move data.{b}.first_seed or shrink a split")
+    return problems
+
+
 def check_checkpoint_given(cfg: DictConfig) -> list[str]:
     task = _get(cfg, "task.name")
     if _is_vlm(cfg):
@@ -514,7 +533,7 @@ def check_training_ends(cfg: DictConfig) -> list[str]:
 
 
 CROSS_CHECKS = (check_feature_map, check_backbone_weights, check_cases, check_checkpoint_given, check_training_ends,
-                check_vlm_task)
+                check_vlm_task, check_split_seeds)
 
 
 # ---------------------------------------------------------------------------------------------- _target_ nodes

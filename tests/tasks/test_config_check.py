@@ -169,6 +169,12 @@ BAD = [
     (["model.decode.conf_threshold=1.5"], "model.decode.conf_threshold: expected a number in [0, 1], got 1.5"),
     (["model.decode.nms_threshold=-1"], "model.decode.nms_threshold: expected a number >= 0, got -1"),
     (["model.decode.nms_topk=0"], "model.decode.nms_topk: expected null or an integer >= 1, got 0"),
+    # simulated splits are disjoint seed ranges
+    (["data.test.first_seed=10"],
+     "data.test.first_seed: the test split's seeds [10, 210) overlap the train split's [0, 2000); splits must not "
+     "share scenes"),
+    (["data=clips", "data.test.first_seed=1500"],
+     "data.test.first_seed: the test split's seeds [1500, 1600) overlap the train split's [0, 2000)"),
     # model=vlm/<backend>
     (["task=evaluate", "model=vlm/hf"],
      "model.path: is not set (??? in the config); set it to the path of an existing directory of a saved Hugging "
