@@ -1,0 +1,223 @@
+"""The embedded VLM: a small Qwen2-VL built here from a config, that learns the clip QA on a CPU in minutes.
+
+It is the project's offline default VLM (`model=vlm/embedded`): nothing is downloaded, and it is saved with
+`save_pretrained`, so it loads through AutoModelForImageTextToText + AutoProcessor and runs through the very same
+`vlm/hf` code (HFVLM: generation, answer loss, LoRA, prefix splicing) as any downloaded model. It is a small
+baseline trained on the simulated clips, never one of the paper's models.
+
+Choices (defaults; every size is a keyword of `build_embedded_vlm`):
+  * family: Qwen2-VL (`qwen2_vl`), because it takes a clip natively as one video of any aspect ratio: the 6
+    frames are cut into 2-frame x 8x8-pixel patches (temporal patch 2, patch 8) and 2x2 patches are merged
+    into one token, so a 64x112 clip is 3 x 4 x 7 = 84 vision tokens (LLaVA would crop the frames square and
+    spend a token per patch per frame).
+  * image resolution: the processor feeds the frames at `frame_size` (default (64, 112), H x W, multiples of
+    16): its pixel bounds are that frame's area, so frames rendered at that size pass unresized and larger
+    frames are scaled down to about that area.
+  * vision tower: 2 blocks, width 96, 4 heads, projected (merger) into the decoder's width.
+  * decoder: Qwen2 with M-RoPE, width 128, 4 layers, 4 heads (2 key/value heads), MLP 384.
+  * vocabulary: a byte-level BPE tokenizer of 1024 ids trained here on the QA corpus given (the training
+    split's questions, options and answers) plus tiny.py's base corpus, with Qwen2-VL's special tokens; any
+    text still encodes (byte fallback), so no question is ever unknown.
+  * parameters: about 1.3 M with the defaults (PARAMETER_RANGE bounds it; `count_parameters` tells).
+The chat template is Qwen2-VL's (system turn, user turn of the video then the question, assistant turn).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Sequence
+
+from lanevil_train.vlm.qa_records import prompt_text
+from lanevil_train.vlm.tiny import _BASE_CORPUS, _TEMPLATES, _family_spec, _qwen_ids, _token_roles
+
+FAMILY = "qwen2_vl"
+DEFAULT_FRAME_SIZE = (64, 112)
+PATCH, MERGE, TEMPORAL = 8, 2, 2
+PARAMETER_RANGE = (0.8e6, 2.5e6)  # what the default sizes give (about 1.3 M), with room for the vocabulary
+DEFAULT_SIZES = {"hidden": 128, "layers": 4, "heads": 4, "kv_heads": 2, "intermediate": 384,
+                 "vision_dim": 96, "vision_depth": 2, "vision_heads": 4, "vocab_size": 1024}
+
+
+def check_sizes(size: dict) -> dict:
+    """DEFAULT_SIZES overridden by `size`, each a positive int and the widths divisible by their heads."""
+    unknown = sorted(set(size) - set(DEFAULT_SIZES))
+    if unknown:
+        raise ValueError(f"size: unknown keys {unknown}; expected some of {', '.join(DEFAULT_SIZES)}")
+    sizes = {**DEFAULT_SIZES, **size}
+    for key, value in sizes.items():
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"size.{key}: expected an integer >= 1, got {value!r}")
+    head_dim, rest = divmod(sizes["hidden"], sizes["heads"])
+    if rest or head_dim % 8:
+        raise ValueError(f"size.hidden ({sizes['hidden']}) / size.heads ({sizes['heads']}): expected a head width "
+                         f"that is a multiple of 8 (M-RoPE splits it in 3 sections)")
+    if sizes["heads"] % sizes["kv_heads"]:
+        raise ValueError(f"size.kv_heads ({sizes['kv_heads']}): expected a divisor of size.heads ({sizes['heads']})")
+    if sizes["vision_dim"] % sizes["vision_heads"]:
+        raise ValueError(f"size.vision_dim ({sizes['vision_dim']}): expected a multiple of size.vision_heads "
+                         f"({sizes['vision_heads']})")
+    if sizes["vocab_size"] < 300:
+        raise ValueError(f"size.vocab_size: expected at least 300 (256 bytes + special tokens), "
+                         f"got {sizes['vocab_size']}")
+    return sizes
+
+
+def check_frame_size(frame_size) -> tuple[int, int]:
+    """(H, W) as two ints, each a multiple of 16 (patch 8 x merge 2) and at least 16, else a ValueError."""
+    step = PATCH * MERGE
+    if (not isinstance(frame_size, (list, tuple)) or len(frame_size) != 2
+            or not all(isinstance(v, int) and not isinstance(v, bool) and v >= step and v % step == 0
+                       for v in frame_size)):
+        raise ValueError(f"frame_size: expected (H, W), two multiples of {step} that are at least {step}, "
+                         f"got {frame_size!r}")
+    return int(frame_size[0]), int(frame_size[1])
+
+
+def train_qa_tokenizer(corpus: Sequence[str], vocab_size: int):
+    """A byte-level BPE tokenizer of `vocab_size` ids trained on `corpus` with Qwen2-VL's special tokens."""
+    from tokenizers import Tokenizer, decoders, models, pre_tokenizers, processors, trainers
+    from transformers import PreTrainedTokenizerFast
+
+    spec = _family_spec(FAMILY)
+    core = Tokenizer(models.BPE())
+    core.pre_tokenizer = pre_tokenizers.ByteLevel(add_prefix_space=False)
+    core.decoder = decoders.ByteLevel()
+    core.post_processor = processors.ByteLevel(trim_offsets=False)
+    trainer = trainers.BpeTrainer(vocab_size=vocab_size, special_tokens=list(spec["tokens"]), show_progress=False,
+                                  initial_alphabet=pre_tokenizers.ByteLevel.alphabet())
+    core.train_from_iterator(list(_BASE_CORPUS) + [str(text) for text in corpus], trainer)
+    roles = {name: spec[name] for name in ("bos", "eos", "pad") if spec[name] is not None}
+    return PreTrainedTokenizerFast(tokenizer_object=core, **{f"{k}_token": v for k, v in roles.items()},
+                                   additional_special_tokens=[t for t in spec["tokens"] if t not in roles.values()])
+
+
+def make_processor(tokenizer, frame_size: tuple[int, int]):
+    """Qwen2-VL image and video processors (patch 8, merge 2) that keep about `frame_size`'s area per frame."""
+    from transformers import Qwen2VLImageProcessor, Qwen2VLProcessor, Qwen2VLVideoProcessor
+
+    area = frame_size[0] * frame_size[1]
+    pixels = {"size": {"shortest_edge": area, "longest_edge": area}, "patch_size": PATCH,
+              "temporal_patch_size": TEMPORAL, "merge_size": MERGE}
+    images = Qwen2VLImageProcessor(**pixels)
+    videos = Qwen2VLVideoProcessor(**pixels, do_sample_frames=False, cap_pixels_per_frame=True)
+    return Qwen2VLProcessor(images, tokenizer, videos, chat_template=_TEMPLATES[FAMILY])
+
+
+def make_config(tokenizer, sizes: dict):
+    """The Qwen2-VL config of `sizes` with the token ids of `tokenizer`."""
+    from transformers import Qwen2VLConfig
+
+    head_dim = sizes["hidden"] // sizes["heads"]
+    half = head_dim // 2
+    section = [half - 2 * (3 * half // 8), 3 * half // 8, 3 * half // 8]  # Qwen's 16:24:24 split of 64 halves
+    vision = dict(depth=sizes["vision_depth"], embed_dim=sizes["vision_dim"], hidden_size=sizes["hidden"],
+                  num_heads=sizes["vision_heads"], mlp_ratio=2, patch_size=PATCH, spatial_merge_size=MERGE,
+                  temporal_patch_size=TEMPORAL)
+    text = dict(model_type="qwen2_vl_text", vocab_size=len(tokenizer), hidden_size=sizes["hidden"],
+                intermediate_size=sizes["intermediate"], num_hidden_layers=sizes["layers"],
+                num_attention_heads=sizes["heads"], num_key_value_heads=sizes["kv_heads"],
+                max_position_embeddings=2048, rope_parameters={"rope_type": "default", "rope_theta": 10000.0,
+                                                               "mrope_section": section},
+                **_token_roles(tokenizer), bos_token_id=None)
+    return Qwen2VLConfig(vision_config=vision, text_config=text, **_qwen_ids(tokenizer), **_token_roles(tokenizer),
+                         bos_token_id=None)
+
+
+def make_embedded_vlm(corpus: Sequence[str], frame_size=DEFAULT_FRAME_SIZE, seed: int = 0, **size):
+    """(model, processor) of a random-weight embedded VLM in memory; the same arguments give the same weights."""
+    import torch
+    from transformers import AutoModelForImageTextToText, GenerationConfig
+
+    if isinstance(corpus, str) or not all(isinstance(text, str) for text in corpus):
+        raise ValueError("corpus: expected a sequence of strings (the QA texts to train the tokenizer on)")
+    frame_size = check_frame_size(tuple(frame_size) if isinstance(frame_size, list) else frame_size)
+    sizes = check_sizes(size)
+    tokenizer = train_qa_tokenizer(corpus, sizes["vocab_size"])
+    processor = make_processor(tokenizer, frame_size)
+    config = make_config(tokenizer, sizes)
+    torch.manual_seed(seed)
+    model = AutoModelForImageTextToText.from_config(config).eval()
+    model.generation_config = GenerationConfig(**_token_roles(tokenizer))
+    return model, processor
+
+
+def build_embedded_vlm(out_dir: str | os.PathLike, corpus: Sequence[str], frame_size=DEFAULT_FRAME_SIZE,
+                       seed: int = 0, **size) -> Path:
+    """Build the random-weight embedded VLM (tokenizer trained on `corpus`) and save it whole at `out_dir`."""
+    out = Path(out_dir)
+    if out.exists() and any(out.iterdir()):
+        raise FileExistsError(f"out_dir {out}: exists and is not empty; expected a new or empty directory")
+    model, processor = make_embedded_vlm(corpus, frame_size, seed, **size)
+    save_model_dir(model, processor, out)
+    return out
+
+
+def save_model_dir(model, processor, out: Path) -> None:
+    """Save model + processor into a staging folder, then rename it to `out`: a kill never leaves half a model."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent))
+    try:
+        model.save_pretrained(staging)
+        processor.save_pretrained(staging)
+        if out.exists():
+            shutil.rmtree(out) if any(out.iterdir()) else out.rmdir()
+        os.replace(staging, out)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+
+
+def count_parameters(model) -> int:
+    """How many weights the model has (vision tower, merger, decoder and head; tied weights counted once)."""
+    return sum(p.numel() for p in model.parameters())
+
+
+def qa_corpus(qas: Sequence[dict]) -> list[str]:
+    """The texts of QA records (question, options, answer) a tokenizer should be trained on."""
+    texts = []
+    for i, qa in enumerate(qas):
+        if not isinstance(qa, dict) or not isinstance(qa.get("question"), str) or not isinstance(qa.get("answer"),
+                                                                                                  str):
+            raise ValueError(f"qas[{i}]: expected a QA record with string 'question' and 'answer'")
+        texts.append(prompt_text(qa) if qa.get("type") == "choice" else qa["question"])
+        texts.append(qa["answer"])
+    return texts
+
+
+GREY = 128  # the blind ablation's frames: the same uniform grey as BlindVLM
+
+
+def fit_answers(vlm, sample_batch, steps: int, lr: float = 2e-3, warmup: int = 30, weight_decay: float = 0.01,
+                log=None, log_every: int = 25) -> list[float]:
+    """Train an HFVLM's weights in place for `steps` AdamW steps (linear warmup, cosine decay) on the answer loss
+    of `sample_batch(step) -> (clips, questions, answers)`; the mean loss of each step, in order."""
+    import math
+
+    import torch
+
+    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+        raise ValueError(f"steps: expected an integer >= 1, got {steps!r}")
+    if not isinstance(lr, (int, float)) or not lr > 0:
+        raise ValueError(f"lr: expected a number > 0, got {lr!r}")
+    model = vlm.model.train()
+    optimizer = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=lr,
+                                  weight_decay=weight_decay)
+    schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda s: min(1.0, (s + 1) / max(1, warmup))
+                                                 * 0.5 * (1 + math.cos(math.pi * min(s, steps) / steps)))
+    losses = []
+    for step in range(steps):
+        clips, questions, answers = sample_batch(step)
+        loss = vlm.loss_from_embeds(batch := vlm.encode(clips, questions, answers), vlm.embed(batch)).mean()
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+        optimizer.step()
+        schedule.step()
+        losses.append(float(loss.detach()))
+        if log is not None and (step + 1) % log_every == 0:
+            log(f"step {step + 1}/{steps}: loss {sum(losses[-log_every:]) / log_every:.3f}")
+    model.eval()
+    return losses
