@@ -31,6 +31,7 @@ IGNORE_INDEX = -100
 _QUESTION_MARK = "@@LANEVIL_QUESTION@@"
 _ANSWER_MARK = "@@LANEVIL_ANSWER@@"
 _WEIGHT_SUFFIXES = (".safetensors", ".bin", ".pt", ".pth")
+ADAPTER_CONFIG = "adapter_config.json"
 
 
 @dataclass
@@ -54,11 +55,44 @@ class HFVLM(VLM):
     def __init__(self, path: str | Path, name: str | None = None, dtype: str = "auto", device: str = "auto",
                  max_new_tokens: int = 64, batch_size: int = 4, frames_as: str = "auto",
                  system_prompt: str | None = None, do_sample: bool = False, temperature: float = 1.0,
-                 attn_implementation: str | None = None, seed: int = 0):
-        """Load the model and processor saved at `path`; refuse bad settings naming the argument."""
+                 attn_implementation: str | None = None, seed: int = 0, adapter: str | Path | None = None,
+                 merge_adapter: bool = False):
+        """Load the model and processor saved at `path` (and the peft adapter at `adapter` on top of it, merged
+        into the weights when `merge_adapter`); refuse bad settings naming the argument."""
         self.path = _check_model_dir(path)
-        self.name = name or self.path.name
         self.dtype_name = _choice("dtype", dtype, DTYPES)
+        self.device = _resolve_device(device)
+        self.model_type = _check_architecture(self.path)
+        self.adapter = None if adapter is None else _check_adapter_dir(adapter)
+        self.merge_adapter = bool(merge_adapter)
+        self._settle(name, max_new_tokens, batch_size, frames_as, system_prompt, do_sample, temperature, seed)
+        self.processor = _load_processor(self.path)
+        self.model = _load_model(self.path, self.dtype_name, self.device, attn_implementation)
+        if self.adapter is not None:
+            self.model = _load_adapter(self.model, self.adapter, self.path, self.merge_adapter)
+        self.frames_as = self._resolve_frames_as()
+
+    @classmethod
+    def wrap(cls, model, processor, path: str | Path, name: str | None = None, max_new_tokens: int = 64,
+             batch_size: int = 4, frames_as: str = "auto", system_prompt: str | None = None, do_sample: bool = False,
+             temperature: float = 1.0, seed: int = 0) -> "HFVLM":
+        """An HFVLM around an already-loaded model (plain or peft-wrapped) and processor, e.g. one being trained,
+        so training and evaluation share the same encode/loss code; `path` is the base model's directory."""
+        self = cls.__new__(cls)
+        self.path = _check_model_dir(path)
+        self.model_type = _check_architecture(self.path)
+        self.model, self.processor = model, processor
+        self.dtype_name = str(model.dtype).removeprefix("torch.")
+        self.device = str(next(model.parameters()).device)
+        self.adapter, self.merge_adapter = None, False
+        self._settle(name, max_new_tokens, batch_size, frames_as, system_prompt, do_sample, temperature, seed)
+        self.frames_as = self._resolve_frames_as()
+        return self
+
+    def _settle(self, name, max_new_tokens, batch_size, frames_as, system_prompt, do_sample, temperature,
+                seed) -> None:
+        """Check and keep the generation and prompt settings, naming a bad argument."""
+        self.name = name or self.path.name
         self.frames_as_setting = _choice("frames_as", frames_as, FRAMES_AS)
         self.max_new_tokens = _positive_int("max_new_tokens", max_new_tokens)
         self.batch_size = _positive_int("batch_size", batch_size)
@@ -68,11 +102,6 @@ class HFVLM(VLM):
             raise ValueError(f"system_prompt: expected a string or None, got {type(system_prompt).__name__}")
         self.system_prompt, self.do_sample, self.temperature = system_prompt, bool(do_sample), float(temperature)
         self.seed = int(seed)
-        self.device = _resolve_device(device)
-        self.model_type = _check_architecture(self.path)
-        self.processor = _load_processor(self.path)
-        self.model = _load_model(self.path, self.dtype_name, self.device, attn_implementation)
-        self.frames_as = self._resolve_frames_as()
 
     # ---- the VLM interface -------------------------------------------------------------------------------------
 
@@ -98,16 +127,20 @@ class HFVLM(VLM):
         return {"backend": type(self).__name__, "name": self.name, "path": str(self.path),
                 "model_hash": model_dir_hash(self.path), "dtype": self.dtype_name, "max_new_tokens": self.max_new_tokens,
                 "frames_as": self.frames_as, "system_prompt": self.system_prompt, "do_sample": self.do_sample,
-                "temperature": self.temperature if self.do_sample else None}
+                "temperature": self.temperature if self.do_sample else None,
+                **({} if self.adapter is None else {"adapter": str(self.adapter), "adapter_hash":
+                    adapter_dir_hash(self.adapter), "merge_adapter": self.merge_adapter})}
 
     # ---- pieces for losses over spliced embeddings (PAT++) -----------------------------------------------------
 
     def encode(self, clips: Sequence[Frames], questions: Sequence[str],
-               answers: Sequence[str] | None = None) -> EncodedBatch:
+               answers: Sequence[str] | None = None, label_eos: bool = False) -> EncodedBatch:
         """The left-padded batch through the chat template (answers as the assistant turn when given), with the
-        token spans of each question (and answer) and the answer-only labels."""
+        token spans of each question (and answer) and the answer-only labels. With `label_eos` the labels also
+        cover the end-of-turn token after each answer (inserted when the template puts none there), so a model
+        trained on them learns to stop."""
         check_batch(clips, questions, answers)
-        rendered = [self._render(clip, q, None if answers is None else answers[i])
+        rendered = [self._render(clip, q, None if answers is None else answers[i], label_eos)
                     for i, (clip, q) in enumerate(zip(clips, questions))]
         texts = [text for text, _, _ in rendered]
         inputs = self._process(texts, clips)
@@ -115,7 +148,12 @@ class HFVLM(VLM):
         batch = EncodedBatch(inputs=inputs, question_spans=question_spans)
         if answers is not None:
             batch.answer_spans = answer_spans
-            batch.labels = _answer_labels(inputs["input_ids"], answer_spans)
+            labelled = answer_spans
+            if label_eos:
+                ends = self._locate_spans(texts, [(t, q, self._end_chars(t, a)) for t, q, a in rendered],
+                                          inputs["input_ids"])[1]
+                labelled = [(start, end) for (start, _), (_, end) in zip(answer_spans, ends)]
+            batch.labels = _answer_labels(inputs["input_ids"], labelled)
         return batch
 
     def embed(self, batch: EncodedBatch):
@@ -144,7 +182,8 @@ class HFVLM(VLM):
     def position_ids(self, batch: EncodedBatch):
         """Position ids that skip the left padding (3-D M-RoPE ids for the Qwen-VL families), as generate uses."""
         inputs = batch.inputs
-        base = getattr(self.model, "model", None)
+        model = self.model.get_base_model() if hasattr(self.model, "get_base_model") else self.model
+        base = getattr(model, "model", None)
         if hasattr(base, "get_rope_index") and "mm_token_type_ids" in inputs:
             accepted = inspect.signature(base.get_rope_index).parameters
             kwargs = {key: value for key, value in inputs.items() if key in accepted}
@@ -165,8 +204,28 @@ class HFVLM(VLM):
             return "video" if takes_video and self.model_type in VIDEO_FAMILIES else "images"
         return self.frames_as_setting
 
-    def _render(self, clip: Frames, question: str, answer: str | None) -> tuple[str, tuple[int, int],
-                                                                                 tuple[int, int] | None]:
+    def end_tokens(self) -> list[str]:
+        """The strings of the tokens that end the model's turn: the generation config's eos ids and the
+        tokenizer's eos token."""
+        tokenizer = self.processor.tokenizer
+        ids = getattr(getattr(self.model, "generation_config", None), "eos_token_id", None)
+        ids = [] if ids is None else [ids] if isinstance(ids, int) else list(ids)
+        tokens = tokenizer.convert_ids_to_tokens(ids) + [tokenizer.eos_token]
+        return list(dict.fromkeys(token for token in tokens if token))
+
+    def _end_chars(self, text: str, answer_chars: tuple[int, int]) -> tuple[int, int]:
+        """Character span of the end-of-turn token that follows the answer in `text` (whitespace between allowed)."""
+        rest = text[answer_chars[1]:]
+        gap = len(rest) - len(rest.lstrip())
+        for token in self.end_tokens():
+            if rest[gap:].startswith(token):
+                start = answer_chars[1] + gap
+                return start, start + len(token)
+        raise ValueError(f"chat template of {self.path}: no end-of-turn token ({', '.join(self.end_tokens())}) "
+                         f"after the answer; expected one to label")
+
+    def _render(self, clip: Frames, question: str, answer: str | None,
+                label_eos: bool = False) -> tuple[str, tuple[int, int], tuple[int, int] | None]:
         """The chat-template text of one sample and the character spans of its question and answer in it."""
         media = [{"type": "video"}] if self.frames_as == "video" else [{"type": "image"}] * len(clip)
         messages = []
@@ -178,7 +237,20 @@ class HFVLM(VLM):
         template = self.processor.apply_chat_template(messages, add_generation_prompt=answer is None, tokenize=False)
         if isinstance(template, list):
             template = template[0]
-        return _fill_marks(template, question.strip(), None if answer is None else answer.strip(), self.path)
+        text, q_span, a_span = _fill_marks(template, question.strip(), None if answer is None else answer.strip(),
+                                           self.path)
+        if label_eos and a_span is not None and not self._ends_after(text, a_span):
+            eos = self.processor.tokenizer.eos_token
+            if not eos:
+                raise ValueError(f"tokenizer of {self.path}: no eos token to end the answer with; cannot train it to "
+                                 f"stop (set train_eos=false)")
+            text = text[:a_span[1]] + eos + text[a_span[1]:]
+        return text, q_span, a_span
+
+    def _ends_after(self, text: str, answer_chars: tuple[int, int]) -> bool:
+        """Whether an end-of-turn token follows the answer in `text` (after whitespace at most)."""
+        rest = text[answer_chars[1]:].lstrip()
+        return any(rest.startswith(token) for token in self.end_tokens())
 
     def _process(self, texts: list[str], clips: Sequence[Frames]) -> dict:
         """Processor outputs (left-padded) as tensors on the model's device, floats in the model's dtype."""
@@ -237,6 +309,16 @@ def model_dir_hash(path: str | Path) -> str:
     """A cheap fingerprint of a saved model: config.json's bytes and the names and sizes of its weight files."""
     path = Path(path)
     digest = hashlib.sha256((path / "config.json").read_bytes())
+    for file in sorted(path.iterdir()):
+        if file.is_file() and file.name.endswith(_WEIGHT_SUFFIXES):
+            digest.update(f"{file.name}:{file.stat().st_size}".encode())
+    return digest.hexdigest()[:16]
+
+
+def adapter_dir_hash(path: str | Path) -> str:
+    """A cheap fingerprint of a saved peft adapter: adapter_config.json's bytes and its weight files' sizes."""
+    path = Path(path)
+    digest = hashlib.sha256((path / ADAPTER_CONFIG).read_bytes())
     for file in sorted(path.iterdir()):
         if file.is_file() and file.name.endswith(_WEIGHT_SUFFIXES):
             digest.update(f"{file.name}:{file.stat().st_size}".encode())
@@ -342,6 +424,41 @@ def _load_model(path: Path, dtype: str, device: str, attn_implementation: str | 
     except (OSError, ValueError) as error:
         raise ValueError(f"model at {path}: cannot be loaded as image-text-to-text ({error})") from error
     return model.to(device).eval()
+
+
+def _check_adapter_dir(path) -> Path:
+    """`path` as a directory holding a peft adapter (adapter_config.json), else an error naming it."""
+    if not isinstance(path, (str, Path)) or not str(path):
+        raise ValueError(f"model.adapter: expected a directory of a saved peft adapter, got {path!r}")
+    path = Path(path).expanduser().resolve()
+    if not path.is_dir():
+        raise FileNotFoundError(f"model.adapter {path}: not a directory; expected a peft adapter saved with "
+                                f"save_pretrained")
+    if not (path / ADAPTER_CONFIG).is_file():
+        raise ValueError(f"model.adapter {path}: no {ADAPTER_CONFIG}, so not a peft adapter; expected a directory "
+                         f"written by a LoRA run's save_model (a merged or fully fine-tuned model loads as "
+                         f"model.path instead)")
+    return path
+
+
+def _load_adapter(model, adapter: Path, base: Path, merge: bool):
+    """`model` with the peft adapter at `adapter` on top (merged into the weights when `merge`), in eval mode;
+    an adapter that does not fit the model is an error naming both paths."""
+    import warnings
+
+    from peft import PeftModel
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            model = PeftModel.from_pretrained(model, adapter, is_trainable=False)
+        except (RuntimeError, ValueError, KeyError, TypeError) as error:
+            raise ValueError(f"model.adapter {adapter}: does not fit the model at {base} ({error}); expected an "
+                             f"adapter trained on that model") from error
+    missing = [str(w.message) for w in caught if "missing adapter keys" in str(w.message).lower()]
+    if missing:
+        raise ValueError(f"model.adapter {adapter}: does not fit the model at {base}: {missing[0][:300]}")
+    return (model.merge_and_unload() if merge else model).eval()
 
 
 def _resolve_device(device: str) -> str:

@@ -1,0 +1,106 @@
+"""(clip, question, answer) training pairs from a clip suite, and the batch a VLM fine-tuning step takes.
+
+A clip suite (ClipSetDataset on disk, or SyntheticClipSuite rendered on the fly) lists clips (each a clean or
+perturbed variant of a base clip) and, per base clip, its QA. ClipQADataset pairs every chosen clip variant with
+every QA of its base clip, in clip order, so an unshuffled pass renders (or reads) each clip once per QA run.
+collate_clip_qa stacks the frames into one uint8 tensor [B, 6, H, W, 3], the place visual defenses edit them.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+VARIANTS = ("clean", "all")
+FRAMES_PER_CLIP = 6
+
+
+class ClipQADataset(Dataset):
+    """(clip variant, QA) pairs of a clip suite (ClipSetDataset / SyntheticClipSuite).
+
+    variants: "clean" (severity-0 clips only) or "all"; limit: keep the first `limit` pairs (clip order)."""
+
+    def __init__(self, clips, variants: str = "clean", limit: int | None = None):
+        for needed in ("clip_meta", "qa_for", "__getitem__", "__len__"):
+            if not hasattr(clips, needed):
+                raise TypeError(f"clips: expected a clip suite (ClipSetDataset or SyntheticClipSuite) with "
+                                f"{needed}, got {type(clips).__name__}")
+        if variants not in VARIANTS:
+            raise ValueError(f"variants: expected one of {', '.join(VARIANTS)}, got {variants!r}")
+        if limit is not None and (isinstance(limit, bool) or not isinstance(limit, int) or limit < 1):
+            raise ValueError(f"limit: expected None or an integer >= 1, got {limit!r}")
+        self.clips, self.variants = clips, variants
+        self.pairs = self._pairs(limit)
+        if not self.pairs:
+            raise ValueError(f"clips: no {variants} clip with QA in this suite of {len(clips)} clips")
+        self._frames: tuple[int, np.ndarray] | None = None
+
+    def _pairs(self, limit: int | None) -> list[tuple[int, int]]:
+        """(clip index, QA index within its base clip) of every chosen variant, at most `limit` of them."""
+        pairs: list[tuple[int, int]] = []
+        for index in range(len(self.clips)):
+            meta = self.clips.clip_meta(index)
+            if self.variants == "clean" and meta["severity"] != 0:
+                continue
+            count = len(self.clips.qa_for(meta["base_clip_id"]))
+            pairs.extend((index, q) for q in range(count))
+            if limit is not None and len(pairs) >= limit:
+                return pairs[:limit]
+        return pairs
+
+    def __len__(self) -> int:
+        return len(self.pairs)
+
+    def _clip_frames(self, index: int) -> np.ndarray:
+        """The 6 frames of clip `index` as one uint8 array [6, H, W, 3]; the last clip read is kept."""
+        if self._frames is None or self._frames[0] != index:
+            frames = self.clips[index]["frames"]
+            if len(frames) != FRAMES_PER_CLIP:
+                raise ValueError(f"clip {self.clips.clip_meta(index)['clip_id']}: expected {FRAMES_PER_CLIP} frames, "
+                                 f"got {len(frames)}")
+            self._frames = (index, np.stack([np.asarray(frame, dtype=np.uint8) for frame in frames]))
+        return self._frames[1]
+
+    def __getitem__(self, index: int) -> dict:
+        clip_index, qa_index = self.pairs[index]
+        meta = self.clips.clip_meta(clip_index)
+        qa = self.clips.qa_for(meta["base_clip_id"])[qa_index]
+        return {"frames": self._clip_frames(clip_index), "question": qa["question"], "answer": qa["answer"],
+                "key": f"{meta['clip_id']}/{qa['qa_id']}",
+                "meta": {**meta, "qa_id": qa["qa_id"], "qa_category": qa["category"], "qa_type": qa["type"]}}
+
+
+def collate_clip_qa(items: Sequence[dict]) -> dict:
+    """A batch of ClipQADataset items: frames as one uint8 tensor [B, 6, H, W, 3], the texts and metas as lists."""
+    if not items:
+        raise ValueError("items: expected at least one (clip, QA) item to collate, got none")
+    shapes = {tuple(np.shape(item["frames"])) for item in items}
+    if len(shapes) != 1:
+        keys = ", ".join(f"{item['key']} {tuple(np.shape(item['frames']))}" for item in items[:4])
+        raise ValueError(f"items: the clips of a batch must share one frame size, got {keys}")
+    frames = torch.from_numpy(np.stack([np.asarray(item["frames"], dtype=np.uint8) for item in items]))
+    return {"frames": frames, "questions": [item["question"] for item in items],
+            "answers": [item["answer"] for item in items], "keys": [item["key"] for item in items],
+            "meta": [item["meta"] for item in items]}
+
+
+def batch_clips(batch: dict) -> list[list[np.ndarray]]:
+    """The batch's clips as the VLM interface takes them: per sample, 6 uint8 HxWx3 numpy frames (on the CPU)."""
+    frames = batch.get("frames") if isinstance(batch, dict) else None
+    if not isinstance(frames, torch.Tensor) or frames.ndim != 5 or frames.dtype != torch.uint8 or \
+            frames.shape[-1] != 3:
+        got = (f"{frames.dtype} tensor {tuple(frames.shape)}" if isinstance(frames, torch.Tensor)
+               else type(frames).__name__)
+        raise ValueError(f"batch['frames']: expected a uint8 tensor [B, 6, H, W, 3], got {got}")
+    array = frames.detach().cpu().numpy()
+    return [list(clip) for clip in array]
+
+
+def frames_as_images(batch: Any) -> torch.Tensor:
+    """A (B*6, 3, H, W) view of batch["frames"] for BatchAdapter(images=frames_as_images): edits to it edit the
+    batch's frames."""
+    frames = batch["frames"]
+    return frames.flatten(0, 1).permute(0, 3, 1, 2)
