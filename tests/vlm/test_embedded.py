@@ -1,0 +1,104 @@
+"""The embedded VLM: built offline, reloads through the Auto classes unchanged, answers through HFVLM, learns."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from lanevil_train.vlm.embedded import (DEFAULT_FRAME_SIZE, PARAMETER_RANGE, build_embedded_vlm, check_frame_size,
+                                        check_sizes, count_parameters, fit_answers, make_embedded_vlm, qa_corpus)
+from lanevil_train.vlm.hf import HFVLM
+from lanevil_train.vlm.qa_records import prompt_text
+
+QAS = [
+    {"type": "yes_no", "question": "Is the road surface wet?", "answer": "No. The road surface is dry."},
+    {"type": "choice", "question": "How many lanes does this road have?",
+     "choices": ["A. Two lanes.", "B. Three lanes.", "C. Four lanes.", "D. Five lanes."], "answer": "C. Four lanes."},
+    {"type": "open", "question": "Describe the weather and lighting in this clip.",
+     "answer": "It is sunset, with low, warm sunlight. The road surface is dry."},
+    {"type": "yes_no", "question": "Is it night-time in this scene?", "answer": "Yes. It is night; the road is lit "
+                                                                             "only by lamps and headlights."},
+]
+
+
+def _clip(seed: int, size=DEFAULT_FRAME_SIZE) -> list[np.ndarray]:
+    rng = np.random.default_rng(seed)
+    return [rng.integers(0, 256, (*size, 3), dtype=np.uint8) for _ in range(6)]
+
+
+@pytest.fixture(scope="module")
+def model_dir(tmp_path_factory):
+    return build_embedded_vlm(tmp_path_factory.mktemp("embedded") / "model", qa_corpus(QAS), seed=3)
+
+
+def test_reloads_through_auto_classes_with_identical_logits(model_dir):
+    from transformers import AutoModelForImageTextToText, AutoProcessor
+
+    built, _ = make_embedded_vlm(qa_corpus(QAS), seed=3)
+    loaded = AutoModelForImageTextToText.from_pretrained(model_dir, local_files_only=True).eval()
+    processor = AutoProcessor.from_pretrained(model_dir, local_files_only=True)
+    assert type(loaded).__name__ == "Qwen2VLForConditionalGeneration"
+    messages = [{"role": "user", "content": [{"type": "video"}, {"type": "text", "text": QAS[0]["question"]}]}]
+    text = processor.apply_chat_template(messages, add_generation_prompt=True, tokenize=False)
+    inputs = processor(text=[text], videos=[np.stack(_clip(0))], return_tensors="pt")
+    assert tuple(inputs["video_grid_thw"][0].tolist()) == (3, 8, 14)  # 6 frames of 64x112: 3 x 4 x 7 = 84 tokens
+    assert int((inputs["input_ids"] == loaded.config.video_token_id).sum()) == 84
+    with torch.no_grad():
+        reloaded_logits = loaded(**inputs).logits
+        built_logits = built.eval()(**inputs).logits
+    assert torch.equal(reloaded_logits, built_logits)
+    assert reloaded_logits.shape[-1] == len(processor.tokenizer)
+
+
+def test_hfvlm_answers_and_scores_with_it(model_dir):
+    vlm = HFVLM(model_dir, max_new_tokens=4, batch_size=2, device="cpu")
+    assert vlm.frames_as == "video"
+    answers = vlm.answer([_clip(0), _clip(1), _clip(2)], [prompt_text(qa) for qa in QAS[:3]])
+    assert len(answers) == 3 and all(isinstance(a, str) for a in answers)
+    loss = vlm.answer_loss([_clip(0)], [QAS[0]["question"]], [QAS[0]["answer"]])
+    assert loss.shape == (1,) and 3.0 < float(loss.detach()) < 12.0  # random weights: about ln(vocab) = 6.9
+
+
+def test_tokenizer_covers_the_qa_corpus_without_unknown_bytes(model_dir):
+    from transformers import AutoProcessor
+
+    tokenizer = AutoProcessor.from_pretrained(model_dir, local_files_only=True).tokenizer
+    for text in qa_corpus(QAS) + ["Unseen words: zebra crossing, 42 km/h, Ünïcode °"]:
+        ids = tokenizer(text)["input_ids"]
+        assert tokenizer.unk_token_id is None or tokenizer.unk_token_id not in ids
+        assert tokenizer.decode(ids) == text
+    # trained on the corpus: its frequent words are single tokens, so a question is short
+    assert len(tokenizer("Is the road surface wet?")["input_ids"]) <= 8
+
+
+def test_parameter_count_in_documented_range(model_dir):
+    from transformers import AutoModelForImageTextToText
+
+    model = AutoModelForImageTextToText.from_pretrained(model_dir, local_files_only=True)
+    assert PARAMETER_RANGE[0] <= count_parameters(model) <= PARAMETER_RANGE[1]
+
+
+def test_training_steps_reduce_the_answer_loss_on_a_fixed_batch(model_dir):
+    vlm = HFVLM(model_dir, device="cpu")
+    clips, questions, answers = [_clip(i) for i in range(4)], [prompt_text(qa) for qa in QAS], [
+        qa["answer"] for qa in QAS]
+    torch.manual_seed(0)
+    losses = fit_answers(vlm, lambda step: (clips, questions, answers), steps=12, lr=3e-3, warmup=2)
+    assert len(losses) == 12
+    assert losses[-1] < 0.6 * losses[0], losses
+
+
+def test_bad_arguments_are_refused_naming_them(tmp_path, model_dir):
+    with pytest.raises(ValueError, match="frame_size"):
+        check_frame_size((60, 112))
+    with pytest.raises(ValueError, match="size.hidden"):
+        check_sizes({"hidden": 100})
+    with pytest.raises(ValueError, match="unknown keys"):
+        check_sizes({"width": 64})
+    with pytest.raises(ValueError, match="corpus"):
+        make_embedded_vlm("a string, not a list of texts")
+    with pytest.raises(FileExistsError, match="out_dir"):
+        build_embedded_vlm(model_dir, qa_corpus(QAS))
+    with pytest.raises(ValueError, match=r"qas\[0\]"):
+        qa_corpus([{"question": "no answer"}])
