@@ -134,7 +134,7 @@ class VLMFineTuner(pl.LightningModule):
             config = LoraConfig(r=lora["r"], lora_alpha=lora["alpha"], lora_dropout=lora["dropout"],
                                 target_modules=default_lora_targets(model, lora["target_modules"]), bias="none")
             model = get_peft_model(model, config)
-        return model
+        return model.train()
 
     # ---- the model behind the VLM interface ----------------------------------------------------------------------
 
@@ -158,6 +158,10 @@ class VLMFineTuner(pl.LightningModule):
 
     # ---- Lightning hooks -----------------------------------------------------------------------------------------
 
+    def on_train_epoch_start(self) -> None:
+        """Training mode for the whole model (from_pretrained and vlm() leave it in eval mode), dropout on."""
+        self.model.train()
+
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
         loss = self.batch_loss(batch).mean()
         self.log("train/loss", loss, prog_bar=True, batch_size=len(batch["questions"]))
@@ -180,8 +184,10 @@ class VLMFineTuner(pl.LightningModule):
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
 
     def trainable_keys(self) -> set[str]:
-        """State-dict names of the weights that train (the only ones a checkpoint keeps)."""
-        return {name for name, param in self.named_parameters() if param.requires_grad}
+        """State-dict names of the weights that train (the only ones a checkpoint keeps); under trainer=fsdp the
+        wrappers' name parts are left out, as in the state dict FSDP gathers."""
+        return {name.replace("_fsdp_wrapped_module.", "").replace("_checkpoint_wrapped_module.", "")
+                for name, param in self.named_parameters() if param.requires_grad}
 
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         """Keep only the trainable weights: the rest is the base model at hparams.model_dir."""
@@ -189,8 +195,11 @@ class VLMFineTuner(pl.LightningModule):
         checkpoint["state_dict"] = {k: v for k, v in checkpoint["state_dict"].items() if k in keep}
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
-        """Refuse a checkpoint whose weights are not exactly this module's trainable ones."""
-        saved, wanted = set(checkpoint.get("state_dict", {})), self.trainable_keys()
+        """Refuse a checkpoint whose weights are not exactly this module's trainable ones (under trainer=fsdp the
+        strategy has loaded and removed them before this hook: nothing left to check)."""
+        if "state_dict" not in checkpoint:
+            return
+        saved, wanted = set(checkpoint["state_dict"]), self.trainable_keys()
         if saved != wanted:
             missing, extra = sorted(wanted - saved), sorted(saved - wanted)
             raise ValueError(f"checkpoint: its weights do not match this fine-tuning setup (model_dir "
