@@ -34,6 +34,8 @@ from lanevil_train.progress import MODES
 HYDRA_KEYS = {"_target_", "_recursive_", "_convert_", "_partial_", "_args_"}
 # Arguments the code passes to a target itself: a config value for them would be ignored.
 SUPPLIED = {"model.head": ("in_channels", "feature_stride", "image_size")}
+# Keys of a target node that the code reads itself (not arguments of its target): a VLM's training settings.
+READ_BY_CODE = {"model": ("lora", "fine_tune", "embedded")}
 DEFENSE_KEYS = ("name", "transforms", "mixer", "callback")
 SPLITS = ("train", "val", "test")
 
@@ -317,7 +319,23 @@ RULES: dict[str, Rule] = {
     "model.decode.nms_threshold": number(0),
     "model.decode.nms_topk": null_or(integer(1)),
     # model=vlm/<backend> (VLMs)
-    "model.path": existing_dir("directory of a saved Hugging Face model (save_pretrained)"),
+    "model.path": null_or(existing_dir("directory of a saved Hugging Face model (save_pretrained)")),
+    "model.adapter": null_or(existing_dir("directory of a peft adapter (a task=train run's model/ folder)")),
+    "model.merge_adapter": boolean(),
+    "model.lora": null_or(mapping_of(("r", "alpha", "dropout", "target_modules"))),
+    "model.lora.r": integer(1),
+    "model.lora.alpha": number(0, low_open=True),
+    "model.lora.dropout": number(0, 1, high_open=True),
+    "model.lora.target_modules": null_or(string_list()),
+    "model.fine_tune": mapping_of(("lr", "weight_decay", "warmup_steps", "freeze_vision", "gradient_checkpointing",
+                                   "train_eos", "variants")),
+    "model.fine_tune.lr": number(0, low_open=True),
+    "model.fine_tune.weight_decay": number(0),
+    "model.fine_tune.warmup_steps": integer(0),
+    "model.fine_tune.freeze_vision": boolean(),
+    "model.fine_tune.gradient_checkpointing": boolean(),
+    "model.fine_tune.train_eos": boolean(),
+    "model.fine_tune.variants": one_of("all", "clean"),
     "model.base_url": http_url(),
     "model.dtype": one_of("auto", "float32", "bfloat16", "float16"),
     "model.device": text(),
@@ -486,9 +504,19 @@ def check_vlm_task(cfg: DictConfig) -> list[str]:
                              "that is a VLM clip suite: evaluate it with model=vlm/<backend>")]
         return []
     task = _get(cfg, "task.name")
-    if task not in ("evaluate", "report"):
+    if task not in ("train", "evaluate", "report"):
         return [f"task: task={task} with a VLM (model={_get(cfg, 'model._target_')}) is not available; VLMs are "
-                f"evaluated with task=evaluate (and reported with task=report)"]
+                f"trained with task=train, evaluated with task=evaluate and reported with task=report"]
+    if task == "train" and _get(cfg, "model.base_url") is not _ABSENT:
+        return [f"task: task=train with model={_get(cfg, 'model._target_')}: a model behind a server cannot be "
+                f"trained here; fine-tune a local one (model=vlm/hf model.path=DIR, or model=vlm/embedded)"]
+    if task == "train" and _get(cfg, "data.name") != "clips":
+        return [_problem("data", "clips (a VLM trains on the clip suite's QA)", _get(cfg, "data.name"))]
+    embedded = _get(cfg, "model.embedded") not in (None, _ABSENT)
+    if task == "evaluate" and _get(cfg, "model.path") is None and _get(cfg, "ckpt_path") is None:
+        what = "model=vlm/embedded is trained here" if embedded else "the model is loaded from a folder"
+        return [f"model.path: {what}: give ckpt_path=<a task=train run's checkpoint> or model.path=<a saved "
+                f"model folder, e.g. that run's model/>"]
     suite = _get(cfg, "task.suite")
     if isinstance(suite, str) and Path(suite).is_dir() and not (Path(suite) / "clips.jsonl").is_file():
         return [_problem("task.suite", "a clip suite written by task=build data=clips (holding clips.jsonl), "
@@ -600,6 +628,8 @@ def check_target(key: str, node: Any) -> list[str]:
     accepted = [n for n, p in parameters.items() if p.kind is not inspect.Parameter.VAR_POSITIONAL]
     problems = []
     for name in node:
+        if name in READ_BY_CODE.get(key, ()):
+            continue
         if name in SUPPLIED.get(key, ()):
             problems.append(f"{key}.{name}: is set by the code (from the backbone and data.input_size); remove it "
                             f"from the config")

@@ -11,7 +11,7 @@ from omegaconf import DictConfig
 from lanevil_train.checkpoints import load_weights
 from lanevil_train.data.formats.atomic import remove_temporaries
 from lanevil_train.tasks.builders import (build_callbacks, build_datamodule, build_defense, build_model, build_trainer,
-                                          model_config, output_dir)
+                                          is_vlm, model_config, output_dir)
 from lanevil_train.tasks.evaluate import stream_dataset, test_dataset
 from lanevil_train.tasks.results import write_results
 from lanevil_train.tasks.scoring import RESULTS, PerImageWriter, score_test_set
@@ -24,6 +24,10 @@ def train(cfg: DictConfig) -> float | None:
     clean test Accuracy (%) when the test runs, else None. The clean test's per-image records go to
     per_image.jsonl in the run directory (the suite's to robustness/per_image.jsonl), which task=report reads.
     """
+    if is_vlm(cfg):  # model=vlm/<backend>: fine-tune a VLM on the clip suite (tasks/vlm_train.py)
+        from lanevil_train.tasks.vlm_train import train_vlm
+
+        return train_vlm(cfg)
     pl.seed_everything(cfg.seed, workers=True)
     out = output_dir(cfg)
     model = build_model(model_config(cfg))

@@ -23,9 +23,26 @@ from lanevil_train.vlm.base import VLM, BlindVLM
 from lanevil_train.vlm.evaluation import ANSWERS, PER_ANSWER, evaluate_clips
 
 
+# Generation and prompt settings of a local backend that a trained model (ckpt_path) is evaluated with.
+GENERATION_KEYS = ("name", "max_new_tokens", "batch_size", "frames_as", "system_prompt", "do_sample", "temperature",
+                   "seed")
+
+
+def generation_settings(cfg: DictConfig) -> dict:
+    """The model node's generation and prompt settings (for a model trained here, loaded from its checkpoint)."""
+    return {key: cfg.model[key] for key in GENERATION_KEYS if key in cfg.model}
+
+
 def build_vlm(cfg: DictConfig) -> VLM:
-    """The VLM backend cfg.model configures (a node with a `_target_`), built now: a bad path fails here."""
-    vlm = instantiate_at(cfg.model, "model")
+    """The VLM backend cfg.model configures (a node with a `_target_`; its training keys left out), or, with
+    ckpt_path, the model a task=train run saved in that checkpoint; built now: a bad path fails here."""
+    from lanevil_train.tasks.vlm_train import inference_node
+
+    if cfg.ckpt_path is not None:
+        from lanevil_train.vlm.training import load_finetuned
+
+        return load_finetuned(cfg.ckpt_path, "ckpt_path").vlm(**generation_settings(cfg))
+    vlm = instantiate_at(inference_node(cfg.model), "model")
     if not isinstance(vlm, VLM):
         raise ValueError(f"model._target_={cfg.model._target_}: built a {type(vlm).__name__}, expected a "
                          f"lanevil_train.vlm.base.VLM")

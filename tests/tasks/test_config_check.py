@@ -177,18 +177,28 @@ BAD = [
      "data.test.first_seed: the test split's seeds [1500, 1600) overlap the train split's [0, 2000)"),
     # model=vlm/<backend>
     (["task=evaluate", "model=vlm/hf"],
-     "model.path: is not set (??? in the config); set it to the path of an existing directory of a saved Hugging "
-     "Face model (save_pretrained): model.path=..."),
+     "model.path: is not set (??? in the config); set it to null or the path of an existing directory of a saved "
+     "Hugging Face model (save_pretrained): model.path=..."),
     (["task=evaluate", "model=vlm/hf", "model.path=/no/such/model"],
-     "model.path: expected the path of an existing directory of a saved Hugging Face model (save_pretrained), got "
-     "'/no/such/model' (no such directory)"),
+     "model.path: expected null or the path of an existing directory of a saved Hugging Face model "
+     "(save_pretrained), got '/no/such/model' (no such directory)"),
     (["task=evaluate", "model=vlm/openai", "model.base_url=localhost:8000", "model.name=m"],
      "model.base_url: expected an http(s) URL, e.g. http://127.0.0.1:8000/v1, got 'localhost:8000'"),
     (["task=evaluate", "model=vlm/openai", "model.base_url=http://h/v1", "model.name=m", "model.concurrency=0"],
      "model.concurrency: expected an integer >= 1, got 0"),
     (["task=train", "model=vlm/openai", "model.base_url=http://h/v1", "model.name=m"],
-     "task: task=train with a VLM (model=lanevil_train.vlm.openai.OpenAIVLM) is not available; VLMs are evaluated "
-     "with task=evaluate (and reported with task=report)"),
+     "task: task=train with model=lanevil_train.vlm.openai.OpenAIVLM: a model behind a server cannot be trained "
+     "here; fine-tune a local one"),
+    (["task=build", "model=vlm/openai", "model.base_url=http://h/v1", "model.name=m"],
+     "task: task=build with a VLM (model=lanevil_train.vlm.openai.OpenAIVLM) is not available"),
+    (["task=train", "model=vlm/hf", "model.path=/tmp"],
+     "data: expected clips (a VLM trains on the clip suite's QA), got 'synthetic'"),
+    (["task=evaluate", "model=vlm/hf", "model.path=null"],
+     "model.path: the model is loaded from a folder: give ckpt_path=<a task=train run's checkpoint> or model.path="),
+    (["task=train", "data=clips", "model=vlm/hf", "model.path=/tmp", "model.lora.r=0"],
+     "model.lora.r: expected an integer >= 1, got 0"),
+    (["task=train", "data=clips", "model=vlm/hf", "model.path=/tmp", "model.fine_tune.variants=some"],
+     "model.fine_tune.variants: expected one of all, clean, got 'some'"),
     (["task=evaluate", "model=vlm/openai", "model.base_url=http://h/v1", "model.name=m", "+model.top_p=0.9"],
      "model.top_p: not a parameter of lanevil_train.vlm.openai.OpenAIVLM; it accepts base_url"),
     (["task=evaluate", "model=vlm/openai", "model.base_url=http://h/v1", "model.name=m", "judge=openai",

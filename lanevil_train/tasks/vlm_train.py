@@ -1,0 +1,115 @@
+"""task=train for a VLM (model=vlm/embedded or model=vlm/hf): fine-tune on the clip suite's training split through
+the Lightning trainer (checkpoints, resume with ckpt_path, logging, progress), save the model in the Hugging Face
+format, then (task.test_after_fit) evaluate it on the test clips like task=evaluate.
+
+    python -m lanevil_train task=train model=vlm/embedded data=clips              # the small VLM built here
+    python -m lanevil_train task=train model=vlm/hf model.path=DIR data=clips     # LoRA (model.lora) or full
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytorch_lightning as pl
+from omegaconf import DictConfig, OmegaConf
+
+from lanevil_train.checkpoints import read_lightning_checkpoint
+from lanevil_train.tasks.builders import build_callbacks, build_split, build_trainer, output_dir
+from lanevil_train.tasks.results import write_results
+from lanevil_train.tasks.train import remove_stale_checkpoint_temporaries
+
+# Keys of a VLM model node read by the training code, not arguments of its inference `_target_`.
+TRAINING_KEYS = ("lora", "fine_tune", "embedded")
+MODEL_FOLDER = "model"  # the trained model (or adapter) in the Hugging Face format, in the run folder
+
+
+def inference_node(model: DictConfig) -> DictConfig:
+    """The model node without its training keys: what builds the inference backend."""
+    return OmegaConf.masked_copy(model, [key for key in model if key not in TRAINING_KEYS])
+
+
+def lora_settings(cfg: DictConfig) -> dict | None:
+    """model.lora as a plain dict, or None for full fine-tuning."""
+    lora = cfg.model.get("lora")
+    return None if lora is None else OmegaConf.to_container(lora, resolve=True)
+
+
+def base_model_dir(cfg: DictConfig, train_set, out: Path) -> Path:
+    """The model the run starts from: model=vlm/hf's model.path, or, for model=vlm/embedded, the small VLM built
+    into out/init from the training split's QA texts (a resumed run reuses the one its checkpoint names)."""
+    if cfg.model.get("embedded") is None:
+        return Path(cfg.model.path)
+    if cfg.ckpt_path is not None:
+        saved = read_lightning_checkpoint(cfg.ckpt_path, "ckpt_path").get("hyper_parameters", {}).get("model_dir")
+        if saved and Path(saved).is_dir():
+            return Path(saved)
+    from lanevil_train.vlm.embedded import build_embedded_vlm
+    from lanevil_train.vlm.qa_records import prompt_text
+
+    init = out / "init"
+    if not (init / "config.json").is_file():
+        corpus = [text for i in range(len(train_set)) for qa in train_set.qa_for(train_set.clip_meta(i)["base_clip_id"])
+                  for text in (prompt_text(qa), qa["answer"])]
+        settings = OmegaConf.to_container(cfg.model.embedded, resolve=True)
+        build_embedded_vlm(init, sorted(set(corpus)), frame_size=tuple(cfg.data.size), seed=cfg.seed, **settings)
+    return init
+
+
+def train_vlm(cfg: DictConfig) -> float | None:
+    """Fine-tune the VLM; returns its headline score on the perturbed test clips when the test runs, else None."""
+    from lanevil_train.vlm.qa_data import ClipQADataset, collate_clip_qa
+    from lanevil_train.vlm.training import VLMFineTuner
+
+    pl.seed_everything(cfg.seed, workers=True)
+    if cfg.data.name != "clips":
+        raise ValueError(f"data: a VLM trains on the clip suite's QA: use data=clips (got data={cfg.data.name})")
+    out = output_dir(cfg)
+    train_set, val_set = build_split(cfg, "train"), (build_split(cfg, "val") if cfg.data.get("val") else None)
+    fine_tune = OmegaConf.to_container(cfg.model.fine_tune, resolve=True)
+    variants = fine_tune.pop("variants", "all")
+    module = VLMFineTuner(str(base_model_dir(cfg, train_set, out)), lora=lora_settings(cfg),
+                          frames_as=cfg.model.get("frames_as", "auto"), **fine_tune)
+    callbacks = build_callbacks(cfg)
+    remove_stale_checkpoint_temporaries(callbacks)
+    trainer = build_trainer(cfg, callbacks=callbacks)
+    loaders = _loaders(cfg, ClipQADataset(train_set, variants=variants),
+                       ClipQADataset(val_set, variants="clean") if val_set is not None else None, collate_clip_qa)
+    trainer.fit(module, *loaders, ckpt_path=cfg.ckpt_path)
+    if not trainer.is_global_zero:
+        return None
+    saved = module.save_model(out / MODEL_FOLDER, merge=bool(cfg.model.get("merge_adapter", False)))
+    print(f"trained model: {saved} (evaluate it with task=evaluate {_evaluate_hint(cfg, saved)})")
+    if not cfg.task.test_after_fit:
+        return None
+    return _test(cfg, module, out / "test")
+
+
+def _loaders(cfg: DictConfig, train, val, collate):
+    from torch.utils.data import DataLoader
+
+    common = {"batch_size": cfg.data.batch_size, "num_workers": cfg.data.num_workers, "collate_fn": collate,
+              "persistent_workers": cfg.data.num_workers > 0}
+    return (DataLoader(train, shuffle=True, **common), DataLoader(val, shuffle=False, **common) if val else None)
+
+
+def _evaluate_hint(cfg: DictConfig, saved: Path) -> str:
+    if cfg.model.get("embedded") is not None or cfg.model.get("lora") is None:
+        return f"model=vlm/hf model.path={saved}"
+    return f"model=vlm/hf model.path={cfg.model.path} model.adapter={saved}"
+
+
+def _test(cfg: DictConfig, module, out: Path) -> float:
+    """The trained model on the test clips (task.suite, else data=clips' test split), with its blind baseline when
+    task.blind: the tables of task=evaluate in out/."""
+    from lanevil_train.tasks.vlm_evaluate import build_judge, clip_suite, evaluate_into, generation_settings
+    from lanevil_train.vlm.base import BlindVLM
+
+    dataset, dataset_name = clip_suite(cfg)
+    judge = build_judge(cfg, out)
+    vlm = module.vlm(**generation_settings(cfg))
+    name = cfg.task.get("label") or vlm.name
+    files = [evaluate_into(vlm, dataset, judge, out, {"model": name, "dataset": dataset_name}, cfg.progress)]
+    if cfg.task.get("blind"):
+        files.append(evaluate_into(BlindVLM(vlm), dataset, judge, out / "blind",
+                                   {"model": f"{name}-blind", "dataset": dataset_name}, cfg.progress))
+    return write_results(files, out)
