@@ -25,6 +25,28 @@ SHARDING_STRATEGIES = ("FULL_SHARD", "SHARD_GRAD_OP", "NO_SHARD", "HYBRID_SHARD"
 STATE_DICT_TYPES = ("full", "sharded")
 
 
+def deepspeed_strategy(stage: int = 2, offload_optimizer: bool = False, offload_parameters: bool = False, **kwargs):
+    """Lightning's DeepSpeedStrategy (ZeRO `stage`, optional CPU offload), checked and with a clear missing-package
+    error; other kwargs go to DeepSpeedStrategy (e.g. logging_batch_size_per_gpu, allgather_bucket_size)."""
+    if stage not in (1, 2, 3) or isinstance(stage, bool):
+        raise ValueError(f"stage: expected 1, 2 or 3 (ZeRO stage), got {stage!r}")
+    for name, value in (("offload_optimizer", offload_optimizer), ("offload_parameters", offload_parameters)):
+        if not isinstance(value, bool):
+            raise ValueError(f"{name}: expected true or false, got {value!r}")
+    if offload_parameters and stage != 3:
+        raise ValueError(f"offload_parameters: true needs ZeRO stage 3 (parameters are partitioned only there), "
+                         f"got stage {stage}")
+    import importlib.util
+
+    if importlib.util.find_spec("deepspeed") is None:
+        raise ImportError("trainer=deepspeed needs the deepspeed package: DS_BUILD_OPS=0 pip install deepspeed "
+                          "(or use trainer=fsdp, which needs nothing more)")
+    from pytorch_lightning.strategies import DeepSpeedStrategy
+
+    return DeepSpeedStrategy(stage=stage, offload_optimizer=offload_optimizer, offload_parameters=offload_parameters,
+                             **kwargs)
+
+
 def unwrap(module: nn.Module) -> nn.Module:
     """The module inside any FSDP / activation-checkpoint wrappers, so a wrapped block is seen as its class."""
     for attr in ("_fsdp_wrapped_module", "_checkpoint_wrapped_module"):
