@@ -1,6 +1,6 @@
 """The embedded VLM's learning experiment: train it on the simulated train split, score it on held-out clips.
 
-    python benchmarks/bench_embedded.py --out /tmp/bench_embedded [--steps 600 --batch 16 --lr 2e-3]
+    python benchmarks/bench_embedded.py --out /tmp/bench_embedded [--steps 150 --batch 16 --lr 3e-3]
 
 1. Renders the train split (seeds 0.., each base clip clean and at one severity, 1..5 by seed) and the test split
    (seeds from 1,000,000; never overlapping) at the model's frame size, once: cached under --cache as .npz chunks
@@ -209,12 +209,12 @@ def main(argv=None) -> None:
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--cache", type=Path, default=Path("/tmp/lanevil_embedded_clips"))
     parser.add_argument("--train-cases", type=int, default=600)
-    parser.add_argument("--test-cases", type=int, default=60)
+    parser.add_argument("--test-cases", type=int, default=30)
     parser.add_argument("--frame-size", type=int, nargs=2, default=(64, 112))
-    parser.add_argument("--steps", type=int, default=600)
+    parser.add_argument("--steps", type=int, default=150)
     parser.add_argument("--batch", type=int, default=16)
-    parser.add_argument("--lr", type=float, default=2e-3)
-    parser.add_argument("--warmup", type=int, default=30)
+    parser.add_argument("--lr", type=float, default=3e-3)
+    parser.add_argument("--warmup", type=int, default=15)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--max-new-tokens", type=int, default=48)
