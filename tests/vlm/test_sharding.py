@@ -18,8 +18,8 @@ import pytest
 import torch
 from torch import nn
 
-from lanevil_train.vlm.sharding import (LayerWrapFSDPStrategy, fsdp_units, layer_classes, layer_wrap_policy,
-                                        repeated_block_classes)
+from lanevil_train.vlm.sharding import (LayerWrapFSDPStrategy, checkpointed_blocks, fsdp_units, layer_classes,
+                                        layer_wrap_policy, repeated_block_classes)
 from lanevil_train.vlm.tiny import FAMILIES, make_tiny_vlm
 
 REPO = Path(__file__).resolve().parents[2]
@@ -167,14 +167,17 @@ def _losses(out: Path, rank: int) -> dict[int, float]:
 
 @pytest.mark.parametrize("lora", [False, pytest.param(True, marks=pytest.mark.slow)], ids=["full", "lora"])
 def test_two_cpu_processes_train_checkpoint_and_resume_under_fsdp(tiny_vlm_dir, tmp_path, lora):
-    """4 steps on 2 gloo ranks (each its own 2 samples) lower each rank's loss; last.ckpt holds the trainable
+    """4 steps on 2 gloo ranks (each its own 2 samples; full fine-tuning with activation checkpointing, LoRA
+    without) lower each rank's loss; last.ckpt holds the trainable
     weights under their plain names and, loaded without FSDP, gives the loss rank 0 then sees at resumed step 4."""
     from lanevil_train.vlm.training import VLMFineTuner, collate_clip_qa
 
     model_dir = tiny_vlm_dir("qwen2_vl")
     _run_ranks(model_dir, tmp_path, 4, lora)
     units = json.loads((tmp_path / "units.json").read_text())
-    assert units == {"VLMFineTuner": 1, "Qwen2VLDecoderLayer": 2, "Qwen2VLVisionBlock": 2}
+    assert units["fsdp"] == {"VLMFineTuner": 1, "Qwen2VLDecoderLayer": 2, "Qwen2VLVisionBlock": 2}
+    blocks = {"Qwen2VLDecoderLayer": 2, "Qwen2VLVisionBlock": 2}  # full fine-tuning runs with checkpointing on
+    assert units["checkpointed"] == ({} if lora else blocks)
     for rank in (0, 1):  # steps 0-1 and 2-3 are two epochs over the same 2 samples of the rank
         losses = _losses(tmp_path, rank)
         assert sorted(losses) == [0, 1, 2, 3]
@@ -207,7 +210,8 @@ def _rank_main(model_dir: str, out: str, max_steps: int, lora: bool) -> None:
     class Record(pl.Callback):
         def on_fit_start(self, trainer, module):
             if trainer.global_rank == 0:
-                Path(out, "units.json").write_text(json.dumps(fsdp_units(trainer.model)))
+                units = {"fsdp": fsdp_units(trainer.model), "checkpointed": checkpointed_blocks(trainer.model)}
+                Path(out, "units.json").write_text(json.dumps(units))
 
         def on_train_batch_end(self, trainer, module, outputs, batch, batch_idx):
             with open(Path(out, f"loss{trainer.global_rank}.txt"), "a") as handle:
@@ -217,6 +221,7 @@ def _rank_main(model_dir: str, out: str, max_steps: int, lora: bool) -> None:
         cfg = compose(config_name="config", overrides=[
             "trainer=fsdp", "trainer.accelerator=cpu", "trainer.devices=2", "trainer.precision=32-true",
             f"trainer.max_steps={max_steps}", "logger=none", "progress=none", f"output_dir={out}",
+            f"trainer.strategy.checkpoint_activations={str(not lora).lower()}",
             "+trainer.enable_model_summary=false"])
     checkpoints = Path(out, "checkpoints")
     last = checkpoints / "last.ckpt"
