@@ -13,7 +13,8 @@ embeddings, projector and LM head stay in the root unit. The same classes are th
 from __future__ import annotations
 
 import logging
-from typing import Iterable, Sequence
+from contextlib import contextmanager
+from typing import Iterable, Iterator, Sequence
 
 from pytorch_lightning.strategies import FSDPStrategy
 from torch import nn
@@ -45,6 +46,21 @@ def deepspeed_strategy(stage: int = 2, offload_optimizer: bool = False, offload_
 
     return DeepSpeedStrategy(stage=stage, offload_optimizer=offload_optimizer, offload_parameters=offload_parameters,
                              **kwargs)
+
+
+@contextmanager
+def full_weights(trainer) -> Iterator[None]:
+    """Run on every rank: inside, rank 0's model holds its full weights (on the CPU) so it alone can save or copy
+    them (save_pretrained), which under FSDP would otherwise need all ranks; a no-op without FSDP."""
+    from torch.distributed.fsdp import FullyShardedDataParallel
+
+    model = getattr(trainer, "model", None)
+    if not any(isinstance(module, FullyShardedDataParallel) for module in (model.modules() if model else ())):
+        yield
+        return
+    with FullyShardedDataParallel.summon_full_params(model, writeback=False, rank0_only=True, offload_to_cpu=True):
+        yield
+    trainer.strategy.barrier("full_weights")
 
 
 def unwrap(module: nn.Module) -> nn.Module:

@@ -18,8 +18,8 @@ import pytest
 import torch
 from torch import nn
 
-from lanevil_train.vlm.sharding import (LayerWrapFSDPStrategy, checkpointed_blocks, fsdp_units, layer_classes,
-                                        layer_wrap_policy, repeated_block_classes)
+from lanevil_train.vlm.sharding import (LayerWrapFSDPStrategy, checkpointed_blocks, fsdp_units, full_weights,
+                                        layer_classes, layer_wrap_policy, repeated_block_classes)
 from lanevil_train.vlm.tiny import FAMILIES, make_tiny_vlm
 
 REPO = Path(__file__).resolve().parents[2]
@@ -169,7 +169,9 @@ def _losses(out: Path, rank: int) -> dict[int, float]:
 def test_two_cpu_processes_train_checkpoint_and_resume_under_fsdp(tiny_vlm_dir, tmp_path, lora):
     """4 steps on 2 gloo ranks (each its own 2 samples; full fine-tuning with activation checkpointing, LoRA
     without) lower each rank's loss; last.ckpt holds the trainable
-    weights under their plain names and, loaded without FSDP, gives the loss rank 0 then sees at resumed step 4."""
+    weights under their plain names and, loaded without FSDP, gives the loss rank 0 then sees at resumed step 4;
+    the fully fine-tuned model rank 0 saves under full_weights holds those same weights."""
+    from lanevil_train.vlm.hf import HFVLM
     from lanevil_train.vlm.training import VLMFineTuner, collate_clip_qa
 
     model_dir = tiny_vlm_dir("qwen2_vl")
@@ -189,6 +191,16 @@ def test_two_cpu_processes_train_checkpoint_and_resume_under_fsdp(tiny_vlm_dir, 
     plain.load_state_dict(saved["state_dict"], strict=False)
     plain.train()
     resumed_loss = plain.batch_loss(collate_clip_qa([_items()[0]])).item()
+    sample = _items()[0]
+    if lora:  # known gap: peft writes an empty adapter under full_weights (see the FSDP docs); not checked here
+        saved_vlm = None
+    else:
+        saved_vlm = HFVLM(tmp_path / "model", dtype="float32", device="cpu")
+    plain_vlm = HFVLM.wrap(plain.model, plain.processor, model_dir)
+    if saved_vlm is not None:
+        loss_of = [vlm.answer_loss([list(sample["frames"])], [sample["question"]], [sample["answer"]]).item()
+                   for vlm in (saved_vlm, plain_vlm)]
+        assert abs(loss_of[0] - loss_of[1]) < 1e-5, loss_of  # the model rank 0 saved under full_weights is whole
     _run_ranks(model_dir, tmp_path, 6, lora)  # resumes from last.ckpt
     assert torch.load(tmp_path / "checkpoints" / "last.ckpt", map_location="cpu",
                       weights_only=False)["global_step"] == 6
@@ -232,6 +244,9 @@ def _rank_main(model_dir: str, out: str, max_steps: int, lora: bool) -> None:
     module = VLMFineTuner(model_dir, lora=LORA if lora else None, lr=1e-2 if lora else 3e-3)
     loader = DataLoader(_items(), batch_size=1, shuffle=False, collate_fn=collate_clip_qa)
     trainer.fit(module, loader, ckpt_path=ckpt_path)
+    with full_weights(trainer):  # every rank takes part; rank 0 saves the whole model (or adapter)
+        if trainer.is_global_zero:
+            module.save_model(Path(out, "model"))
 
 
 if __name__ == "__main__":
