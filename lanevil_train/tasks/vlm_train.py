@@ -11,7 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytorch_lightning as pl
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 from lanevil_train.checkpoints import read_lightning_checkpoint
 from lanevil_train.tasks.builders import build_callbacks, build_split, build_trainer, output_dir
@@ -43,15 +43,15 @@ def base_model_dir(cfg: DictConfig, train_set, out: Path) -> Path:
         saved = read_lightning_checkpoint(cfg.ckpt_path, "ckpt_path").get("hyper_parameters", {}).get("model_dir")
         if saved and Path(saved).is_dir():
             return Path(saved)
-    from lanevil_train.vlm.embedded import build_embedded_vlm
-    from lanevil_train.vlm.qa_records import prompt_text
+    from lanevil_train.vlm.embedded import build_embedded_vlm, qa_corpus
 
     init = out / "init"
     if not (init / "config.json").is_file():
-        corpus = [text for i in range(len(train_set)) for qa in train_set.qa_for(train_set.clip_meta(i)["base_clip_id"])
-                  for text in (prompt_text(qa), qa["answer"])]
+        qas = [qa for base in dict.fromkeys(train_set.clip_meta(i)["base_clip_id"] for i in range(len(train_set)))
+               for qa in train_set.qa_for(base)]
         settings = OmegaConf.to_container(cfg.model.embedded, resolve=True)
-        build_embedded_vlm(init, sorted(set(corpus)), frame_size=tuple(cfg.data.size), seed=cfg.seed, **settings)
+        build_embedded_vlm(init, qa_corpus(qas), frame_size=tuple(settings["frame_size"]), seed=settings["seed"],
+                           **settings["sizes"])
     return init
 
 
@@ -63,25 +63,48 @@ def train_vlm(cfg: DictConfig) -> float | None:
     pl.seed_everything(cfg.seed, workers=True)
     if cfg.data.name != "clips":
         raise ValueError(f"data: a VLM trains on the clip suite's QA: use data=clips (got data={cfg.data.name})")
+    check_sharded_lora(cfg)
     out = output_dir(cfg)
     train_set, val_set = build_split(cfg, "train"), (build_split(cfg, "val") if cfg.data.get("val") else None)
     fine_tune = OmegaConf.to_container(cfg.model.fine_tune, resolve=True)
     variants = fine_tune.pop("variants", "all")
     module = VLMFineTuner(str(base_model_dir(cfg, train_set, out)), lora=lora_settings(cfg),
-                          frames_as=cfg.model.get("frames_as", "auto"), **fine_tune)
+                          frames_as=cfg.model.get("frames_as", "auto"), dtype=cfg.model.get("dtype", "float32"),
+                          **fine_tune)
     callbacks = build_callbacks(cfg)
     remove_stale_checkpoint_temporaries(callbacks)
     trainer = build_trainer(cfg, callbacks=callbacks)
     loaders = _loaders(cfg, ClipQADataset(train_set, variants=variants),
                        ClipQADataset(val_set, variants="clean") if val_set is not None else None, collate_clip_qa)
     trainer.fit(module, *loaders, ckpt_path=cfg.ckpt_path)
+    saved = _save(cfg, trainer, module, out / MODEL_FOLDER)
     if not trainer.is_global_zero:
         return None
-    saved = module.save_model(out / MODEL_FOLDER, merge=bool(cfg.model.get("merge_adapter", False)))
     print(f"trained model: {saved} (evaluate it with task=evaluate {_evaluate_hint(cfg, saved)})")
     if not cfg.task.test_after_fit:
         return None
-    return _test(cfg, module, out / "test")
+    return _test(cfg, saved, out / "test")
+
+
+def _save(cfg: DictConfig, trainer: pl.Trainer, module, folder: Path) -> Path:
+    """The trained model (or LoRA adapter) saved in the Hugging Face format by rank 0; under trainer=fsdp every rank
+    gathers the full weights first (sharding.full_weights)."""
+    from lanevil_train.vlm.sharding import full_weights
+
+    with full_weights(trainer):
+        if trainer.is_global_zero:
+            module.save_model(folder, merge=bool(cfg.model.get("merge_adapter", False)))
+    return folder
+
+
+def check_sharded_lora(cfg: DictConfig) -> None:
+    """LoRA under trainer=fsdp trains, but its adapter does not save whole yet (peft writes it empty from the
+    gathered model): refuse it before any step rather than lose the run's result."""
+    strategy = cfg.trainer.get("strategy")
+    target = strategy.get("_target_", "") if OmegaConf.is_dict(strategy) else str(strategy or "")
+    if cfg.model.get("lora") is not None and "FSDP" in target.upper():
+        raise ValueError("model.lora: LoRA under trainer=fsdp cannot save its adapter yet; use trainer=ddp (LoRA fits a "
+                         "7B VLM on one 80 GB GPU per rank) or full fine-tuning (model.lora=null) with trainer=fsdp")
 
 
 def _loaders(cfg: DictConfig, train, val, collate):
@@ -93,20 +116,30 @@ def _loaders(cfg: DictConfig, train, val, collate):
 
 
 def _evaluate_hint(cfg: DictConfig, saved: Path) -> str:
-    if cfg.model.get("embedded") is not None or cfg.model.get("lora") is None:
+    if cfg.model.get("embedded") is not None or cfg.model.get("lora") is None or cfg.model.get("merge_adapter"):
         return f"model=vlm/hf model.path={saved}"
     return f"model=vlm/hf model.path={cfg.model.path} model.adapter={saved}"
 
 
-def _test(cfg: DictConfig, module, out: Path) -> float:
-    """The trained model on the test clips (task.suite, else data=clips' test split), with its blind baseline when
-    task.blind: the tables of task=evaluate in out/."""
+def _test(cfg: DictConfig, saved: Path, out: Path) -> float:
+    """The saved model on the test clips (task.suite, else data=clips' test split), loaded as task=evaluate would,
+    with its blind baseline when task.blind: the tables of task=evaluate in out/."""
     from lanevil_train.tasks.vlm_evaluate import build_judge, clip_suite, evaluate_into, generation_settings
     from lanevil_train.vlm.base import BlindVLM
+    from lanevil_train.vlm.hf import HFVLM
 
+    if cfg.task.suite is None:  # not the whole test split: the task.cases scenes of it, rendered on the fly
+        cfg = cfg.copy()
+        with open_dict(cfg):
+            cfg.task.suite = "synthetic"
     dataset, dataset_name = clip_suite(cfg)
     judge = build_judge(cfg, out)
-    vlm = module.vlm(**generation_settings(cfg))
+    settings = {**generation_settings(cfg), "dtype": cfg.model.get("dtype", "auto"),
+                "device": cfg.model.get("device", "auto")}
+    if cfg.model.get("lora") is not None and not cfg.model.get("merge_adapter", False):
+        vlm = HFVLM(cfg.model.path, adapter=saved, **settings)
+    else:
+        vlm = HFVLM(saved, **settings)
     name = cfg.task.get("label") or vlm.name
     files = [evaluate_into(vlm, dataset, judge, out, {"model": name, "dataset": dataset_name}, cfg.progress)]
     if cfg.task.get("blind"):

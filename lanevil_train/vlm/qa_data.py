@@ -14,6 +14,8 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from lanevil_train.vlm.qa_records import prompt_text
+
 VARIANTS = ("clean", "all")
 FRAMES_PER_CLIP = 6
 
@@ -68,7 +70,7 @@ class ClipQADataset(Dataset):
         clip_index, qa_index = self.pairs[index]
         meta = self.clips.clip_meta(clip_index)
         qa = self.clips.qa_for(meta["base_clip_id"])[qa_index]
-        return {"frames": self._clip_frames(clip_index), "question": qa["question"], "answer": qa["answer"],
+        return {"frames": self._clip_frames(clip_index), "question": prompt_text(qa), "answer": qa["answer"],
                 "key": f"{meta['clip_id']}/{qa['qa_id']}",
                 "meta": {**meta, "qa_id": qa["qa_id"], "qa_category": qa["category"], "qa_type": qa["type"]}}
 

@@ -266,3 +266,21 @@ def _replace_dir(staging: Path, out: Path) -> None:
     os.replace(staging, out)
     if old is not None:
         shutil.rmtree(old, ignore_errors=True)
+
+
+def load_finetuned(path: str | os.PathLike, option: str = "ckpt_path") -> VLMFineTuner:
+    """The fine-tuned model a task=train checkpoint holds: its base model (hparams.model_dir, which must still be on
+    disk) with the checkpoint's trainable weights; errors name `option` and the file."""
+    from lanevil_train.checkpoints import read_lightning_checkpoint
+
+    checkpoint = read_lightning_checkpoint(path, option)
+    hparams = checkpoint.get("hyper_parameters") or {}
+    if "model_dir" not in hparams:
+        raise ValueError(f"{option}={path}: not a VLM fine-tuning checkpoint (its hyper_parameters name no model_dir)")
+    if not Path(hparams["model_dir"]).is_dir():
+        raise FileNotFoundError(f"{option}={path}: the checkpoint's base model {hparams['model_dir']} is gone; "
+                                f"evaluate the run's saved model/ folder with model.path (or model.adapter) instead")
+    module = VLMFineTuner(**hparams)
+    module.on_load_checkpoint(checkpoint)
+    module.load_state_dict(checkpoint["state_dict"], strict=False)
+    return module

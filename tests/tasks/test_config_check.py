@@ -72,6 +72,8 @@ def needs(group: str, option: str, files: Path) -> list[str]:
         return [f"ckpt_path={files / 'model.ckpt'}"]
     if group == "model" and option == "vlm/hf":
         return ["task=evaluate", f"model.path={files / 'dataset'}"]
+    if group == "model" and option == "vlm/embedded":
+        return ["data=clips"]  # task=train (the default) builds and trains it on the clip suite
     if group == "model" and option == "vlm/openai":
         return ["task=evaluate", "model.base_url=http://127.0.0.1:8000/v1", "model.name=some-vlm"]
     if group == "judge" and option == "openai":

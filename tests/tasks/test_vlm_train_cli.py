@@ -1,0 +1,51 @@
+"""task=train for VLMs from the command line: LoRA on a saved tiny Hugging Face model and the embedded VLM built
+here, a few steps each on tiny clips, the model saved in the run, tested after fit, and evaluated again from the
+saved folder and from the checkpoint."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from lanevil_train.results_log import ResultsLog
+from lanevil_train.vlm.tiny import build_tiny_vlm
+from tests.tasks.cli_helpers import run_cli
+
+TINY_CLIPS = ["data=clips", "data.size=[32,48]", "data.train.num_cases=2", "data.val.num_cases=1",
+              "data.batch_size=2", "data.illusions=[road_repair]", "data.severities=[3]", "trainer=cpu",
+              "trainer.max_steps=3", "trainer.max_epochs=-1", "trainer.log_every_n_steps=1", "judge=none",
+              "task.cases=1", "task.illusions=[road_repair]", "task.severities=[3]", "progress=plain"]
+ANSWERS = 3 * 2 * 5  # a test case: 3 segments x (clean + 1 severity) x 5 QA
+
+
+@pytest.fixture(scope="module")
+def tiny_model(tmp_path_factory):
+    return build_tiny_vlm("qwen2_vl", tmp_path_factory.mktemp("models") / "tiny-qwen2-vl")
+
+
+def test_lora_fine_tuning_saves_an_adapter_tests_it_and_evaluates_it_again(tiny_model, tmp_path):
+    run = tmp_path / "train"
+    run_cli(["task=train", "model=vlm/hf", f"model.path={tiny_model}", "model.max_new_tokens=4", "model.lora.r=4",
+             "+trainer.val_check_interval=3", "trainer.limit_val_batches=2", *TINY_CLIPS], run)
+    adapter = run / "model"
+    assert (adapter / "adapter_config.json").is_file() and (run / "checkpoints" / "last.ckpt").is_file()
+    metrics = (run / "csv" / "metrics.csv").read_text()
+    assert "train/loss" in metrics and "val/loss" in metrics
+    tested = ResultsLog(run / "test" / "per_answer.jsonl").records()
+    assert len(tested) == ANSWERS and json.loads((run / "test" / "main.json").read_text())
+    # the same model from its adapter folder and from the checkpoint answers the same questions the same way
+    for name, source in (("adapter", [f"model.adapter={adapter}"]), ("ckpt", [f"ckpt_path={run / 'checkpoints' / 'last.ckpt'}"])):
+        out = tmp_path / name
+        run_cli(["task=evaluate", "model=vlm/hf", f"model.path={tiny_model}", "model.max_new_tokens=4",
+                 "task.suite=synthetic", f"task.out_dir={out}", *source, *TINY_CLIPS], tmp_path / f"eval-{name}")
+        answers = {r["key"]: r["answer"] for r in ResultsLog(out / "per_answer.jsonl").records()}
+        assert answers == {r["key"]: r["answer"] for r in tested}
+
+
+def test_the_embedded_vlm_is_built_from_the_training_qa_trained_and_saved(tmp_path):
+    run = tmp_path / "train"
+    run_cli(["task=train", "model=vlm/embedded", "model.embedded.frame_size=[32,48]", "model.max_new_tokens=4",
+             *TINY_CLIPS], run)
+    assert (run / "init" / "config.json").is_file() and (run / "model" / "config.json").is_file()
+    assert len(ResultsLog(run / "test" / "per_answer.jsonl").records()) == ANSWERS
