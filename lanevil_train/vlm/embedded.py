@@ -36,7 +36,7 @@ from pathlib import Path
 from typing import Sequence
 
 from lanevil_train.vlm.qa_records import prompt_text
-from lanevil_train.vlm.tiny import _BASE_CORPUS, _TEMPLATES, _family_spec, _qwen_ids, _token_roles
+from lanevil_train.vlm.tiny import _TEMPLATES, _qwen_ids, _token_roles, train_tokenizer
 
 FAMILY = "qwen2_vl"
 DEFAULT_FRAME_SIZE = (64, 112)
@@ -83,20 +83,7 @@ def check_frame_size(frame_size) -> tuple[int, int]:
 
 def train_qa_tokenizer(corpus: Sequence[str], vocab_size: int):
     """A byte-level BPE tokenizer of `vocab_size` ids trained on `corpus` with Qwen2-VL's special tokens."""
-    from tokenizers import Tokenizer, decoders, models, pre_tokenizers, processors, trainers
-    from transformers import PreTrainedTokenizerFast
-
-    spec = _family_spec(FAMILY)
-    core = Tokenizer(models.BPE())
-    core.pre_tokenizer = pre_tokenizers.ByteLevel(add_prefix_space=False)
-    core.decoder = decoders.ByteLevel()
-    core.post_processor = processors.ByteLevel(trim_offsets=False)
-    trainer = trainers.BpeTrainer(vocab_size=vocab_size, special_tokens=list(spec["tokens"]), show_progress=False,
-                                  initial_alphabet=pre_tokenizers.ByteLevel.alphabet())
-    core.train_from_iterator(list(_BASE_CORPUS) + [str(text) for text in corpus], trainer)
-    roles = {name: spec[name] for name in ("bos", "eos", "pad") if spec[name] is not None}
-    return PreTrainedTokenizerFast(tokenizer_object=core, **{f"{k}_token": v for k, v in roles.items()},
-                                   additional_special_tokens=[t for t in spec["tokens"] if t not in roles.values()])
+    return train_tokenizer(FAMILY, corpus, vocab_size)
 
 
 def make_processor(tokenizer, frame_size: tuple[int, int]):

@@ -83,8 +83,9 @@ _DEFAULT_IMAGE_SIZE = {"llava": 16, "llava_onevision": 16, "qwen2_vl": 32, "qwen
                        "smolvlm": 16}
 
 
-def train_tokenizer(family: str, corpus: Sequence[str] = ()):
-    """A byte-level BPE tokenizer trained here on driving QA text (+ `corpus`) with `family`'s special tokens."""
+def train_tokenizer(family: str, corpus: Sequence[str] = (), vocab_size: int = VOCAB_SIZE):
+    """A byte-level BPE tokenizer of `vocab_size` ids trained here on driving QA text (+ `corpus`) with `family`'s
+    special tokens."""
     from tokenizers import Tokenizer, decoders, models, pre_tokenizers, processors, trainers
     from transformers import PreTrainedTokenizerFast
 
@@ -93,7 +94,7 @@ def train_tokenizer(family: str, corpus: Sequence[str] = ()):
     core.pre_tokenizer = pre_tokenizers.ByteLevel(add_prefix_space=False)
     core.decoder = decoders.ByteLevel()
     core.post_processor = processors.ByteLevel(trim_offsets=False)
-    trainer = trainers.BpeTrainer(vocab_size=VOCAB_SIZE, special_tokens=list(spec["tokens"]), show_progress=False,
+    trainer = trainers.BpeTrainer(vocab_size=vocab_size, special_tokens=list(spec["tokens"]), show_progress=False,
                                   initial_alphabet=pre_tokenizers.ByteLevel.alphabet())
     core.train_from_iterator(list(_BASE_CORPUS) + [str(text) for text in corpus], trainer)
     roles = {name: spec[name] for name in ("bos", "eos", "pad") if spec[name] is not None}
