@@ -63,7 +63,7 @@ def train_vlm(cfg: DictConfig) -> float | None:
     pl.seed_everything(cfg.seed, workers=True)
     if cfg.data.name != "clips":
         raise ValueError(f"data: a VLM trains on the clip suite's QA: use data=clips (got data={cfg.data.name})")
-    check_sharded_lora(cfg)
+    check_sharded_merge(cfg)
     out = output_dir(cfg)
     train_set, val_set = build_split(cfg, "train"), (build_split(cfg, "val") if cfg.data.get("val") else None)
     fine_tune = OmegaConf.to_container(cfg.model.fine_tune, resolve=True)
@@ -88,23 +88,24 @@ def train_vlm(cfg: DictConfig) -> float | None:
 
 def _save(cfg: DictConfig, trainer: pl.Trainer, module, folder: Path) -> Path:
     """The trained model (or LoRA adapter) saved in the Hugging Face format by rank 0; under trainer=fsdp every rank
-    gathers the full weights first (sharding.full_weights)."""
-    from lanevil_train.vlm.sharding import full_weights
+    first takes part in gathering the whole state dict onto rank 0 (sharding.gathered_state_dict)."""
+    from lanevil_train.vlm.sharding import gathered_state_dict
 
-    with full_weights(trainer):
-        if trainer.is_global_zero:
-            module.save_model(folder, merge=bool(cfg.model.get("merge_adapter", False)))
+    state = gathered_state_dict(trainer)
+    if trainer.is_global_zero:
+        module.save_model(folder, merge=bool(cfg.model.get("merge_adapter", False)), state_dict=state)
     return folder
 
 
-def check_sharded_lora(cfg: DictConfig) -> None:
-    """LoRA under trainer=fsdp trains, but its adapter does not save whole yet (peft writes it empty from the
-    gathered model): refuse it before any step rather than lose the run's result."""
+def check_sharded_merge(cfg: DictConfig) -> None:
+    """Merging LoRA into the base weights needs the whole model in one process, which trainer=fsdp exists to avoid:
+    refuse model.merge_adapter there before any step (the adapter saves, and merges when loaded for evaluation)."""
     strategy = cfg.trainer.get("strategy")
     target = strategy.get("_target_", "") if OmegaConf.is_dict(strategy) else str(strategy or "")
-    if cfg.model.get("lora") is not None and "FSDP" in target.upper():
-        raise ValueError("model.lora: LoRA under trainer=fsdp cannot save its adapter yet; use trainer=ddp (LoRA fits a "
-                         "7B VLM on one 80 GB GPU per rank) or full fine-tuning (model.lora=null) with trainer=fsdp")
+    if cfg.model.get("lora") is not None and cfg.model.get("merge_adapter") and "FSDP" in target.upper():
+        raise ValueError("model.merge_adapter: true cannot merge under trainer=fsdp (the model is sharded over the "
+                         "ranks); train with model.merge_adapter=false and merge at evaluation: task=evaluate "
+                         "model=vlm/hf model.path=BASE model.adapter=RUN/model model.merge_adapter=true")
 
 
 def _loaders(cfg: DictConfig, train, val, collate):

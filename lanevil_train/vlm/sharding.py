@@ -13,8 +13,7 @@ embeddings, projector and LM head stay in the root unit. The same classes are th
 from __future__ import annotations
 
 import logging
-from contextlib import contextmanager
-from typing import Iterable, Iterator, Sequence
+from typing import Iterable, Sequence
 
 from pytorch_lightning.strategies import FSDPStrategy
 from torch import nn
@@ -48,19 +47,17 @@ def deepspeed_strategy(stage: int = 2, offload_optimizer: bool = False, offload_
                              **kwargs)
 
 
-@contextmanager
-def full_weights(trainer) -> Iterator[None]:
-    """Run on every rank: inside, rank 0's model holds its full weights (on the CPU) so it alone can save or copy
-    them (save_pretrained), which under FSDP would otherwise need all ranks; a no-op without FSDP."""
+def gathered_state_dict(trainer) -> dict | None:
+    """Run on every rank after fit: under FSDP, the LightningModule's whole state dict gathered on rank 0 (on the CPU;
+    an empty dict on the other ranks), for saving; None when the model is not sharded (its own weights are whole)."""
     from torch.distributed.fsdp import FullyShardedDataParallel
 
     model = getattr(trainer, "model", None)
     if not any(isinstance(module, FullyShardedDataParallel) for module in (model.modules() if model else ())):
-        yield
-        return
-    with FullyShardedDataParallel.summon_full_params(model, writeback=False, rank0_only=True, offload_to_cpu=True):
-        yield
-    trainer.strategy.barrier("full_weights")
+        return None
+    state = trainer.strategy.lightning_module_state_dict()  # FULL_STATE_DICT, rank0_only, offloaded to the CPU
+    trainer.strategy.barrier("gathered_state_dict")
+    return state
 
 
 def unwrap(module: nn.Module) -> nn.Module:

@@ -27,6 +27,8 @@ from lanevil_train.vlm.hf import (ADAPTER_CONFIG, DTYPES, FRAMES_AS, HFVLM, _che
                                   _choice, _load_processor)
 from lanevil_train.vlm.qa_data import ClipQADataset, batch_clips, collate_clip_qa, frames_as_images
 
+ADAPTER_NAME = "default"  # peft's name for the one adapter get_peft_model adds
+
 __all__ = ["ClipQADataset", "collate_clip_qa", "frames_as_images", "VLMFineTuner", "default_lora_targets",
            "vision_tower_names"]
 
@@ -208,21 +210,47 @@ class VLMFineTuner(pl.LightningModule):
 
     # ---- saving for evaluation -----------------------------------------------------------------------------------
 
-    def save_model(self, out_dir: str | os.PathLike, merge: bool = False) -> Path:
+    def save_model(self, out_dir: str | os.PathLike, merge: bool = False, state_dict: dict | None = None) -> Path:
         """Save the processor and the peft adapter (LoRA; merge=False), or the merged / fully trained model, to
-        `out_dir` (replaced whole, atomically): loadable by HFVLM(model_dir, adapter=out_dir) or HFVLM(out_dir)."""
+        `out_dir` (replaced whole, atomically): loadable by HFVLM(model_dir, adapter=out_dir) or HFVLM(out_dir).
+        `state_dict`: this module's whole state dict gathered from a sharded run (sharding.gathered_state_dict),
+        saved instead of the module's own weights, which hold only this rank's shard there."""
+        if state_dict is not None and merge and self.hparams.lora is not None:
+            raise ValueError("merge: a LoRA adapter gathered from a sharded run cannot be merged here; save it "
+                             "unmerged and merge when loading (HFVLM(model_dir, adapter=..., merge_adapter=True))")
+        gathered_adapter = state_dict is not None and self.hparams.lora is not None
+        weights = {} if state_dict is None or gathered_adapter else {"state_dict": {
+            key[len("model."):]: value for key, value in state_dict.items() if key.startswith("model.")}}
         out = Path(out_dir)
         _check_replaceable(out)
         out.parent.mkdir(parents=True, exist_ok=True)
         staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent))
         try:
-            self._model_to_save(merge).save_pretrained(staging)
+            if gathered_adapter:
+                self._save_gathered_adapter(staging, state_dict)
+            else:
+                self._model_to_save(merge).save_pretrained(staging, **weights)
             self.processor.save_pretrained(staging)
             _replace_dir(staging, out)
         except BaseException:
             shutil.rmtree(staging, ignore_errors=True)
             raise
         return out
+
+    def _save_gathered_adapter(self, out: Path, state_dict: dict) -> None:
+        """peft's adapter files (adapter_config.json, adapter_model.safetensors) from a gathered state dict: its
+        trainable (adapter) weights under peft's saved names, i.e. without the adapter's name. peft's own
+        save_pretrained picks the adapter weights by walking the model's modules, whose names FSDP has changed."""
+        from safetensors.torch import save_file
+
+        adapter = f".{ADAPTER_NAME}."
+        tensors = {key[len("model."):].replace(adapter, "."): state_dict[key].contiguous()
+                   for key in sorted(self.trainable_keys())}
+        if not tensors or any(adapter not in key for key in self.trainable_keys()):
+            raise ValueError(f"state_dict: expected only LoRA weights of adapter {ADAPTER_NAME!r} to train, got "
+                             f"{sorted(self.trainable_keys())[:3]}")
+        save_file(tensors, str(out / "adapter_model.safetensors"), metadata={"format": "pt"})
+        self.model.peft_config[ADAPTER_NAME].save_pretrained(str(out))
 
     def _model_to_save(self, merge: bool) -> torch.nn.Module:
         """The adapter-carrying model, a merged copy of it (the training model is left as it is), or the full one."""

@@ -18,7 +18,7 @@ import pytest
 import torch
 from torch import nn
 
-from lanevil_train.vlm.sharding import (LayerWrapFSDPStrategy, checkpointed_blocks, fsdp_units, full_weights,
+from lanevil_train.vlm.sharding import (LayerWrapFSDPStrategy, checkpointed_blocks, fsdp_units, gathered_state_dict,
                                         layer_classes, layer_wrap_policy, repeated_block_classes)
 from lanevil_train.vlm.tiny import FAMILIES, make_tiny_vlm
 
@@ -129,6 +129,17 @@ def test_trainer_fsdp_builds_the_layer_wrap_strategy_full_shard_bf16(compose_roo
         build_trainer(compose_root("trainer=fsdp", "trainer.strategy.sharding_strategy=ALL"), logger=False)
 
 
+def test_merging_lora_under_fsdp_is_refused_before_training_and_merging_elsewhere_is_not(compose_root):
+    from lanevil_train.tasks.vlm_train import check_sharded_merge
+
+    lora = ["model=vlm/hf", "model.path=unused"]  # model=vlm/hf trains LoRA by default
+    with pytest.raises(ValueError, match=r"model.merge_adapter: true cannot merge under trainer=fsdp .* "
+                                         r"model.adapter=RUN/model model.merge_adapter=true"):
+        check_sharded_merge(compose_root("trainer=fsdp", *lora, "model.merge_adapter=true"))
+    check_sharded_merge(compose_root("trainer=fsdp", *lora))  # the adapter saves unmerged: allowed
+    check_sharded_merge(compose_root("trainer=cpu", *lora, "model.merge_adapter=true"))
+
+
 def test_trainer_deepspeed_composes_into_lightnings_zero_strategy(compose_root):
     pytest.importorskip("deepspeed", reason="trainer=deepspeed needs the deepspeed package")
     from pytorch_lightning.strategies import DeepSpeedStrategy
@@ -170,7 +181,7 @@ def test_two_cpu_processes_train_checkpoint_and_resume_under_fsdp(tiny_vlm_dir, 
     """4 steps on 2 gloo ranks (each its own 2 samples; full fine-tuning with activation checkpointing, LoRA
     without) lower each rank's loss; last.ckpt holds the trainable
     weights under their plain names and, loaded without FSDP, gives the loss rank 0 then sees at resumed step 4;
-    the fully fine-tuned model rank 0 saves under full_weights holds those same weights."""
+    the model (or LoRA adapter) rank 0 saves from the gathered state dict holds those same weights."""
     from lanevil_train.vlm.hf import HFVLM
     from lanevil_train.vlm.training import VLMFineTuner, collate_clip_qa
 
@@ -192,15 +203,17 @@ def test_two_cpu_processes_train_checkpoint_and_resume_under_fsdp(tiny_vlm_dir, 
     plain.train()
     resumed_loss = plain.batch_loss(collate_clip_qa([_items()[0]])).item()
     sample = _items()[0]
-    if lora:  # known gap: peft writes an empty adapter under full_weights (see the FSDP docs); not checked here
-        saved_vlm = None
+    if lora:  # the adapter in peft's format, loaded onto the base model
+        saved_vlm = HFVLM(model_dir, adapter=tmp_path / "model", dtype="float32", device="cpu")
     else:
         saved_vlm = HFVLM(tmp_path / "model", dtype="float32", device="cpu")
     plain_vlm = HFVLM.wrap(plain.model, plain.processor, model_dir)
-    if saved_vlm is not None:
-        loss_of = [vlm.answer_loss([list(sample["frames"])], [sample["question"]], [sample["answer"]]).item()
-                   for vlm in (saved_vlm, plain_vlm)]
-        assert abs(loss_of[0] - loss_of[1]) < 1e-5, loss_of  # the model rank 0 saved under full_weights is whole
+    loss_of = [vlm.answer_loss([list(sample["frames"])], [sample["question"]], [sample["answer"]]).item()
+               for vlm in (saved_vlm, plain_vlm)]
+    assert abs(loss_of[0] - loss_of[1]) < 1e-5, loss_of  # what rank 0 saved from the gathered weights is whole
+    base_loss = HFVLM(model_dir, dtype="float32", device="cpu").answer_loss(
+        [list(sample["frames"])], [sample["question"]], [sample["answer"]]).item()
+    assert abs(loss_of[0] - base_loss) > 1e-3, (loss_of, base_loss)  # and it is the trained one, not the base
     _run_ranks(model_dir, tmp_path, 6, lora)  # resumes from last.ckpt
     assert torch.load(tmp_path / "checkpoints" / "last.ckpt", map_location="cpu",
                       weights_only=False)["global_step"] == 6
@@ -244,9 +257,9 @@ def _rank_main(model_dir: str, out: str, max_steps: int, lora: bool) -> None:
     module = VLMFineTuner(model_dir, lora=LORA if lora else None, lr=1e-2 if lora else 3e-3)
     loader = DataLoader(_items(), batch_size=1, shuffle=False, collate_fn=collate_clip_qa)
     trainer.fit(module, loader, ckpt_path=ckpt_path)
-    with full_weights(trainer):  # every rank takes part; rank 0 saves the whole model (or adapter)
-        if trainer.is_global_zero:
-            module.save_model(Path(out, "model"))
+    state = gathered_state_dict(trainer)  # every rank takes part; rank 0 saves the whole model (or adapter)
+    if trainer.is_global_zero:
+        module.save_model(Path(out, "model"), state_dict=state)
 
 
 if __name__ == "__main__":
