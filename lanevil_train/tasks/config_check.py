@@ -296,6 +296,8 @@ RULES: dict[str, Rule] = {
     "data.severities": int_list(SEVERITIES[0], SEVERITIES[-1]),
     **_for_splits("num_cases", integer(1)),
     **_for_splits("per_clip", integer(1)),
+    **_for_splits("cache_clips", integer(1)),
+    "data.shuffle_window": integer(1),
     # model
     "model.name": text(),
     "model.attention_layer": text(),

@@ -109,11 +109,16 @@ def check_sharded_merge(cfg: DictConfig) -> None:
 
 
 def _loaders(cfg: DictConfig, train, val, collate):
+    """The training pairs shuffled a window of data.shuffle_window base clips at a time (each base clip rendered or
+    read once per epoch), the validation pairs in order."""
     from torch.utils.data import DataLoader
+
+    from lanevil_train.vlm.qa_data import WindowShuffleSampler
 
     common = {"batch_size": cfg.data.batch_size, "num_workers": cfg.data.num_workers, "collate_fn": collate,
               "persistent_workers": cfg.data.num_workers > 0}
-    return (DataLoader(train, shuffle=True, **common), DataLoader(val, shuffle=False, **common) if val else None)
+    sampler = WindowShuffleSampler(train, cfg.data.shuffle_window, seed=cfg.seed)
+    return (DataLoader(train, sampler=sampler, **common), DataLoader(val, shuffle=False, **common) if val else None)
 
 
 def _evaluate_hint(cfg: DictConfig, saved: Path) -> str:

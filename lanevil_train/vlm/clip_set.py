@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from collections import OrderedDict
 from pathlib import Path
 from typing import Callable, Iterator, Sequence
 
@@ -282,13 +283,18 @@ class ClipSetDataset(Dataset):
 
 class SyntheticClipSuite(Dataset):
     """The suite `task=build data=clips` would write, rendered on the fly (nothing on disk). Items run base
-    clip by base clip (clean first); the last base clip's renders are cached, so an unshuffled pass renders each
-    clip once."""
+    clip by base clip (clean first); a base clip renders all its variants at once, and the renders of the last
+    `cache_clips` base clips are kept, so an unshuffled pass (or qa_data.WindowShuffleSampler with a window of at
+    most `cache_clips`) renders each base clip once."""
 
     def __init__(self, num_cases: int, first_seed: int, illusions: str | Sequence[str] = "all",
-                 severities: Sequence[int] = (1, 2, 3, 4, 5), size: Sequence[int] = (360, 640), per_clip: int = 5):
+                 severities: Sequence[int] = (1, 2, 3, 4, 5), size: Sequence[int] = (360, 640), per_clip: int = 5,
+                 cache_clips: int = 1):
         if not isinstance(num_cases, int) or num_cases < 1:
             raise ValueError(f"num_cases: expected an integer >= 1, got {num_cases!r}")
+        if isinstance(cache_clips, bool) or not isinstance(cache_clips, int) or cache_clips < 1:
+            raise ValueError(f"cache_clips: expected an integer >= 1 (base clips whose renders are kept), "
+                             f"got {cache_clips!r}")
         names = list(ILLUSION_NAMES) if illusions == "all" else list(illusions)
         if not names:
             raise ValueError("illusions: expected 'all' or a non-empty list of illusion names, got an empty list")
@@ -299,7 +305,8 @@ class SyntheticClipSuite(Dataset):
                       for record in variant_records(case, segment, self.severities)]
         self.by_base = {base_clip_id(case, segment): (case, segment) for case, segment, _ in self.items}
         self._qa: dict[str, list[dict]] = {}
-        self._cached: tuple | None = None
+        self.cache_clips = cache_clips
+        self._renders: OrderedDict[tuple, dict] = OrderedDict()  # (case, segment) -> severity -> frames, LRU
 
     def __len__(self) -> int:
         return len(self.items)
@@ -322,7 +329,11 @@ class SyntheticClipSuite(Dataset):
     def __getitem__(self, index: int) -> dict:
         case, segment, record = self.items[index]
         key = (case, segment)
-        if self._cached is None or self._cached[0] != key:
-            self._cached = (key, _geometry().render_clip(case, segment, [0, *self.severities], size=self.size))
-        frames = list(self._cached[1][record["severity"]])
+        if key in self._renders:
+            self._renders.move_to_end(key)
+        else:
+            self._renders[key] = _geometry().render_clip(case, segment, [0, *self.severities], size=self.size)
+            while len(self._renders) > self.cache_clips:
+                self._renders.popitem(last=False)
+        frames = list(self._renders[key][record["severity"]])
         return {"frames": frames, "qa": self.qa_for(record["base_clip_id"]), "meta": _meta(record)}

@@ -4,6 +4,7 @@ A clip suite (ClipSetDataset on disk, or SyntheticClipSuite rendered on the fly)
 perturbed variant of a base clip) and, per base clip, its QA. ClipQADataset pairs every chosen clip variant with
 every QA of its base clip, in clip order, so an unshuffled pass renders (or reads) each clip once per QA run.
 collate_clip_qa stacks the frames into one uint8 tensor [B, 6, H, W, 3], the place visual defenses edit them.
+WindowShuffleSampler shuffles for training without rendering a base clip once per pair.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ from typing import Any, Sequence
 
 import numpy as np
 import torch
-from torch.utils.data import Dataset
+from torch.utils.data import Dataset, Sampler
 
 from lanevil_train.vlm.qa_records import prompt_text
 
@@ -55,6 +56,13 @@ class ClipQADataset(Dataset):
 
     def __len__(self) -> int:
         return len(self.pairs)
+
+    def base_clip_groups(self) -> list[list[int]]:
+        """The indices of the pairs, grouped by base clip (every variant and QA of one base clip), in clip order."""
+        groups: dict[str, list[int]] = {}
+        for index, (clip_index, _) in enumerate(self.pairs):
+            groups.setdefault(self.clips.clip_meta(clip_index)["base_clip_id"], []).append(index)
+        return list(groups.values())
 
     def _clip_frames(self, index: int) -> np.ndarray:
         """The 6 frames of clip `index` as one uint8 array [6, H, W, 3]; the last clip read is kept."""
@@ -106,3 +114,29 @@ def frames_as_images(batch: Any) -> torch.Tensor:
     batch's frames."""
     frames = batch["frames"]
     return frames.flatten(0, 1).permute(0, 3, 1, 2)
+
+
+class WindowShuffleSampler(Sampler):
+    """A shuffle that keeps renders local: each epoch the base clips are put in a random order, cut into windows of
+    `window` base clips, and the pairs of each window (all variants x QA of its clips) are shuffled together. A clip
+    suite that keeps its last `window` base clips' renders (SyntheticClipSuite(cache_clips=window)) then renders
+    each base clip once per epoch, not once per pair; a batch still mixes clips of `window` scenes. The order
+    depends on `seed` and the epoch (set_epoch, which Lightning calls), so a resumed epoch replays the same order."""
+
+    def __init__(self, dataset: ClipQADataset, window: int, seed: int = 0):
+        if isinstance(window, bool) or not isinstance(window, int) or window < 1:
+            raise ValueError(f"window: expected an integer >= 1 (base clips shuffled together), got {window!r}")
+        self.groups, self.window, self.seed, self.epoch = dataset.base_clip_groups(), window, int(seed), 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = int(epoch)
+
+    def __len__(self) -> int:
+        return sum(len(group) for group in self.groups)
+
+    def __iter__(self):
+        rng = np.random.default_rng([self.seed, self.epoch])
+        order = rng.permutation(len(self.groups))
+        for start in range(0, len(order), self.window):
+            indices = np.concatenate([self.groups[g] for g in order[start:start + self.window]])
+            yield from (int(i) for i in rng.permutation(indices))

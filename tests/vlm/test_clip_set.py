@@ -145,3 +145,39 @@ def test_synthetic_suite_matches_the_built_set(tmp_path):
         SyntheticClipSuite(1, 0, ["smoke"], [1], SIZE)
     with pytest.raises(ValueError, match="num_cases"):
         SyntheticClipSuite(0, 0, "all", [1], SIZE)
+
+
+def test_a_window_shuffle_renders_each_base_clip_once_per_epoch_and_mixes_clips_within_windows():
+    """6 cases = 18 base clips x (clean + 2 severities) x 5 QA = 270 pairs. WindowShuffleSampler(window 4) with a
+    suite keeping 4 base clips' renders: every pair once per epoch, each base clip rendered once, windows of 4 base
+    clips (20 consecutive pairs span several clips), a new order next epoch, the same order for the same epoch;
+    with a 1-clip cache the same order renders far more."""
+    from lanevil_train.vlm.qa_data import ClipQADataset, WindowShuffleSampler
+
+    suite = SyntheticClipSuite(6, 500, ["rail_shadow", "vehicle"], [2, 4], SIZE, cache_clips=4)
+    pairs = ClipQADataset(suite, "all")
+    assert len(pairs) == 18 * 3 * 5
+    sampler = WindowShuffleSampler(pairs, window=4, seed=7)
+    fake_clips.CALLS["render"] = 0
+    order = list(sampler)
+    assert sorted(order) == list(range(len(pairs)))
+    bases = [pairs.clips.clip_meta(pairs.pairs[i][0])["base_clip_id"] for i in order]
+    for i in order:
+        pairs[i]
+    assert fake_clips.CALLS["render"] == 18  # once per base clip, all its variants at once
+    windows = [set(bases[start:start + 60]) for start in range(0, len(bases), 60)]
+    assert [len(w) for w in windows] == [4, 4, 4, 4, 2] and set().union(*windows) == set(bases)
+    assert len(set(bases[:20])) >= 3  # a batch-sized run mixes the window's clips
+    sampler.set_epoch(1)
+    assert list(sampler) != order
+    sampler.set_epoch(0)
+    assert list(sampler) == order
+    small_cache = ClipQADataset(SyntheticClipSuite(6, 500, ["rail_shadow", "vehicle"], [2, 4], SIZE), "all")
+    fake_clips.CALLS["render"] = 0
+    for i in order:
+        small_cache[i]
+    assert fake_clips.CALLS["render"] > 100
+    with pytest.raises(ValueError, match="window: expected an integer >= 1"):
+        WindowShuffleSampler(pairs, window=0)
+    with pytest.raises(ValueError, match="cache_clips: expected an integer >= 1"):
+        SyntheticClipSuite(1, 0, "all", [1], SIZE, cache_clips=0)
