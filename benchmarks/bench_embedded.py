@@ -33,7 +33,7 @@ from lanevil_train.vlm import clips as geometry
 from lanevil_train.vlm.clip_set import SEGMENTS, base_clip_id
 from lanevil_train.vlm.embedded import GREY, build_embedded_vlm, count_parameters, fit_answers, qa_corpus
 from lanevil_train.vlm.hf import HFVLM
-from lanevil_train.vlm.qa import make_qa
+from lanevil_train.vlm.qa import describe_scene, make_qa
 from lanevil_train.vlm.qa_facts import WEATHER_TEXT
 from lanevil_train.vlm.qa_records import answer_is_correct, chosen_letter, prompt_text
 from lanevil_train.taxonomy import ILLUSION_NAMES
@@ -78,9 +78,24 @@ def load_split(first_seed: int, num_cases: int, size: tuple[int, int], cache: Pa
     return clips
 
 
-def pairs_of(clips: list[dict], variants=(0, 1)) -> list[tuple[int, int, dict]]:
-    """(clip index, variant, QA) for every QA of every clip variant."""
-    return [(i, v, qa) for i, clip in enumerate(clips) for v in variants for qa in clip["qa"]]
+def add_descriptions(clips: list[dict], first_seed: int, size: tuple[int, int], cache: Path) -> None:
+    """Give each base clip its training-only scene description (qa.describe_scene), cached as JSON."""
+    path = cache / f"describe_{size[0]}x{size[1]}_{first_seed}_{len(clips) // len(SEGMENTS)}.json"
+    if not path.is_file():
+        cases = geometry.clip_cases(len(clips) // len(SEGMENTS), first_seed, list(ILLUSION_NAMES))
+        texts = {base_clip_id(case, segment): describe_scene(geometry.clip_truth(case, segment, size=size),
+                                                             base_clip_id(case, segment))
+                 for case in cases for segment in SEGMENTS}
+        atomic_write_text(path, json.dumps(texts))
+    texts = json.loads(path.read_text())
+    for clip in clips:
+        clip["describe"] = texts[clip["base_clip_id"]]
+
+
+def pairs_of(clips: list[dict], variants=(0, 1), describe: int = 0) -> list[tuple[int, int, dict]]:
+    """(clip index, variant, QA) for every QA of every clip variant, and `describe` times its scene description."""
+    return [(i, v, qa) for i, clip in enumerate(clips) for v in variants
+            for qa in clip["qa"] + ([clip["describe"]] * describe if describe else [])]
 
 
 def clip_frames(clips: list[dict], index: int, variant: int, blind: bool) -> list[np.ndarray]:
@@ -161,7 +176,7 @@ def train(model_dir: Path, clips: list[dict], args, blind: bool) -> tuple[HFVLM,
     """Load the built model, train it by the recipe on the train pairs (grey frames when blind); the model and
     what training did."""
     vlm = HFVLM(model_dir, max_new_tokens=args.max_new_tokens, batch_size=args.eval_batch, device="cpu")
-    pairs = pairs_of(clips)
+    pairs = pairs_of(clips, describe=args.describe)
     rng = np.random.default_rng(args.seed)
 
     def sample_batch(step: int):
@@ -219,6 +234,9 @@ def main(argv=None) -> None:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--max-new-tokens", type=int, default=48)
     parser.add_argument("--eval-batch", type=int, default=16)
+    parser.add_argument("--describe", type=int, default=0,
+                        help="scene-description pairs per train clip variant, beside its QA (the recipe's aid to "
+                             "learning the frames; 0: QA only)")
     parser.add_argument("--no-blind", action="store_true", help="skip the blind (grey-frame) ablation")
     args = parser.parse_args(argv)
     if args.train_cases >= TEST_FIRST_SEED:
@@ -231,6 +249,8 @@ def main(argv=None) -> None:
     test_clips = load_split(TEST_FIRST_SEED, args.test_cases, size, args.cache, args.workers)
     print(f"clips ready in {time.perf_counter() - start:.0f} s: {len(train_clips)} train, {len(test_clips)} test "
           f"base clips", flush=True)
+    if args.describe:
+        add_descriptions(train_clips, 0, size, args.cache)
     train_qas = [qa for clip in train_clips for qa in clip["qa"]]
     results: dict = {"args": {k: (list(v) if isinstance(v, tuple) else str(v) if isinstance(v, Path) else v)
                               for k, v in vars(args).items()}}
@@ -245,7 +265,8 @@ def main(argv=None) -> None:
         name = "blind" if blind else "embedded"
         model_dir = args.out / f"model_{name}"
         if not model_dir.is_dir():
-            build_embedded_vlm(model_dir, qa_corpus(train_qas), frame_size=size, seed=args.seed)
+            descriptions = [clip["describe"] for clip in train_clips] if args.describe else []
+            build_embedded_vlm(model_dir, qa_corpus(train_qas + descriptions), frame_size=size, seed=args.seed)
         vlm, trained = train(model_dir, train_clips, args, blind)
         trained["parameters"] = count_parameters(vlm.model)
         trained["held_out_loss"] = held_out_loss(vlm, test_clips, test_pairs["clean"][:256], blind)

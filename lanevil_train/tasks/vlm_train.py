@@ -67,14 +67,14 @@ def train_vlm(cfg: DictConfig) -> float | None:
     out = output_dir(cfg)
     train_set, val_set = build_split(cfg, "train"), (build_split(cfg, "val") if cfg.data.get("val") else None)
     fine_tune = OmegaConf.to_container(cfg.model.fine_tune, resolve=True)
-    variants = fine_tune.pop("variants", "all")
+    variants, describe = fine_tune.pop("variants", "all"), fine_tune.pop("describe", 0)
     module = VLMFineTuner(str(base_model_dir(cfg, train_set, out)), lora=lora_settings(cfg),
                           frames_as=cfg.model.get("frames_as", "auto"), dtype=cfg.model.get("dtype", "float32"),
                           **fine_tune)
     callbacks = build_callbacks(cfg)
     remove_stale_checkpoint_temporaries(callbacks)
     trainer = build_trainer(cfg, callbacks=callbacks)
-    loaders = _loaders(cfg, ClipQADataset(train_set, variants=variants),
+    loaders = _loaders(cfg, ClipQADataset(train_set, variants=variants, describe=describe),
                        ClipQADataset(val_set, variants="clean") if val_set is not None else None, collate_clip_qa)
     trainer.fit(module, *loaders, ckpt_path=cfg.ckpt_path)
     saved = _save(cfg, trainer, module, out / MODEL_FOLDER)

@@ -494,3 +494,21 @@ def make_qa(truth: dict, base_clip_id: str, seed: int, per_clip: int = 5) -> lis
         qa = kind(truth, rng) if yes is None else kind(truth, rng, yes)
         out.append({"qa_id": f"{base_clip_id}-q{k}", "base_clip_id": base_clip_id, **qa})
     return out
+
+
+DESCRIBE_QUESTION = "Describe the scene: the setting, the lanes, the weather and light, and the road ahead."
+
+
+def describe_scene(truth: dict, base_clip_id: str) -> dict:
+    """A dense description of what a clip's frames show (setting, lane count and ego lane, weather, light and
+    surface, road shape) as a QA record `{base_clip_id}-describe`. Training-only: never one of the benchmark's QA.
+    Every phrase is one the QA's answers use, so a small VLM trained from scratch (vlm/embedded.py) learns to read
+    the frames from it: the benchmark's QA alone let it learn their text prior instead."""
+    check_truth(truth, f"truth of {base_clip_id}")
+    answer = " ".join((SCENE_KINDS_TEXT[truth["scene_kind"]],
+                       f"The road has {NUMBER_WORDS[truth['num_lanes']]} lanes; the ego vehicle is in "
+                       f"{_ego_lane_words(truth)}.", WEATHER_TEXT[truth["weather"]],
+                       f"The road surface is {'wet' if truth['wet'] else 'dry'}.",
+                       ROAD_SHAPES[_road_shape(truth)]))
+    return {"qa_id": f"{base_clip_id}-describe", "base_clip_id": base_clip_id,
+            **_qa("scene_description", "open", DESCRIBE_QUESTION, answer)}

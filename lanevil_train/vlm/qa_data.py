@@ -21,12 +21,17 @@ VARIANTS = ("clean", "all")
 FRAMES_PER_CLIP = 6
 
 
+DESCRIBE = -1  # the QA index of a clip variant's scene-description pair
+
+
 class ClipQADataset(Dataset):
     """(clip variant, QA) pairs of a clip suite (ClipSetDataset / SyntheticClipSuite).
 
-    variants: "clean" (severity-0 clips only) or "all"; limit: keep the first `limit` pairs (clip order)."""
+    variants: "clean" (severity-0 clips only) or "all"; limit: keep the first `limit` pairs (clip order);
+    describe: also pair each chosen clip variant this many times with its base clip's scene description
+    (qa.describe_scene, a training aid: SyntheticClipSuite.description_for; a suite on disk keeps no truth)."""
 
-    def __init__(self, clips, variants: str = "clean", limit: int | None = None):
+    def __init__(self, clips, variants: str = "clean", limit: int | None = None, describe: int = 0):
         for needed in ("clip_meta", "qa_for", "__getitem__", "__len__"):
             if not hasattr(clips, needed):
                 raise TypeError(f"clips: expected a clip suite (ClipSetDataset or SyntheticClipSuite) with "
@@ -35,7 +40,13 @@ class ClipQADataset(Dataset):
             raise ValueError(f"variants: expected one of {', '.join(VARIANTS)}, got {variants!r}")
         if limit is not None and (isinstance(limit, bool) or not isinstance(limit, int) or limit < 1):
             raise ValueError(f"limit: expected None or an integer >= 1, got {limit!r}")
-        self.clips, self.variants = clips, variants
+        if isinstance(describe, bool) or not isinstance(describe, int) or describe < 0:
+            raise ValueError(f"describe: expected an integer >= 0 (description pairs per clip), got {describe!r}")
+        if describe and not hasattr(clips, "description_for"):
+            raise ValueError(f"describe: {describe} scene-description pairs need the scene truth, which "
+                             f"{type(clips).__name__} does not keep; train on a synthetic split (SyntheticClipSuite) "
+                             f"or set describe to 0")
+        self.clips, self.variants, self.describe = clips, variants, describe
         self.pairs = self._pairs(limit)
         if not self.pairs:
             raise ValueError(f"clips: no {variants} clip with QA in this suite of {len(clips)} clips")
@@ -49,7 +60,7 @@ class ClipQADataset(Dataset):
             if self.variants == "clean" and meta["severity"] != 0:
                 continue
             count = len(self.clips.qa_for(meta["base_clip_id"]))
-            pairs.extend((index, q) for q in range(count))
+            pairs.extend((index, q) for q in [*range(count), *[DESCRIBE] * self.describe])
             if limit is not None and len(pairs) >= limit:
                 return pairs[:limit]
         return pairs
@@ -77,7 +88,8 @@ class ClipQADataset(Dataset):
     def __getitem__(self, index: int) -> dict:
         clip_index, qa_index = self.pairs[index]
         meta = self.clips.clip_meta(clip_index)
-        qa = self.clips.qa_for(meta["base_clip_id"])[qa_index]
+        qa = (self.clips.description_for(meta["base_clip_id"]) if qa_index == DESCRIBE
+              else self.clips.qa_for(meta["base_clip_id"])[qa_index])
         return {"frames": self._clip_frames(clip_index), "question": prompt_text(qa), "answer": qa["answer"],
                 "key": f"{meta['clip_id']}/{qa['qa_id']}",
                 "meta": {**meta, "qa_id": qa["qa_id"], "qa_category": qa["category"], "qa_type": qa["type"]}}

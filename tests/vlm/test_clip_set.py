@@ -181,3 +181,27 @@ def test_a_window_shuffle_renders_each_base_clip_once_per_epoch_and_mixes_clips_
         WindowShuffleSampler(pairs, window=0)
     with pytest.raises(ValueError, match="cache_clips: expected an integer >= 1"):
         SyntheticClipSuite(1, 0, "all", [1], SIZE, cache_clips=0)
+
+
+def test_describe_adds_scene_description_pairs_a_set_on_disk_cannot_give(tmp_path):
+    """ClipQADataset(describe=2): each clip variant's 5 QA plus its base clip's description twice, the description
+    the truth gives; a built set has no truth, so describe is refused there, naming why."""
+    from lanevil_train.vlm.qa import DESCRIBE_QUESTION, describe_scene
+    from lanevil_train.vlm.qa_data import ClipQADataset
+
+    suite = SyntheticClipSuite(1, 500, ["rail_shadow"], [2], SIZE)
+    pairs = ClipQADataset(suite, "all", describe=2)
+    assert len(pairs) == 3 * 2 * (5 + 2) == len(ClipQADataset(suite, "all")) + 12
+    items = [pairs[i] for i in range(len(pairs))]
+    described = [item for item in items if item["question"] == DESCRIBE_QUESTION]
+    assert len(described) == 12 and {item["meta"]["severity"] for item in described} == {0, 2}
+    base = described[0]["meta"]["base_clip_id"]
+    case, segment = suite.by_base[base]
+    expected = describe_scene(fake_clips.clip_truth(case, segment, SIZE), base)
+    assert described[0]["answer"] == expected["answer"] and described[0]["key"].endswith(f"/{base}-describe")
+    build_clip_set(suite.cases, [2], tmp_path, size=SIZE, progress="none")
+    with pytest.raises(ValueError, match="describe: 1 scene-description pairs need the scene truth, which "
+                                         "ClipSetDataset does not keep"):
+        ClipQADataset(ClipSetDataset(tmp_path), "all", describe=1)
+    with pytest.raises(ValueError, match="describe: expected an integer >= 0"):
+        ClipQADataset(suite, "all", describe=-1)

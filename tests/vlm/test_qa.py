@@ -259,3 +259,24 @@ def test_case_plan_pairs_yes_and_no_and_deals_letters_evenly():
         assert all(abs(d) <= 1 for d in per_category) and abs(sum(per_category)) <= 1, (seed, wants)
         counts = [letters.count(k) for k in range(qa_module.CHOICE_OPTIONS)]
         assert max(counts) - min(counts) <= 1, (seed, letters)
+
+
+def test_the_scene_description_says_what_the_frames_show_in_the_qas_own_words():
+    """describe_scene: setting, lane count and ego lane, weather and surface, road shape, each from the truth and
+    in the phrases the QA's answers use; a training-only record, in no clip's benchmark QA."""
+    from lanevil_train.vlm.qa import DESCRIBE_QUESTION, describe_scene
+
+    record = describe_scene(truth(), "case-1-before")
+    assert record == {"qa_id": "case-1-before-describe", "base_clip_id": "case-1-before",
+                      "category": "scene_description", "type": "open", "question": DESCRIBE_QUESTION,
+                      "answer": "An urban street between buildings. The road has three lanes; the ego vehicle is in "
+                                "the second lane from the left. It is a clear day around noon with bright sunlight. "
+                                "The road surface is dry. Curving to the left."}
+    night = describe_scene(truth(weather="night", night=True, wet=1.0, num_lanes=4, ego_lane=3, scene_kind="highway",
+                                 curvature_sign=0, slope="uphill", markings=["white_solid"] * 5), "c")["answer"]
+    assert night == ("A multi-lane highway. The road has four lanes; the ego vehicle is in the rightmost lane. It is "
+                     "night, with the road lit by street lamps and headlights. The road surface is wet. "
+                     "Climbing uphill.")
+    assert all(qa["question"] != DESCRIBE_QUESTION for qa in make_qa(truth(), "case-1-before", 3))
+    with pytest.raises(ValueError, match="num_lanes"):
+        describe_scene(truth(num_lanes=9), "c")
