@@ -49,3 +49,21 @@ def test_the_embedded_vlm_is_built_from_the_training_qa_trained_and_saved(tmp_pa
              *TINY_CLIPS], run)
     assert (run / "init" / "config.json").is_file() and (run / "model" / "config.json").is_file()
     assert len(ResultsLog(run / "test" / "per_answer.jsonl").records()) == ANSWERS
+
+
+def test_the_vlm_quickstart_trains_the_embedded_vlm_and_tables_it_beside_its_blind_baseline(tmp_path):
+    """experiment=vlm_quickstart, shrunk (tiny frames, 3 steps, one test case): the embedded VLM built, trained
+    with validation, saved, and tested on the clips and on grey frames, both in the run's results."""
+    run = tmp_path / "quick"
+    run_cli(["experiment=vlm_quickstart", "data.size=[32,48]", "model.embedded.frame_size=[32,48]",
+             "data.train.num_cases=2", "data.val.num_cases=1", "data.batch_size=2", "trainer.max_steps=3",
+             "trainer.val_check_interval=2", "trainer.limit_val_batches=1", "task.cases=1",
+             "task.illusions=[road_repair]", "task.severities=[3]", "model.max_new_tokens=4", "judge=none",
+             "progress=plain"], run)
+    assert (run / "model" / "config.json").is_file()
+    assert "val/loss" in (run / "csv" / "metrics.csv").read_text()
+    answers = ResultsLog(run / "test" / "per_answer.jsonl").records()
+    blind = ResultsLog(run / "test" / "blind" / "per_answer.jsonl").records()
+    assert len(answers) == len(blind) == ANSWERS and {r["key"] for r in answers} == {r["key"] for r in blind}
+    models = {r["model"] for r in answers} | {r["model"] for r in blind}
+    assert models == {"embedded-qwen2vl-1.4M", "embedded-qwen2vl-1.4M-blind"}
