@@ -58,7 +58,7 @@ def base_model_dir(cfg: DictConfig, train_set, out: Path) -> Path:
 def train_vlm(cfg: DictConfig) -> float | None:
     """Fine-tune the VLM; returns its headline score on the perturbed test clips when the test runs, else None."""
     from lanevil_train.vlm.qa_data import ClipQADataset, collate_clip_qa
-    from lanevil_train.vlm.training import VLMFineTuner
+    from lanevil_train.vlm.training import SkipTrainedBatches, VLMFineTuner
 
     pl.seed_everything(cfg.seed, workers=True)
     if cfg.data.name != "clips":
@@ -71,11 +71,12 @@ def train_vlm(cfg: DictConfig) -> float | None:
     module = VLMFineTuner(str(base_model_dir(cfg, train_set, out)), lora=lora_settings(cfg),
                           frames_as=cfg.model.get("frames_as", "auto"), dtype=cfg.model.get("dtype", "float32"),
                           **fine_tune)
-    callbacks = build_callbacks(cfg)
-    remove_stale_checkpoint_temporaries(callbacks)
-    trainer = build_trainer(cfg, callbacks=callbacks)
     loaders = _loaders(cfg, ClipQADataset(train_set, variants=variants, describe=describe),
                        ClipQADataset(val_set, variants="clean") if val_set is not None else None, collate_clip_qa)
+    callbacks = build_callbacks(cfg)
+    remove_stale_checkpoint_temporaries(callbacks)
+    callbacks.append(SkipTrainedBatches(loaders[0].sampler, cfg.data.batch_size))
+    trainer = build_trainer(cfg, callbacks=callbacks)
     trainer.fit(module, *loaders, ckpt_path=cfg.ckpt_path)
     saved = _save(cfg, trainer, module, out / MODEL_FOLDER)
     if not trainer.is_global_zero:

@@ -139,9 +139,16 @@ class WindowShuffleSampler(Sampler):
         if isinstance(window, bool) or not isinstance(window, int) or window < 1:
             raise ValueError(f"window: expected an integer >= 1 (base clips shuffled together), got {window!r}")
         self.groups, self.window, self.seed, self.epoch = dataset.base_clip_groups(), window, int(seed), 0
+        self._skip = 0
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = int(epoch)
+
+    def skip(self, count: int) -> None:
+        """The next pass leaves out the first `count` pairs of its order (those a resumed run already trained on)."""
+        if isinstance(count, bool) or not isinstance(count, int) or count < 0:
+            raise ValueError(f"count: expected an integer >= 0, got {count!r}")
+        self._skip = count
 
     def __len__(self) -> int:
         return sum(len(group) for group in self.groups)
@@ -149,6 +156,7 @@ class WindowShuffleSampler(Sampler):
     def __iter__(self):
         rng = np.random.default_rng([self.seed, self.epoch])
         order = rng.permutation(len(self.groups))
-        for start in range(0, len(order), self.window):
-            indices = np.concatenate([self.groups[g] for g in order[start:start + self.window]])
-            yield from (int(i) for i in rng.permutation(indices))
+        indices = [int(i) for start in range(0, len(order), self.window)
+                   for i in rng.permutation(np.concatenate([self.groups[g] for g in order[start:start + self.window]]))]
+        skip, self._skip = self._skip, 0
+        return iter(indices[skip:])

@@ -160,8 +160,13 @@ class VLMFineTuner(pl.LightningModule):
 
     # ---- Lightning hooks -----------------------------------------------------------------------------------------
 
+    def on_train_start(self) -> None:
+        """Training mode for the whole model (from_pretrained leaves it in eval mode), dropout on; also when a fit
+        resumes inside an epoch, where Lightning calls no on_train_epoch_start."""
+        self.model.train()
+
     def on_train_epoch_start(self) -> None:
-        """Training mode for the whole model (from_pretrained and vlm() leave it in eval mode), dropout on."""
+        """Training mode again after an epoch's validation or a vlm() view (both leave the model in eval mode)."""
         self.model.train()
 
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
@@ -257,6 +262,26 @@ class VLMFineTuner(pl.LightningModule):
         if self.hparams.lora is None or not merge:
             return self.model
         return copy.deepcopy(self.model).merge_and_unload()
+
+
+class SkipTrainedBatches(pl.Callback):
+    """Resuming from a checkpoint taken inside an epoch, Lightning restarts the epoch's data from its start (the
+    loader keeps no position) while counting on from the saved batch, so the resumed run would train on the
+    epoch's first batches again and never see its last ones. This tells the sampler (WindowShuffleSampler, whose
+    order is fixed by seed and epoch) to leave out the batches the checkpoint has already trained on: a resumed run
+    then sees exactly the batches an uninterrupted one would."""
+
+    def __init__(self, sampler, batch_size: int):
+        self.sampler, self.batch_size = sampler, batch_size
+
+    def on_train_start(self, trainer, pl_module) -> None:
+        """Before the first batch of a fit (Lightning calls no on_train_epoch_start for a resumed epoch)."""
+        per_epoch = trainer.num_training_batches
+        if not isinstance(per_epoch, int) or per_epoch <= 0:
+            return
+        done = trainer.global_step * trainer.accumulate_grad_batches - trainer.current_epoch * per_epoch
+        if 0 < done < per_epoch:
+            self.sampler.skip(done * self.batch_size * trainer.world_size)
 
 
 def _total_steps(trainer) -> int:

@@ -56,7 +56,11 @@ def _steps(module: VLMFineTuner, batch: dict, steps: int, lr: float = 1e-2) -> l
 
 
 def _trainer(tmp_path, max_steps: int, callbacks=()) -> pl.Trainer:
-    return pl.Trainer(max_steps=max_steps, callbacks=list(callbacks), accelerator="cpu", devices=1, logger=False, enable_checkpointing=False,
+    from pytorch_lightning.callbacks import ModelCheckpoint
+
+    checkpointing = any(isinstance(callback, ModelCheckpoint) for callback in callbacks)
+    return pl.Trainer(max_steps=max_steps, callbacks=list(callbacks), accelerator="cpu", devices=1, logger=False,
+                      enable_checkpointing=checkpointing,
                       enable_progress_bar=False, enable_model_summary=False, default_root_dir=tmp_path,
                       num_sanity_val_steps=0, deterministic=True)
 
@@ -262,3 +266,65 @@ def test_bad_settings_are_refused_naming_the_argument(tiny_vlm_dir, tmp_path):
     (tmp_path / "precious" / "notes.txt").write_text("keep")
     with pytest.raises(FileExistsError, match="precious"):
         VLMFineTuner(base_dir, lora=LORA).save_model(tmp_path / "precious")
+
+
+class _Numbered(Dataset):
+    """24 items in 6 "base clips" of 4: what WindowShuffleSampler reads of a ClipQADataset."""
+
+    def __len__(self) -> int:
+        return 24
+
+    def __getitem__(self, i: int) -> int:
+        return i
+
+    def base_clip_groups(self) -> list[list[int]]:
+        return [list(range(k, k + 4)) for k in range(0, 24, 4)]
+
+
+class _KeyRecorder(pl.LightningModule):
+    """One weight; records which items each optimizer step trained on."""
+
+    def __init__(self):
+        super().__init__()
+        self.weight = torch.nn.Parameter(torch.zeros(1))
+        self.seen: dict[int, list[int]] = {}
+
+    def training_step(self, batch, batch_idx):
+        self.seen[self.global_step] = batch.tolist()
+        return (self.weight - batch.float().mean()).pow(2).sum()
+
+    def configure_optimizers(self):
+        return torch.optim.SGD(self.parameters(), lr=0.01)
+
+
+@pytest.mark.parametrize("skip", [True, False], ids=["skip", "replay"])
+def test_a_run_resumed_inside_an_epoch_trains_on_the_batches_an_uninterrupted_run_would(tmp_path, skip):
+    """12 batches an epoch, 16 steps; stopped and checkpointed at step 5, then resumed: with SkipTrainedBatches the
+    resumed steps 5-15 see exactly the uninterrupted run's batches (the rest of epoch 0, then epoch 1's new
+    order); without it Lightning restarts epoch 0's data at its first batch."""
+    from lanevil_train.vlm.qa_data import WindowShuffleSampler
+    from lanevil_train.vlm.training import SkipTrainedBatches
+
+    from pytorch_lightning.callbacks import ModelCheckpoint
+
+    def fit(root, max_steps, callbacks=(), ckpt_path=None):
+        sampler = WindowShuffleSampler(_Numbered(), window=2, seed=5)
+        loader = DataLoader(_Numbered(), batch_size=2, sampler=sampler)
+        module = _KeyRecorder()
+        extra = [SkipTrainedBatches(sampler, 2)] if skip else []
+        trainer = _trainer(root, max_steps, callbacks=[*extra, *callbacks])
+        trainer.fit(module, loader, ckpt_path=ckpt_path)
+        return module.seen, trainer
+
+    straight, _ = fit(tmp_path / "a", 16)
+    assert sorted(x for step in range(12) for x in straight[step]) == list(range(24))
+    every5 = ModelCheckpoint(dirpath=tmp_path / "b", every_n_train_steps=5, save_top_k=-1)
+    fit(tmp_path / "b", 16, callbacks=[every5, StopAt(7)])  # killed at step 7; the last checkpoint is step 5's
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # Lightning's "your dataloader is not resumable"
+        resumed, trainer = fit(tmp_path / "c", 16, ckpt_path=tmp_path / "b" / "epoch=0-step=5.ckpt")
+    assert trainer.global_step == 16 and sorted(resumed) == list(range(5, 16))
+    if skip:
+        assert resumed == {step: straight[step] for step in range(5, 16)}
+    else:
+        assert resumed[5] == straight[0]  # the replay the callback prevents
