@@ -513,9 +513,11 @@ def check_vlm_task(cfg: DictConfig) -> list[str]:
     if task == "train" and _get(cfg, "model.base_url") is not _ABSENT:
         return [f"task: task=train with model={_get(cfg, 'model._target_')}: a model behind a server cannot be "
                 f"trained here; fine-tune a local one (model=vlm/hf model.path=DIR, or model=vlm/embedded)"]
-    if task == "train" and _get(cfg, "data.name") != "clips":
-        return [_problem("data", "clips (a VLM trains on the clip suite's QA)", _get(cfg, "data.name"))]
     embedded = _get(cfg, "model.embedded") not in (None, _ABSENT)
+    if task == "train" and _get(cfg, "data.name") != "clips":
+        hint = ("for model=vlm/embedded: data=clips data.size=[64,112], its frame size; or experiment=vlm_quickstart"
+                if embedded else "")
+        return [_problem("data", "clips (a VLM trains on the clip suite's QA)", _get(cfg, "data.name"), hint)]
     if task == "evaluate" and _get(cfg, "model.path") is None and _get(cfg, "ckpt_path") is None:
         what = "model=vlm/embedded is trained here" if embedded else "the model is loaded from a folder"
         return [f"model.path: {what}: give ckpt_path=<a task=train run's checkpoint> or model.path=<a saved "

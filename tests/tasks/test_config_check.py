@@ -195,6 +195,9 @@ BAD = [
      "task: task=build with a VLM (model=lanevil_train.vlm.openai.OpenAIVLM) is not available"),
     (["task=train", "model=vlm/hf", "model.path=/tmp"],
      "data: expected clips (a VLM trains on the clip suite's QA), got 'synthetic'"),
+    (["task=train", "model=vlm/embedded"],
+     "data: expected clips (a VLM trains on the clip suite's QA), got 'synthetic' (for model=vlm/embedded: data=clips "
+     "data.size=[64,112], its frame size; or experiment=vlm_quickstart)"),
     (["task=evaluate", "model=vlm/hf", "model.path=null"],
      "model.path: the model is loaded from a folder: give ckpt_path=<a task=train run's checkpoint> or model.path="),
     (["task=train", "data=clips", "model=vlm/hf", "model.path=/tmp", "model.lora.r=0"],
