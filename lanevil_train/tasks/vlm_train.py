@@ -20,6 +20,7 @@ from lanevil_train.tasks.train import remove_stale_checkpoint_temporaries
 
 # Keys of a VLM model node read by the training code, not arguments of its inference `_target_`.
 TRAINING_KEYS = ("lora", "fine_tune", "embedded")
+TOKENIZER_CLIPS = 600  # base clips of the train split whose QA texts train the embedded VLM's tokenizer
 MODEL_FOLDER = "model"  # the trained model (or adapter) in the Hugging Face format, in the run folder
 
 
@@ -47,8 +48,11 @@ def base_model_dir(cfg: DictConfig, train_set, out: Path) -> Path:
 
     init = out / "init"
     if not (init / "config.json").is_file():
-        qas = [qa for base in dict.fromkeys(train_set.clip_meta(i)["base_clip_id"] for i in range(len(train_set)))
-               for qa in train_set.qa_for(base)]
+        bases = list(dict.fromkeys(train_set.clip_meta(i)["base_clip_id"] for i in range(len(train_set))))
+        bases = bases[::max(1, len(bases) // TOKENIZER_CLIPS)]  # the templates' words: a spread sample is enough
+        qas = [qa for base in bases for qa in train_set.qa_for(base)]
+        if cfg.model.fine_tune.get("describe"):  # the scene descriptions it will train on, too
+            qas += [train_set.description_for(base) for base in bases]
         settings = OmegaConf.to_container(cfg.model.embedded, resolve=True)
         build_embedded_vlm(init, qa_corpus(qas), frame_size=tuple(settings["frame_size"]), seed=settings["seed"],
                            **settings["sizes"])
@@ -68,11 +72,11 @@ def train_vlm(cfg: DictConfig) -> float | None:
     train_set, val_set = build_split(cfg, "train"), (build_split(cfg, "val") if cfg.data.get("val") else None)
     fine_tune = OmegaConf.to_container(cfg.model.fine_tune, resolve=True)
     variants, describe = fine_tune.pop("variants", "all"), fine_tune.pop("describe", 0)
+    loaders = _loaders(cfg, ClipQADataset(train_set, variants=variants, describe=describe),
+                       ClipQADataset(val_set, variants="clean") if val_set is not None else None, collate_clip_qa)
     module = VLMFineTuner(str(base_model_dir(cfg, train_set, out)), lora=lora_settings(cfg),
                           frames_as=cfg.model.get("frames_as", "auto"), dtype=cfg.model.get("dtype", "float32"),
                           **fine_tune)
-    loaders = _loaders(cfg, ClipQADataset(train_set, variants=variants, describe=describe),
-                       ClipQADataset(val_set, variants="clean") if val_set is not None else None, collate_clip_qa)
     callbacks = build_callbacks(cfg)
     remove_stale_checkpoint_temporaries(callbacks)
     callbacks.append(SkipTrainedBatches(loaders[0].sampler, cfg.data.batch_size))

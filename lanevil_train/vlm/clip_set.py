@@ -320,6 +320,12 @@ class SyntheticClipSuite(Dataset):
     def qa_for(self, base_clip_id: str) -> list[dict]:
         return self._facts(base_clip_id)[0]
 
+    def qa_count(self, base_clip_id: str) -> int:
+        """How many QA the base clip has (per_clip), without working out its truth."""
+        if base_clip_id not in self.by_base:
+            raise KeyError(f"no base clip {base_clip_id!r} in this synthetic suite")
+        return self.per_clip
+
     def description_for(self, base_clip_id: str) -> dict:
         """The base clip's training-only scene description (qa.describe_scene): a suite on disk has no truth."""
         return self._facts(base_clip_id)[1]

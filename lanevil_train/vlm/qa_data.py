@@ -59,7 +59,8 @@ class ClipQADataset(Dataset):
             meta = self.clips.clip_meta(index)
             if self.variants == "clean" and meta["severity"] != 0:
                 continue
-            count = len(self.clips.qa_for(meta["base_clip_id"]))
+            count = (self.clips.qa_count(meta["base_clip_id"]) if hasattr(self.clips, "qa_count")
+                     else len(self.clips.qa_for(meta["base_clip_id"])))
             pairs.extend((index, q) for q in [*range(count), *[DESCRIBE] * self.describe])
             if limit is not None and len(pairs) >= limit:
                 return pairs[:limit]
