@@ -63,8 +63,9 @@ _LANGUAGE_CACHE: dict[tuple, dict] = {}
 
 def _corpus_scores(records: Sequence[dict]) -> dict:
     """The COCO caption scores of one corpus of answers from their stored PTB tokens (metrics/vqa.py), memoised:
-    a table asks for each part of the same group in turn."""
-    key = tuple(r["key"] for r in records)
+    a table asks for each part of the same group in turn. The memo is keyed by the answers and references, not
+    just the questions: two models (or a model and its blind baseline) answer the same questions."""
+    key = tuple((r["key"], str(r["answer_tokens"]), str(r["reference_tokens"])) for r in records)
     if key not in _LANGUAGE_CACHE:
         from lanevil_train.metrics.vqa import language_scores
 

@@ -88,6 +88,26 @@ def test_scores_are_the_language_metrics_and_accuracy_of_the_answers(suite, tmp_
         100 * np.mean([r["correct"] for r in scored]))
 
 
+def test_two_models_answering_the_same_questions_get_their_own_language_scores(suite, tmp_path):
+    """A model and another answering the very same questions (as a model and its blind baseline do) in one table:
+    each row's Language is that of its own answers (the corpus memo once returned the first model's for both)."""
+    class Constant(BrightnessVLM):
+        name = "constant"
+
+        def answer(self, clips, questions):
+            return ["The road has three lanes and the markings are white." for _ in questions]
+
+    bright = ResultsLog(evaluate_clips(BrightnessVLM(), suite, tmp_path / "a", LABEL, progress="none")).records()
+    constant = ResultsLog(evaluate_clips(Constant(), suite, tmp_path / "b", {**LABEL, "model": "constant"},
+                                         progress="none")).records()
+    rows = {row["model"]: row for row in main_table(bright + constant)}
+    alone = {"brightness": main_table(bright)[0], "constant": main_table(constant)[0]}
+    for model in ("brightness", "constant"):
+        assert rows[model]["average/Language/Original"] == pytest.approx(alone[model]["average/Language/Original"])
+    assert rows["brightness"]["average/Language/Original"] != pytest.approx(
+        rows["constant"]["average/Language/Original"])
+
+
 def test_an_unchanged_answer_has_no_language_gap(suite, tmp_path):
     class Constant(BrightnessVLM):
         def answer(self, clips, questions):
