@@ -55,7 +55,11 @@ def print_table(rows: list[dict], title: str, digits: int = 2) -> None:
     table = Table(title=title)
     columns = list(rows[0]) if rows else []
     for column in columns:
-        table.add_column(column, justify="right")
+        values = [row.get(column) for row in rows]
+        if all(isinstance(value, str) for value in values):  # names (model, category): never cut to "embedded-q…"
+            table.add_column(column, no_wrap=True, min_width=max(len(value) for value in values))
+        else:
+            table.add_column(column, justify="right")
     for row in rows:
         table.add_row(*(_fmt(row.get(c, ""), digits) for c in columns))
     console = Console()
