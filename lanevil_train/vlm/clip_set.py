@@ -34,7 +34,7 @@ from lanevil_train.illusions.registry import check_severity, get_illusion
 from lanevil_train.progress import progress_counter
 from lanevil_train.results_log import ResultsLog
 from lanevil_train.taxonomy import ILLUSION_CATEGORY, ILLUSION_NAMES
-from lanevil_train.vlm.qa import describe_scene, make_qa
+from lanevil_train.vlm.qa import describe_scene, make_qa, scene_classes
 from lanevil_train.vlm.qa_records import check_qa_record
 
 CLIPS_FILE = "clips.jsonl"
@@ -304,7 +304,7 @@ class SyntheticClipSuite(Dataset):
         self.items = [(case, segment, record) for case in self.cases for segment in SEGMENTS
                       for record in variant_records(case, segment, self.severities)]
         self.by_base = {base_clip_id(case, segment): (case, segment) for case, segment, _ in self.items}
-        self._qa: dict[str, tuple[list[dict], dict]] = {}
+        self._qa: dict[str, tuple[list[dict], dict, list[int]]] = {}
         self.cache_clips = cache_clips
         self._renders: OrderedDict[tuple, dict] = OrderedDict()  # (case, segment) -> severity -> frames, LRU
 
@@ -330,15 +330,20 @@ class SyntheticClipSuite(Dataset):
         """The base clip's training-only scene description (qa.describe_scene): a suite on disk has no truth."""
         return self._facts(base_clip_id)[1]
 
-    def _facts(self, base_clip_id: str) -> tuple[list[dict], dict]:
-        """(QA, scene description) of a base clip, from its truth (computed once)."""
+    def scene_classes_for(self, base_clip_id: str) -> list[int]:
+        """The base clip's scene truth as class indices (qa.scene_classes): what the embedded VLM's vision tower is
+        pretrained on."""
+        return self._facts(base_clip_id)[2]
+
+    def _facts(self, base_clip_id: str) -> tuple[list[dict], dict, list[int]]:
+        """(QA, scene description, scene classes) of a base clip, from its truth (computed once)."""
         if base_clip_id not in self._qa:
             if base_clip_id not in self.by_base:
                 raise KeyError(f"no base clip {base_clip_id!r} in this synthetic suite")
             case, segment = self.by_base[base_clip_id]
             truth = _geometry().clip_truth(case, segment, size=self.size)
             self._qa[base_clip_id] = (make_qa(truth, base_clip_id, case.seed, self.per_clip),
-                                      describe_scene(truth, base_clip_id))
+                                      describe_scene(truth, base_clip_id), scene_classes(truth, base_clip_id))
         return self._qa[base_clip_id]
 
     def __getitem__(self, index: int) -> dict:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import zlib
 from functools import lru_cache
+from types import MappingProxyType
 
 import numpy as np
 
@@ -95,7 +96,7 @@ def _curve(truth: dict) -> int:
     return int(np.sign(truth["curvature_sign"] or 0))
 
 
-def _road_shape(truth: dict) -> str:
+def road_shape(truth: dict) -> str:
     """The road's shape over the clip (a ROAD_SHAPES key): its slope where it climbs or falls, else its bend."""
     if truth["slope"] in ("uphill", "downhill"):
         return truth["slope"]
@@ -144,7 +145,7 @@ def _scene_kind_choice(t, rng, letter=None):
 def _road_shape_choice(t, rng, letter=None):
     q = _pick(rng, ("How does the road run ahead of the ego vehicle?", "What is the shape of the road in this "
                     "clip?", "Which description fits the road geometry here?"))
-    return _choice_qa("scene_description", q, ROAD_SHAPES[_road_shape(t)], list(ROAD_SHAPES.values()), rng, letter)
+    return _choice_qa("scene_description", q, ROAD_SHAPES[road_shape(t)], list(ROAD_SHAPES.values()), rng, letter)
 
 
 # ---------------------------------------------------------------------------------------------- object recognition
@@ -509,6 +510,24 @@ def describe_scene(truth: dict, base_clip_id: str) -> dict:
                        f"The road has {NUMBER_WORDS[truth['num_lanes']]} lanes; the ego vehicle is in "
                        f"{_ego_lane_words(truth)}.", WEATHER_TEXT[truth["weather"]],
                        f"The road surface is {'wet' if truth['wet'] else 'dry'}.",
-                       ROAD_SHAPES[_road_shape(truth)]))
+                       ROAD_SHAPES[road_shape(truth)]))
     return {"qa_id": f"{base_clip_id}-describe", "base_clip_id": base_clip_id,
             **_qa("scene_description", "open", DESCRIBE_QUESTION, answer)}
+
+
+# What the embedded VLM's vision tower is pretrained to tell from a clip (embedded.pretrain_vision): each fact of
+# the scene truth that its frames show, with the values it can take, in class order.
+SCENE_CLASSES = MappingProxyType({
+    "num_lanes": (2, 3, 4, 5), "ego_lane": (0, 1, 2, 3, 4), "road_shape": tuple(ROAD_SHAPES),
+    "weather": tuple(WEATHER_TEXT), "scene_kind": tuple(SCENE_KINDS_TEXT), "wet": (False, True),
+    "left_marking": (*MARKING_NAMES, "none"), "right_marking": (*MARKING_NAMES, "none"),
+})
+
+
+def scene_classes(truth: dict, base_clip_id: str = "truth") -> list[int]:
+    """The class index of each SCENE_CLASSES fact of a clip's truth, in SCENE_CLASSES order."""
+    check_truth(truth, f"truth of {base_clip_id}")
+    facts = {"num_lanes": truth["num_lanes"], "ego_lane": truth["ego_lane"], "road_shape": road_shape(truth),
+             "weather": truth["weather"], "scene_kind": truth["scene_kind"], "wet": bool(truth["wet"]),
+             "left_marking": _boundary(truth, "left"), "right_marking": _boundary(truth, "right")}
+    return [values.index(facts[name]) for name, values in SCENE_CLASSES.items()]

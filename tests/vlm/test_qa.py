@@ -280,3 +280,22 @@ def test_the_scene_description_says_what_the_frames_show_in_the_qas_own_words():
     assert all(qa["question"] != DESCRIBE_QUESTION for qa in make_qa(truth(), "case-1-before", 3))
     with pytest.raises(ValueError, match="num_lanes"):
         describe_scene(truth(num_lanes=9), "c")
+
+
+def test_scene_classes_index_each_fact_of_the_truth():
+    """scene_classes: the class index of every SCENE_CLASSES fact (what the embedded VLM's tower is pretrained on)."""
+    from lanevil_train.vlm.qa import SCENE_CLASSES, scene_classes
+
+    assert list(SCENE_CLASSES) == ["num_lanes", "ego_lane", "road_shape", "weather", "scene_kind", "wet",
+                                   "left_marking", "right_marking"]
+    named = dict(zip(SCENE_CLASSES, scene_classes(truth())))
+    assert {k: SCENE_CLASSES[k][v] for k, v in named.items()} == {
+        "num_lanes": 3, "ego_lane": 1, "road_shape": "left_curve", "weather": "clear_noon", "scene_kind": "urban",
+        "wet": False, "left_marking": "white_dashed", "right_marking": "white_dashed"}
+    other = dict(zip(SCENE_CLASSES, scene_classes(truth(num_lanes=4, ego_lane=0, slope="downhill", wet=1.0,
+                                                       weather="night", markings=["white_solid"] * 4 + ["none"]))))
+    assert {k: SCENE_CLASSES[k][v] for k, v in other.items()} == {
+        "num_lanes": 4, "ego_lane": 0, "road_shape": "downhill", "weather": "night", "scene_kind": "urban",
+        "wet": True, "left_marking": "white_solid", "right_marking": "white_solid"}
+    with pytest.raises(ValueError, match="truth of c-1: ego_lane"):
+        scene_classes(truth(ego_lane=3), "c-1")
