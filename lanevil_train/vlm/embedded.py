@@ -21,10 +21,12 @@ Choices (defaults; every size is a keyword of `build_embedded_vlm`):
   * parameters: 1,434,496 with the defaults (vision 0.38 M, decoder 0.92 M, head 0.13 M; PARAMETER_RANGE
     bounds it; `count_parameters` tells).
 The chat template is Qwen2-VL's (system turn, user turn of the video then the question, assistant turn).
-Training (`fit_answers`, the recipe in conf/model/vlm/embedded.yaml, measured by benchmarks/bench_embedded.py):
-AdamW on the answer loss of random (clip variant, QA) pairs of the train split, clean and perturbed. 150 steps
-of 16 (4.3 min here) take the answer loss from 5.8 to 0.87 (held out 0.82), but the answers then follow the
-text format only: held-out yes/no and choice accuracy sit at the majority baseline. It needs more steps.
+Training (the recipe in conf/model/vlm/embedded.yaml; `fit_answers` is the same loop without Lightning, which
+benchmarks/bench_embedded.py uses): AdamW on the answer loss of (clip variant, QA) pairs of the train split, clean
+and perturbed, plus two scene-description pairs per clip (qa.describe_scene). On the QA alone it learns only the
+questions' text prior; the descriptions make it read the frames. 1,500 steps of 16 (9 min here): held-out yes/no
+accuracy 87.6 % and choice 39.9 % against a majority answer of 50.2 % / 24.3 %; it names the weather, but not yet the
+lane count or the road's bend (docs/vlm.md, "The embedded VLM").
 """
 
 from __future__ import annotations
@@ -35,6 +37,10 @@ import tempfile
 from pathlib import Path
 from typing import Sequence
 
+import numpy as np
+
+from lanevil_train.progress import progress_counter
+from lanevil_train.vlm.qa import SCENE_CLASSES
 from lanevil_train.vlm.qa_records import prompt_text
 from lanevil_train.vlm.tiny import _TEMPLATES, _qwen_ids, _token_roles, train_tokenizer
 
@@ -177,6 +183,73 @@ def qa_corpus(qas: Sequence[dict]) -> list[str]:
         texts.append(prompt_text(qa) if qa.get("type") == "choice" else qa["question"])
         texts.append(qa["answer"])
     return texts
+
+
+def vision_tokens(model, processor, clips):
+    """The vision tower's output for each clip (a video) [B, tokens, hidden]: what the decoder reads; every clip of
+    the batch must have the same frame size."""
+    import torch
+
+    inputs = processor.video_processor(videos=[np.stack([np.asarray(f) for f in clip]) for clip in clips],
+                                       return_tensors="pt")
+    pixels = inputs["pixel_values_videos"].to(model.device, model.dtype)
+    tokens = model.model.get_video_features(pixels, inputs["video_grid_thw"].to(model.device)).pooler_output
+    if len({t.shape for t in tokens}) != 1:
+        raise ValueError("clips: expected frames of one size (their token counts differ)")
+    return torch.stack(list(tokens))
+
+
+def pretrain_vision(model, processor, sample_batch, steps: int, lr: float = 1e-3, log=None,
+                    progress: str = "auto") -> list[float]:
+    """Pretrain the vision tower (patch embedding, blocks, merger) in place to tell a clip's scene truth: a linear
+    probe on its flattened output tokens learns every SCENE_CLASSES fact (lane count, ego lane, road shape, weather,
+    setting, wet surface, the ego lane's markings) by cross-entropy, and is then discarded. `sample_batch(step) ->
+    (clips, classes [B, len(SCENE_CLASSES)])` (qa.scene_classes); `progress` a progress.MODES display. The loss
+    of each step, in order.
+
+    Why: trained from scratch on the answer loss alone, the decoder reads only what an average over the vision
+    tokens shows (weather, light), never where the lines are; a tower that has learned the scene's geometry first,
+    then kept frozen (fine_tune.freeze_vision), gives it features to read (benchmarks/RESULTS.md)."""
+    import math
+
+    import torch
+
+    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+        raise ValueError(f"steps: expected an integer >= 1, got {steps!r}")
+    if not isinstance(lr, (int, float)) or not lr > 0:
+        raise ValueError(f"lr: expected a number > 0, got {lr!r}")
+    sizes = [len(values) for values in SCENE_CLASSES.values()]
+    tower = model.model.visual.train()
+    probe = None
+    losses: list[float] = []
+    bar = progress_counter(steps, desc="vision pretraining", unit="step", mode=progress)
+    for step in range(steps):
+        clips, classes = sample_batch(step)
+        classes = torch.as_tensor(np.asarray(classes), dtype=torch.long, device=model.device)
+        if classes.shape != (len(clips), len(sizes)):
+            raise ValueError(f"sample_batch: expected classes of shape ({len(clips)}, {len(sizes)}), "
+                             f"got {tuple(classes.shape)}")
+        features = vision_tokens(model, processor, clips).flatten(1)
+        if probe is None:
+            probe = torch.nn.Linear(features.shape[1], sum(sizes)).to(model.device, features.dtype)
+            params = [*tower.parameters(), *probe.parameters()]
+            optimizer = torch.optim.AdamW(params, lr=lr, weight_decay=0.01)
+            schedule = torch.optim.lr_scheduler.LambdaLR(
+                optimizer, lambda s: 0.5 * (1 + math.cos(math.pi * min(s, steps) / steps)))
+        logits = probe(features).split(sizes, dim=1)
+        loss = sum(torch.nn.functional.cross_entropy(part, classes[:, k]) for k, part in enumerate(logits))
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(params, 1.0)
+        optimizer.step()
+        schedule.step()
+        losses.append(float(loss.detach()))
+        bar.update(1)
+        if log is not None and (step + 1) % 50 == 0:
+            log(f"vision pretraining step {step + 1}/{steps}: loss {sum(losses[-50:]) / 50:.3f}")
+    bar.close()
+    tower.eval()
+    return losses
 
 
 GREY = 128  # the blind ablation's frames: the same uniform grey as BlindVLM

@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from lanevil_train.vlm.embedded import (DEFAULT_FRAME_SIZE, PARAMETER_RANGE, build_embedded_vlm, check_frame_size,
-                                        check_sizes, count_parameters, fit_answers, make_embedded_vlm, qa_corpus)
+                                        check_sizes, count_parameters, fit_answers, make_embedded_vlm, pretrain_vision,
+                                        qa_corpus, vision_tokens)
 from lanevil_train.vlm.hf import HFVLM
 from lanevil_train.vlm.qa_records import prompt_text
 
@@ -87,6 +88,28 @@ def test_training_steps_reduce_the_answer_loss_on_a_fixed_batch(model_dir):
     losses = fit_answers(vlm, lambda step: (clips, questions, answers), steps=12, lr=3e-3, warmup=2)
     assert len(losses) == 12
     assert losses[-1] < 0.6 * losses[0], losses
+
+
+def test_vision_pretraining_teaches_the_tower_the_scene_classes_and_leaves_the_decoder_alone(model_dir):
+    """pretrain_vision trains the tower (its probe's loss falls on a fixed batch) and nothing else: the decoder, the
+    embeddings and the head keep their weights, so the saved model is the same Qwen2-VL with a trained tower."""
+    from lanevil_train.vlm.qa import SCENE_CLASSES
+
+    vlm = HFVLM(model_dir, device="cpu")
+    before = {name: p.detach().clone() for name, p in vlm.model.named_parameters()}
+    clips = [_clip(i) for i in range(4)]
+    rng = np.random.default_rng(0)
+    classes = [[int(rng.integers(len(v))) for v in SCENE_CLASSES.values()] for _ in clips]
+    assert vision_tokens(vlm.model, vlm.processor, clips).shape == (4, 84, vlm.model.config.text_config.hidden_size)
+    torch.manual_seed(0)
+    losses = pretrain_vision(vlm.model, vlm.processor, lambda step: (clips, classes), steps=15, lr=3e-3,
+                             progress="none")
+    assert len(losses) == 15 and losses[-1] < 0.5 * losses[0], losses
+    changed = {name for name, p in vlm.model.named_parameters() if not torch.equal(p, before[name])}
+    assert changed and all(name.startswith("model.visual.") for name in changed), sorted(changed)
+    assert any(".blocks." in name for name in changed) and any(".merger." in name for name in changed)
+    with pytest.raises(ValueError, match=r"classes of shape \(4, 8\)"):
+        pretrain_vision(vlm.model, vlm.processor, lambda step: (clips, [[0, 1]] * 4), steps=1, progress="none")
 
 
 def test_bad_arguments_are_refused_naming_them(tmp_path, model_dir):
