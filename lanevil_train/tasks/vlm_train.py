@@ -44,19 +44,60 @@ def base_model_dir(cfg: DictConfig, train_set, out: Path) -> Path:
         saved = read_lightning_checkpoint(cfg.ckpt_path, "ckpt_path").get("hyper_parameters", {}).get("model_dir")
         if saved and Path(saved).is_dir():
             return Path(saved)
-    from lanevil_train.vlm.embedded import build_embedded_vlm, qa_corpus
+    from lanevil_train.vlm.embedded import make_embedded_vlm, pretrain_vision, qa_corpus, save_model_dir
 
     init = out / "init"
     if not (init / "config.json").is_file():
-        bases = list(dict.fromkeys(train_set.clip_meta(i)["base_clip_id"] for i in range(len(train_set))))
-        bases = bases[::max(1, len(bases) // TOKENIZER_CLIPS)]  # the templates' words: a spread sample is enough
+        all_bases = list(dict.fromkeys(train_set.clip_meta(i)["base_clip_id"] for i in range(len(train_set))))
+        bases = _spread(all_bases, TOKENIZER_CLIPS)  # the templates' words: a spread sample is enough
         qas = [qa for base in bases for qa in train_set.qa_for(base)]
         if cfg.model.fine_tune.get("describe"):  # the scene descriptions it will train on, too
             qas += [train_set.description_for(base) for base in bases]
         settings = OmegaConf.to_container(cfg.model.embedded, resolve=True)
-        build_embedded_vlm(init, qa_corpus(qas), frame_size=tuple(settings["frame_size"]), seed=settings["seed"],
-                           **settings["sizes"])
+        model, processor = make_embedded_vlm(qa_corpus(qas), frame_size=tuple(settings["frame_size"]),
+                                             seed=settings["seed"], **settings["sizes"])
+        pretraining = settings.get("vision_pretraining") or {"steps": 0}
+        if pretraining["steps"]:
+            sample = scene_batches(train_set, _spread(all_bases, pretraining["clips"]), pretraining["batch"],
+                                   seed=settings["seed"], progress=cfg.progress)
+            pretrain_vision(model, processor, sample, pretraining["steps"], lr=pretraining["lr"],
+                            progress=cfg.progress)
+        save_model_dir(model, processor, init)
     return init
+
+
+def _spread(items: list, count: int) -> list:
+    """About `count` of `items`, evenly spread over them."""
+    return items[::max(1, len(items) // count)]
+
+
+def scene_batches(suite, bases: list[str], batch: int, seed: int, progress: str = "auto"):
+    """`sample_batch(step) -> (clips, scene classes)` for embedded.pretrain_vision: every variant of the base clips
+    `bases` of a synthetic suite, rendered once (a progress bar) and kept in memory, drawn at random."""
+    import numpy as np
+
+    from lanevil_train.progress import progress_counter
+
+    if not hasattr(suite, "scene_classes_for"):
+        raise ValueError(f"model.embedded.vision_pretraining: the vision tower learns from the scene truth, which "
+                         f"{type(suite).__name__} does not keep; train on a synthetic split (data=clips) or set "
+                         f"model.embedded.vision_pretraining.steps=0")
+    wanted = set(bases)
+    indices = [i for i in range(len(suite)) if suite.clip_meta(i)["base_clip_id"] in wanted]
+    clips, classes = [], []
+    bar = progress_counter(len(indices), desc="clips for vision pretraining", unit="clip", mode=progress)
+    for index in indices:
+        clips.append(np.stack([np.asarray(frame, dtype=np.uint8) for frame in suite[index]["frames"]]))
+        classes.append(suite.scene_classes_for(suite.clip_meta(index)["base_clip_id"]))
+        bar.update(1)
+    bar.close()
+    rng = np.random.default_rng(seed)
+
+    def sample_batch(step: int):
+        chosen = rng.integers(len(clips), size=batch)
+        return [clips[i] for i in chosen], [classes[i] for i in chosen]
+
+    return sample_batch
 
 
 def train_vlm(cfg: DictConfig) -> float | None:

@@ -16,6 +16,8 @@ TINY_CLIPS = ["data=clips", "data.size=[32,48]", "data.train.num_cases=2", "data
               "data.batch_size=2", "data.illusions=[road_repair]", "data.severities=[3]", "trainer=cpu",
               "trainer.max_steps=3", "trainer.max_epochs=-1", "trainer.log_every_n_steps=1", "judge=none",
               "task.cases=1", "task.illusions=[road_repair]", "task.severities=[3]", "progress=plain"]
+TINY_PRETRAINING = ["model.embedded.vision_pretraining.steps=2", "model.embedded.vision_pretraining.clips=2",
+                    "model.embedded.vision_pretraining.batch=2"]
 ANSWERS = 3 * 2 * 5  # a test case: 3 segments x (clean + 1 severity) x 5 QA
 
 
@@ -46,7 +48,7 @@ def test_lora_fine_tuning_saves_an_adapter_tests_it_and_evaluates_it_again(tiny_
 def test_the_embedded_vlm_is_built_from_the_training_qa_trained_and_saved(tmp_path):
     run = tmp_path / "train"
     run_cli(["task=train", "model=vlm/embedded", "model.embedded.frame_size=[32,48]", "model.max_new_tokens=4",
-             *TINY_CLIPS], run)
+             *TINY_PRETRAINING, *TINY_CLIPS], run)
     assert (run / "init" / "config.json").is_file() and (run / "model" / "config.json").is_file()
     assert len(ResultsLog(run / "test" / "per_answer.jsonl").records()) == ANSWERS
 
@@ -59,7 +61,7 @@ def test_the_vlm_quickstart_trains_the_embedded_vlm_and_tables_it_beside_its_bli
              "data.train.num_cases=2", "data.val.num_cases=1", "data.batch_size=2", "trainer.max_steps=3",
              "trainer.val_check_interval=2", "trainer.limit_val_batches=1", "task.cases=1",
              "task.illusions=[road_repair]", "task.severities=[3]", "model.max_new_tokens=4", "judge=none",
-             "progress=plain"], run)
+             "progress=plain", *TINY_PRETRAINING], run)
     assert (run / "model" / "config.json").is_file()
     assert "val/loss" in (run / "csv" / "metrics.csv").read_text()
     answers = ResultsLog(run / "test" / "per_answer.jsonl").records()
@@ -67,3 +69,24 @@ def test_the_vlm_quickstart_trains_the_embedded_vlm_and_tables_it_beside_its_bli
     assert len(answers) == len(blind) == ANSWERS and {r["key"] for r in answers} == {r["key"] for r in blind}
     models = {r["model"] for r in answers} | {r["model"] for r in blind}
     assert models == {"embedded-qwen2vl-1.4M", "embedded-qwen2vl-1.4M-blind"}
+
+
+def test_scene_batches_draw_rendered_variants_with_their_scene_classes_and_need_the_truth(tmp_path):
+    """The vision pretraining's batches: every variant of the chosen base clips, each with its own base clip's
+    scene classes; a suite on disk (no truth) is refused naming the setting."""
+    import numpy as np
+
+    from lanevil_train.tasks.vlm_train import scene_batches
+    from lanevil_train.vlm.clip_set import ClipSetDataset, SyntheticClipSuite, build_clip_set
+
+    suite = SyntheticClipSuite(2, 0, ["road_repair"], severities=[3], size=(32, 48))
+    bases = [suite.clip_meta(i)["base_clip_id"] for i in range(0, len(suite), 2)]
+    sample = scene_batches(suite, bases[::2], batch=8, seed=0, progress="none")
+    clips, classes = sample(0)
+    assert len(clips) == len(classes) == 8 and all(c.shape == (6, 32, 48, 3) and c.dtype == np.uint8 for c in clips)
+    by_frames = {suite[i]["frames"][0].tobytes(): suite.scene_classes_for(suite.clip_meta(i)["base_clip_id"])
+                 for i in range(len(suite)) if suite.clip_meta(i)["base_clip_id"] in bases[::2]}
+    assert all(by_frames[c[0].tobytes()] == k for c, k in zip(clips, classes))
+    build_clip_set(suite.cases[:1], [3], tmp_path / "set", size=(32, 48))
+    with pytest.raises(ValueError, match="model.embedded.vision_pretraining: .*ClipSetDataset"):
+        scene_batches(ClipSetDataset(tmp_path / "set"), bases, batch=2, seed=0)
