@@ -10,8 +10,10 @@
 3. Trains the "blind" ablation the same way (same seed, steps, batches) on grey frames: what text alone gives.
 4. Answers every held-out QA (clean and perturbed variants) with both, through HFVLM.answer, and reports accuracy
    on yes/no and choice questions against the majority-answer baseline (the train split's most common first word
-   / letter), and how often open answers name the true lane count, weather and steering (vs the most common fact
-   of the train split, and vs the blind model). Writes results.json and a few answers to --out.
+   / letter), and how often open answers name the true lane count, ego lane, weather and steering (vs the most
+   common fact of the train split, and vs the blind model). Writes results.json and a few answers to --out.
+With --pretrain-vision N, step 2 starts with N steps of vision-tower pretraining on the scene truth
+(embedded.pretrain_vision, on every train clip variant) and then keeps the tower frozen, as the recipe does.
 """
 
 from __future__ import annotations
@@ -31,9 +33,10 @@ import numpy as np
 from lanevil_train.data.formats.atomic import atomic_write_bytes, atomic_write_text
 from lanevil_train.vlm import clips as geometry
 from lanevil_train.vlm.clip_set import SEGMENTS, base_clip_id
-from lanevil_train.vlm.embedded import GREY, build_embedded_vlm, count_parameters, fit_answers, qa_corpus
+from lanevil_train.vlm.embedded import (GREY, build_embedded_vlm, count_parameters, fit_answers, pretrain_vision,
+                                        qa_corpus)
 from lanevil_train.vlm.hf import HFVLM
-from lanevil_train.vlm.qa import describe_scene, make_qa
+from lanevil_train.vlm.qa import describe_scene, make_qa, scene_classes
 from lanevil_train.vlm.qa_facts import WEATHER_TEXT
 from lanevil_train.vlm.qa_records import answer_is_correct, chosen_letter, prompt_text
 from lanevil_train.taxonomy import ILLUSION_NAMES
@@ -78,18 +81,21 @@ def load_split(first_seed: int, num_cases: int, size: tuple[int, int], cache: Pa
     return clips
 
 
-def add_descriptions(clips: list[dict], first_seed: int, size: tuple[int, int], cache: Path) -> None:
-    """Give each base clip its training-only scene description (qa.describe_scene), cached as JSON."""
-    path = cache / f"describe_{size[0]}x{size[1]}_{first_seed}_{len(clips) // len(SEGMENTS)}.json"
+def add_truth_facts(clips: list[dict], first_seed: int, size: tuple[int, int], cache: Path) -> None:
+    """Give each base clip its training-only scene description (qa.describe_scene) and scene classes
+    (qa.scene_classes, what the vision tower is pretrained on), cached as JSON."""
+    path = cache / f"truth_{size[0]}x{size[1]}_{first_seed}_{len(clips) // len(SEGMENTS)}.json"
     if not path.is_file():
         cases = geometry.clip_cases(len(clips) // len(SEGMENTS), first_seed, list(ILLUSION_NAMES))
-        texts = {base_clip_id(case, segment): describe_scene(geometry.clip_truth(case, segment, size=size),
-                                                             base_clip_id(case, segment))
-                 for case in cases for segment in SEGMENTS}
-        atomic_write_text(path, json.dumps(texts))
-    texts = json.loads(path.read_text())
+        facts = {}
+        for case in cases:
+            for segment in SEGMENTS:
+                base, truth = base_clip_id(case, segment), geometry.clip_truth(case, segment, size=size)
+                facts[base] = {"describe": describe_scene(truth, base), "classes": scene_classes(truth, base)}
+        atomic_write_text(path, json.dumps(facts))
+    facts = json.loads(path.read_text())
     for clip in clips:
-        clip["describe"] = texts[clip["base_clip_id"]]
+        clip.update(facts[clip["base_clip_id"]])
 
 
 def pairs_of(clips: list[dict], variants=(0, 1), describe: int = 0) -> list[tuple[int, int, dict]]:
@@ -130,6 +136,8 @@ _WEATHER_KEYS = {key: text.split(",")[0].split(" with ")[0].lower() for key, tex
 FACTS = {
     "lane_count": lambda text: (m.group(1) if (m := re.search(r"\b(two|three|four|five) lanes\b", text.lower()))
                                 else None),
+    "ego_lane": lambda text: (m.group(1) if (m := re.search(r"(?:is in|stay in) (the leftmost lane|the rightmost lane|"
+                                                            r"the \w+ lane from the left)", text.lower())) else None),
     "weather": lambda text: next((key for key, cue in _WEATHER_KEYS.items() if cue in text.lower()), None),
     "steering": lambda text: next((name for name, cue in (("left", "steer gently to the left"),
                                                           ("right", "steer gently to the right"),
@@ -187,6 +195,16 @@ def train(model_dir: Path, clips: list[dict], args, blind: bool) -> tuple[HFVLM,
     import torch
     torch.manual_seed(args.seed)
     start = time.perf_counter()
+    if args.pretrain_vision:
+        variants = [(i, v) for i in range(len(clips)) for v in (0, 1)]
+
+        def scene_batch(step: int):
+            chosen = [variants[i] for i in rng.integers(len(variants), size=args.batch)]
+            return [clip_frames(clips, i, v, blind) for i, v in chosen], [clips[i]["classes"] for i, _ in chosen]
+
+        pretrain_vision(vlm.model, vlm.processor, scene_batch, args.pretrain_vision, lr=args.pretrain_lr,
+                        progress="none", log=lambda m: print(("blind " if blind else "") + m, flush=True))
+        vlm.model.model.visual.requires_grad_(False)  # the recipe's fine_tune.freeze_vision
     losses = fit_answers(vlm, sample_batch, args.steps, lr=args.lr, warmup=args.warmup,
                          log=lambda m: print(("blind " if blind else "") + m, flush=True))
     minutes = (time.perf_counter() - start) / 60
@@ -237,7 +255,12 @@ def main(argv=None) -> None:
     parser.add_argument("--describe", type=int, default=0,
                         help="scene-description pairs per train clip variant, beside its QA (the recipe's aid to "
                              "learning the frames; 0: QA only)")
+    parser.add_argument("--pretrain-vision", type=int, default=0,
+                        help="steps of vision-tower pretraining on the scene truth (embedded.pretrain_vision) before "
+                             "the answer loss, which then leaves the tower frozen (0: none, the tower trains too)")
+    parser.add_argument("--pretrain-lr", type=float, default=1e-3)
     parser.add_argument("--no-blind", action="store_true", help="skip the blind (grey-frame) ablation")
+    parser.add_argument("--blind-only", action="store_true", help="run only the blind (grey-frame) ablation")
     args = parser.parse_args(argv)
     if args.train_cases >= TEST_FIRST_SEED:
         sys.exit(f"--train-cases {args.train_cases}: the train seeds would reach the test split's {TEST_FIRST_SEED}")
@@ -249,8 +272,8 @@ def main(argv=None) -> None:
     test_clips = load_split(TEST_FIRST_SEED, args.test_cases, size, args.cache, args.workers)
     print(f"clips ready in {time.perf_counter() - start:.0f} s: {len(train_clips)} train, {len(test_clips)} test "
           f"base clips", flush=True)
-    if args.describe:
-        add_descriptions(train_clips, 0, size, args.cache)
+    if args.describe or args.pretrain_vision:
+        add_truth_facts(train_clips, 0, size, args.cache)
     train_qas = [qa for clip in train_clips for qa in clip["qa"]]
     results: dict = {"args": {k: (list(v) if isinstance(v, tuple) else str(v) if isinstance(v, Path) else v)
                               for k, v in vars(args).items()}}
@@ -261,7 +284,7 @@ def main(argv=None) -> None:
                                                                                if qa["type"] != "open" else ""
                                                                                for qa in test_qas]),
                            "open_fact_chance": fact_chance(train_qas, test_qas)}
-    for blind in ([False] if args.no_blind else [False, True]):
+    for blind in ([False] if args.no_blind else [True] if args.blind_only else [False, True]):
         name = "blind" if blind else "embedded"
         model_dir = args.out / f"model_{name}"
         if not model_dir.is_dir():
