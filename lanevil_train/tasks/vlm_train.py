@@ -51,8 +51,8 @@ def base_model_dir(cfg: DictConfig, train_set, out: Path) -> Path:
         all_bases = list(dict.fromkeys(train_set.clip_meta(i)["base_clip_id"] for i in range(len(train_set))))
         bases = _spread(all_bases, TOKENIZER_CLIPS)  # the templates' words: a spread sample is enough
         qas = [qa for base in bases for qa in train_set.qa_for(base)]
-        if cfg.model.fine_tune.get("describe"):  # the scene descriptions it will train on, too
-            qas += [train_set.description_for(base) for base in bases]
+        if cfg.model.fine_tune.get("aids"):  # the training aids it will train on, too
+            qas += [aid for base in bases for aid in train_set.training_aids_for(base)]
         settings = OmegaConf.to_container(cfg.model.embedded, resolve=True)
         model, processor = make_embedded_vlm(qa_corpus(qas), frame_size=tuple(settings["frame_size"]),
                                              seed=settings["seed"], **settings["sizes"])
@@ -112,8 +112,8 @@ def train_vlm(cfg: DictConfig) -> float | None:
     out = output_dir(cfg)
     train_set, val_set = build_split(cfg, "train"), (build_split(cfg, "val") if cfg.data.get("val") else None)
     fine_tune = OmegaConf.to_container(cfg.model.fine_tune, resolve=True)
-    variants, describe = fine_tune.pop("variants", "all"), fine_tune.pop("describe", 0)
-    loaders = _loaders(cfg, ClipQADataset(train_set, variants=variants, describe=describe),
+    variants, aids = fine_tune.pop("variants", "all"), fine_tune.pop("aids", 0)
+    loaders = _loaders(cfg, ClipQADataset(train_set, variants=variants, aids=aids),
                        ClipQADataset(val_set, variants="clean") if val_set is not None else None, collate_clip_qa)
     module = VLMFineTuner(str(base_model_dir(cfg, train_set, out)), lora=lora_settings(cfg),
                           frames_as=cfg.model.get("frames_as", "auto"), dtype=cfg.model.get("dtype", "float32"),

@@ -34,7 +34,7 @@ from lanevil_train.illusions.registry import check_severity, get_illusion
 from lanevil_train.progress import progress_counter
 from lanevil_train.results_log import ResultsLog
 from lanevil_train.taxonomy import ILLUSION_CATEGORY, ILLUSION_NAMES
-from lanevil_train.vlm.qa import describe_scene, make_qa, scene_classes
+from lanevil_train.vlm.qa import make_qa, scene_classes, training_aids
 from lanevil_train.vlm.qa_records import check_qa_record
 
 CLIPS_FILE = "clips.jsonl"
@@ -326,8 +326,9 @@ class SyntheticClipSuite(Dataset):
             raise KeyError(f"no base clip {base_clip_id!r} in this synthetic suite")
         return self.per_clip
 
-    def description_for(self, base_clip_id: str) -> dict:
-        """The base clip's training-only scene description (qa.describe_scene): a suite on disk has no truth."""
+    def training_aids_for(self, base_clip_id: str) -> list[dict]:
+        """The base clip's training-only QA (qa.training_aids: the scene description and the open questions that
+        name its facts): a suite on disk has no truth."""
         return self._facts(base_clip_id)[1]
 
     def scene_classes_for(self, base_clip_id: str) -> list[int]:
@@ -335,15 +336,15 @@ class SyntheticClipSuite(Dataset):
         pretrained on."""
         return self._facts(base_clip_id)[2]
 
-    def _facts(self, base_clip_id: str) -> tuple[list[dict], dict, list[int]]:
-        """(QA, scene description, scene classes) of a base clip, from its truth (computed once)."""
+    def _facts(self, base_clip_id: str) -> tuple[list[dict], list[dict], list[int]]:
+        """(QA, training aids, scene classes) of a base clip, from its truth (computed once)."""
         if base_clip_id not in self._qa:
             if base_clip_id not in self.by_base:
                 raise KeyError(f"no base clip {base_clip_id!r} in this synthetic suite")
             case, segment = self.by_base[base_clip_id]
             truth = _geometry().clip_truth(case, segment, size=self.size)
             self._qa[base_clip_id] = (make_qa(truth, base_clip_id, case.seed, self.per_clip),
-                                      describe_scene(truth, base_clip_id), scene_classes(truth, base_clip_id))
+                                      training_aids(truth, base_clip_id), scene_classes(truth, base_clip_id))
         return self._qa[base_clip_id]
 
     def __getitem__(self, index: int) -> dict:

@@ -91,6 +91,9 @@ def _ego_lane_words(truth: dict) -> str:
     return f"the {ORDINALS[ego]} lane from the left"
 
 
+BENDS = ("left", "straight", "right")  # the road's bend over a clip, indexed by _curve + 1
+
+
 def _curve(truth: dict) -> int:
     """-1 the road bends left over the clip, +1 right, 0 straight (clips.clip_truth's curvature_sign)."""
     return int(np.sign(truth["curvature_sign"] or 0))
@@ -182,25 +185,37 @@ def _illusion_is_object_yes_no(t, rng, yes=None):
 
 # ---------------------------------------------------------------------------------------------- lane recognition
 
+LANE_COUNT_QUESTIONS = ("How many lanes does this road have?", "How many driving lanes can you count on the road?",
+                        "Count the lanes of the road in this clip.")
+EGO_LANE_QUESTIONS = ("Which lane is the ego vehicle driving in?", "In which lane is the camera car?",
+                      "Counting from the left, which lane does the ego vehicle occupy?")
+
+
 def _lane_count(t, rng, letter=None):
     n = t["num_lanes"]
-    q = _pick(rng, ("How many lanes does this road have?", "How many driving lanes can you count on the road?",
-                    "Count the lanes of the road in this clip."))
+    q = _pick(rng, LANE_COUNT_QUESTIONS)
     if rng.random() < 0.5:
         return _choice_qa("lane_recognition", q, f"{NUMBER_WORDS[n].capitalize()} lanes.",
                           [f"{NUMBER_WORDS[k].capitalize()} lanes." for k in range(2, 6)], rng, letter)
-    return _qa("lane_recognition", "open", q, f"The road has {NUMBER_WORDS[n]} lanes.")
+    return _lane_count_open(t, q)
+
+
+def _lane_count_open(t, q):
+    return _qa("lane_recognition", "open", q, f"The road has {NUMBER_WORDS[t['num_lanes']]} lanes.")
 
 
 def _ego_lane(t, rng, letter=None):
     n, ego = t["num_lanes"], t["ego_lane"]
-    q = _pick(rng, ("Which lane is the ego vehicle driving in?", "In which lane is the camera car?",
-                    "Counting from the left, which lane does the ego vehicle occupy?"))
+    q = _pick(rng, EGO_LANE_QUESTIONS)
     if rng.random() < 0.5:
         lanes = [f"The {ORDINALS[k]} lane from the left." for k in range(max(n, CHOICE_OPTIONS))]
         return _choice_qa("lane_recognition", q, lanes[ego], lanes, rng, letter)
+    return _ego_lane_open(t, q)
+
+
+def _ego_lane_open(t, q):
     return _qa("lane_recognition", "open", q,
-               f"The ego vehicle is in {_ego_lane_words(t)}; the road has {NUMBER_WORDS[n]} lanes.")
+               f"The ego vehicle is in {_ego_lane_words(t)}; the road has {NUMBER_WORDS[t['num_lanes']]} lanes.")
 
 
 def _boundary_marking_open(t, rng):
@@ -330,7 +345,7 @@ def _steering_open(t, rng):
     if sign == 0:
         a = "No steering is needed: the road runs straight here, so the ego vehicle holds its wheel steady."
     else:
-        a = f"It must steer gently to the {'right' if sign > 0 else 'left'}, following the road's curve."
+        a = f"It must steer gently to the {BENDS[sign + 1]}, following the road's curve."
     return _qa("motion_reasoning", "open", q, a)
 
 
@@ -502,25 +517,50 @@ DESCRIBE_QUESTION = "Describe the scene: the setting, the lanes, the weather and
 
 def describe_scene(truth: dict, base_clip_id: str) -> dict:
     """A dense description of what a clip's frames show (setting, lane count and ego lane, weather, light and
-    surface, road shape) as a QA record `{base_clip_id}-describe`. Training-only: never one of the benchmark's QA.
-    Every phrase is one the QA's answers use, so a small VLM trained from scratch (vlm/embedded.py) learns to read
-    the frames from it: the benchmark's QA alone let it learn their text prior instead."""
+    surface, road shape, the bend a slope hides and the steering it asks for) as a QA record
+    `{base_clip_id}-describe`. Training-only: never one of the benchmark's QA. Every phrase is one the QA's answers
+    use, so a small VLM trained from scratch (vlm/embedded.py) learns to read the frames from it: the benchmark's
+    QA alone let it learn their text prior instead."""
     check_truth(truth, f"truth of {base_clip_id}")
+    shape, sign = road_shape(truth), _curve(truth)
+    bend = [ROAD_SHAPES[f"{BENDS[sign + 1]}_curve"]] if sign and shape in ("uphill", "downhill") else []
+    steering = f"The ego vehicle must steer gently to the {BENDS[sign + 1]}." if sign else "No steering is needed."
     answer = " ".join((SCENE_KINDS_TEXT[truth["scene_kind"]],
                        f"The road has {NUMBER_WORDS[truth['num_lanes']]} lanes; the ego vehicle is in "
                        f"{_ego_lane_words(truth)}.", WEATHER_TEXT[truth["weather"]],
                        f"The road surface is {'wet' if truth['wet'] else 'dry'}.",
-                       ROAD_SHAPES[road_shape(truth)]))
+                       ROAD_SHAPES[shape], *bend, steering))
     return {"qa_id": f"{base_clip_id}-describe", "base_clip_id": base_clip_id,
             **_qa("scene_description", "open", DESCRIBE_QUESTION, answer)}
 
 
+def training_aids(truth: dict, base_clip_id: str) -> list[dict]:
+    """A clip's training-only QA, from its truth: the scene description (`{base_clip_id}-describe`), then the open
+    questions whose answers name what the frames show (`{base_clip_id}-aid1..4`): the lane count, the ego lane, the
+    steering the road's bend asks for and the safe action. Never part of the benchmark's QA; phrased as the
+    benchmark's own open kinds, with the phrasing drawn from the clip id.
+
+    Why: a small VLM trained from scratch (vlm/embedded.py) gets its say on the frames from a few answer tokens
+    ("three", "left"); in the 5 benchmark QA of a clip those are rare (one steering question in about 30), in a
+    description one token in 60. Short answers that turn on a fact make that fact's tokens a large part of the loss
+    (benchmarks/RESULTS.md: the lane count and the bend are read with them, not without)."""
+    check_truth(truth, f"truth of {base_clip_id}")
+    rng = np.random.default_rng([zlib.crc32(base_clip_id.encode("utf-8")), 0xA1D])
+    facts = (_lane_count_open(truth, _pick(rng, LANE_COUNT_QUESTIONS)),
+             _ego_lane_open(truth, _pick(rng, EGO_LANE_QUESTIONS)), _steering_open(truth, rng),
+             _safe_action_open(truth, rng))
+    return [describe_scene(truth, base_clip_id),
+            *({"qa_id": f"{base_clip_id}-aid{k}", "base_clip_id": base_clip_id, **qa} for k, qa in enumerate(facts, 1))]
+
+
 # What the embedded VLM's vision tower is pretrained to tell from a clip (embedded.pretrain_vision): each fact of
 # the scene truth that its frames show, with the values it can take, in class order.
+# The bend is its own fact: road_shape names the slope where there is one, and the steering and safe-action answers
+# follow the bend on hills too.
 SCENE_CLASSES = MappingProxyType({
     "num_lanes": (2, 3, 4, 5), "ego_lane": (0, 1, 2, 3, 4), "road_shape": tuple(ROAD_SHAPES),
     "weather": tuple(WEATHER_TEXT), "scene_kind": tuple(SCENE_KINDS_TEXT), "wet": (False, True),
-    "left_marking": (*MARKING_NAMES, "none"), "right_marking": (*MARKING_NAMES, "none"),
+    "left_marking": (*MARKING_NAMES, "none"), "right_marking": (*MARKING_NAMES, "none"), "bend": BENDS,
 })
 
 
@@ -529,5 +569,6 @@ def scene_classes(truth: dict, base_clip_id: str = "truth") -> list[int]:
     check_truth(truth, f"truth of {base_clip_id}")
     facts = {"num_lanes": truth["num_lanes"], "ego_lane": truth["ego_lane"], "road_shape": road_shape(truth),
              "weather": truth["weather"], "scene_kind": truth["scene_kind"], "wet": bool(truth["wet"]),
-             "left_marking": _boundary(truth, "left"), "right_marking": _boundary(truth, "right")}
+             "left_marking": _boundary(truth, "left"), "right_marking": _boundary(truth, "right"),
+             "bend": BENDS[_curve(truth) + 1]}
     return [values.index(facts[name]) for name, values in SCENE_CLASSES.items()]

@@ -21,17 +21,15 @@ VARIANTS = ("clean", "all")
 FRAMES_PER_CLIP = 6
 
 
-DESCRIBE = -1  # the QA index of a clip variant's scene-description pair
-
-
 class ClipQADataset(Dataset):
     """(clip variant, QA) pairs of a clip suite (ClipSetDataset / SyntheticClipSuite).
 
     variants: "clean" (severity-0 clips only) or "all"; limit: keep the first `limit` pairs (clip order);
-    describe: also pair each chosen clip variant this many times with its base clip's scene description
-    (qa.describe_scene, a training aid: SyntheticClipSuite.description_for; a suite on disk keeps no truth)."""
+    aids: also pair each chosen clip variant this many times with each of its base clip's training aids (the scene
+    description and the open questions that name its facts: qa.training_aids, SyntheticClipSuite.training_aids_for;
+    a suite on disk keeps no truth). A pair's QA index is the QA's position, or -(k + 1) for training aid k."""
 
-    def __init__(self, clips, variants: str = "clean", limit: int | None = None, describe: int = 0):
+    def __init__(self, clips, variants: str = "clean", limit: int | None = None, aids: int = 0):
         for needed in ("clip_meta", "qa_for", "__getitem__", "__len__"):
             if not hasattr(clips, needed):
                 raise TypeError(f"clips: expected a clip suite (ClipSetDataset or SyntheticClipSuite) with "
@@ -40,13 +38,14 @@ class ClipQADataset(Dataset):
             raise ValueError(f"variants: expected one of {', '.join(VARIANTS)}, got {variants!r}")
         if limit is not None and (isinstance(limit, bool) or not isinstance(limit, int) or limit < 1):
             raise ValueError(f"limit: expected None or an integer >= 1, got {limit!r}")
-        if isinstance(describe, bool) or not isinstance(describe, int) or describe < 0:
-            raise ValueError(f"describe: expected an integer >= 0 (description pairs per clip), got {describe!r}")
-        if describe and not hasattr(clips, "description_for"):
-            raise ValueError(f"describe: {describe} scene-description pairs need the scene truth, which "
+        if isinstance(aids, bool) or not isinstance(aids, int) or aids < 0:
+            raise ValueError(f"aids: expected an integer >= 0 (training-aid rounds per clip), got {aids!r}")
+        if aids and not hasattr(clips, "training_aids_for"):
+            raise ValueError(f"aids: {aids} rounds of training aids need the scene truth, which "
                              f"{type(clips).__name__} does not keep; train on a synthetic split (SyntheticClipSuite) "
-                             f"or set describe to 0")
-        self.clips, self.variants, self.describe = clips, variants, describe
+                             f"or set aids to 0")
+        self.clips, self.variants, self.aids = clips, variants, aids
+        self.aid_count = len(clips.training_aids_for(clips.clip_meta(0)["base_clip_id"])) if aids and len(clips) else 0
         self.pairs = self._pairs(limit)
         if not self.pairs:
             raise ValueError(f"clips: no {variants} clip with QA in this suite of {len(clips)} clips")
@@ -61,7 +60,7 @@ class ClipQADataset(Dataset):
                 continue
             count = (self.clips.qa_count(meta["base_clip_id"]) if hasattr(self.clips, "qa_count")
                      else len(self.clips.qa_for(meta["base_clip_id"])))
-            pairs.extend((index, q) for q in [*range(count), *[DESCRIBE] * self.describe])
+            pairs.extend((index, q) for q in [*range(count), *[-(k + 1) for k in range(self.aid_count)] * self.aids])
             if limit is not None and len(pairs) >= limit:
                 return pairs[:limit]
         return pairs
@@ -89,7 +88,7 @@ class ClipQADataset(Dataset):
     def __getitem__(self, index: int) -> dict:
         clip_index, qa_index = self.pairs[index]
         meta = self.clips.clip_meta(clip_index)
-        qa = (self.clips.description_for(meta["base_clip_id"]) if qa_index == DESCRIBE
+        qa = (self.clips.training_aids_for(meta["base_clip_id"])[-qa_index - 1] if qa_index < 0
               else self.clips.qa_for(meta["base_clip_id"])[qa_index])
         return {"frames": self._clip_frames(clip_index), "question": prompt_text(qa), "answer": qa["answer"],
                 "key": f"{meta['clip_id']}/{qa['qa_id']}",

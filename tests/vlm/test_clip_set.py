@@ -183,25 +183,29 @@ def test_a_window_shuffle_renders_each_base_clip_once_per_epoch_and_mixes_clips_
         SyntheticClipSuite(1, 0, "all", [1], SIZE, cache_clips=0)
 
 
-def test_describe_adds_scene_description_pairs_a_set_on_disk_cannot_give(tmp_path):
-    """ClipQADataset(describe=2): each clip variant's 5 QA plus its base clip's description twice, the description
-    the truth gives; a built set has no truth, so describe is refused there, naming why."""
-    from lanevil_train.vlm.qa import DESCRIBE_QUESTION, describe_scene
+def test_aids_add_training_aid_pairs_a_set_on_disk_cannot_give(tmp_path):
+    """ClipQADataset(aids=2): each clip variant's 5 QA plus each of its base clip's 5 training aids (description and
+    fact questions) twice, as the truth gives them; a built set has no truth, so aids are refused there, naming why."""
+    from lanevil_train.vlm.qa import DESCRIBE_QUESTION, training_aids
     from lanevil_train.vlm.qa_data import ClipQADataset
 
     suite = SyntheticClipSuite(1, 500, ["rail_shadow"], [2], SIZE)
-    pairs = ClipQADataset(suite, "all", describe=2)
-    assert len(pairs) == 3 * 2 * (5 + 2) == len(ClipQADataset(suite, "all")) + 12
+    pairs = ClipQADataset(suite, "all", aids=2)
+    assert len(pairs) == 3 * 2 * (5 + 2 * 5) == len(ClipQADataset(suite, "all")) + 60
     items = [pairs[i] for i in range(len(pairs))]
     described = [item for item in items if item["question"] == DESCRIBE_QUESTION]
     assert len(described) == 12 and {item["meta"]["severity"] for item in described} == {0, 2}
     base = described[0]["meta"]["base_clip_id"]
     case, segment = suite.by_base[base]
-    expected = describe_scene(fake_clips.clip_truth(case, segment, SIZE), base)
-    assert described[0]["answer"] == expected["answer"] and described[0]["key"].endswith(f"/{base}-describe")
+    expected = training_aids(fake_clips.clip_truth(case, segment, SIZE), base)
+    of_base = [item for item in items if item["meta"]["base_clip_id"] == base and item["meta"]["severity"] == 0]
+    aid_items = [item for item in of_base if item["meta"]["qa_id"] in {aid["qa_id"] for aid in expected}]
+    assert [(item["question"], item["answer"]) for item in aid_items] == \
+        [(aid["question"], aid["answer"]) for aid in expected] * 2
+    assert described[0]["key"].endswith(f"/{base}-describe")
     build_clip_set(suite.cases, [2], tmp_path, size=SIZE, progress="none")
-    with pytest.raises(ValueError, match="describe: 1 scene-description pairs need the scene truth, which "
+    with pytest.raises(ValueError, match="aids: 1 rounds of training aids need the scene truth, which "
                                          "ClipSetDataset does not keep"):
-        ClipQADataset(ClipSetDataset(tmp_path), "all", describe=1)
-    with pytest.raises(ValueError, match="describe: expected an integer >= 0"):
-        ClipQADataset(suite, "all", describe=-1)
+        ClipQADataset(ClipSetDataset(tmp_path), "all", aids=1)
+    with pytest.raises(ValueError, match="aids: expected an integer >= 0"):
+        ClipQADataset(suite, "all", aids=-1)

@@ -262,8 +262,8 @@ def test_case_plan_pairs_yes_and_no_and_deals_letters_evenly():
 
 
 def test_the_scene_description_says_what_the_frames_show_in_the_qas_own_words():
-    """describe_scene: setting, lane count and ego lane, weather and surface, road shape, each from the truth and
-    in the phrases the QA's answers use; a training-only record, in no clip's benchmark QA."""
+    """describe_scene: setting, lane count and ego lane, weather and surface, road shape and steering, each from the
+    truth and in the phrases the QA's answers use; a training-only record, in no clip's benchmark QA."""
     from lanevil_train.vlm.qa import DESCRIBE_QUESTION, describe_scene
 
     record = describe_scene(truth(), "case-1-before")
@@ -271,15 +271,46 @@ def test_the_scene_description_says_what_the_frames_show_in_the_qas_own_words():
                       "category": "scene_description", "type": "open", "question": DESCRIBE_QUESTION,
                       "answer": "An urban street between buildings. The road has three lanes; the ego vehicle is in "
                                 "the second lane from the left. It is a clear day around noon with bright sunlight. "
-                                "The road surface is dry. Curving to the left."}
+                                "The road surface is dry. Curving to the left. The ego vehicle must steer gently to "
+                                "the left."}
     night = describe_scene(truth(weather="night", night=True, wet=1.0, num_lanes=4, ego_lane=3, scene_kind="highway",
                                  curvature_sign=0, slope="uphill", markings=["white_solid"] * 5), "c")["answer"]
     assert night == ("A multi-lane highway. The road has four lanes; the ego vehicle is in the rightmost lane. It is "
                      "night, with the road lit by street lamps and headlights. The road surface is wet. "
-                     "Climbing uphill.")
+                     "Climbing uphill. No steering is needed.")
+    # a slope hides the bend in the road's shape: the description names it, and the steering it asks for
+    hill = describe_scene(truth(curvature_sign=1, slope="downhill"), "c")["answer"]
+    assert hill.endswith("Going downhill. Curving to the right. The ego vehicle must steer gently to the right.")
     assert all(qa["question"] != DESCRIBE_QUESTION for qa in make_qa(truth(), "case-1-before", 3))
     with pytest.raises(ValueError, match="num_lanes"):
         describe_scene(truth(num_lanes=9), "c")
+
+
+def test_training_aids_are_the_description_and_open_questions_whose_answers_turn_on_the_frames():
+    """training_aids: the description, then the lane count, ego lane, steering and safe action asked openly, each
+    answer the truth's (a hill's bend included), phrased as the benchmark's own kinds, the same for the same clip."""
+    from lanevil_train.vlm.qa import (DESCRIBE_QUESTION, EGO_LANE_QUESTIONS, LANE_COUNT_QUESTIONS, describe_scene,
+                                      training_aids)
+
+    aids = training_aids(truth(num_lanes=4, ego_lane=3, curvature_sign=1, slope="uphill",
+                               markings=["white_solid"] * 5), "case-7-over")
+    assert [a["qa_id"] for a in aids] == ["case-7-over-describe"] + [f"case-7-over-aid{k}" for k in range(1, 5)]
+    assert aids[0] == describe_scene(truth(num_lanes=4, ego_lane=3, curvature_sign=1, slope="uphill",
+                                           markings=["white_solid"] * 5), "case-7-over")
+    assert aids[0]["question"] == DESCRIBE_QUESTION and all(a["type"] == "open" for a in aids)
+    assert aids[1]["question"] in LANE_COUNT_QUESTIONS and aids[1]["answer"] == "The road has four lanes."
+    assert aids[2]["question"] in EGO_LANE_QUESTIONS
+    assert aids[2]["answer"] == "The ego vehicle is in the rightmost lane; the road has four lanes."
+    assert aids[3]["answer"] == "It must steer gently to the right, following the road's curve."
+    assert aids[4]["category"] == "action" and aids[4]["answer"].startswith(
+        "It should stay in the rightmost lane and follow the road's curve; the dark straight lines in the left lane "
+        "are shadows of a roadside rail")
+    straight = training_aids(truth(curvature_sign=0), "case-7-over")
+    assert straight[3]["answer"].startswith("No steering is needed")
+    assert "hold a straight course" in straight[4]["answer"]
+    assert [a["question"] for a in straight] == [a["question"] for a in aids]  # phrasing follows the clip id
+    with pytest.raises(ValueError, match="truth of c: num_lanes"):
+        training_aids(truth(num_lanes=9), "c")
 
 
 def test_scene_classes_index_each_fact_of_the_truth():
@@ -287,15 +318,15 @@ def test_scene_classes_index_each_fact_of_the_truth():
     from lanevil_train.vlm.qa import SCENE_CLASSES, scene_classes
 
     assert list(SCENE_CLASSES) == ["num_lanes", "ego_lane", "road_shape", "weather", "scene_kind", "wet",
-                                   "left_marking", "right_marking"]
+                                   "left_marking", "right_marking", "bend"]
     named = dict(zip(SCENE_CLASSES, scene_classes(truth())))
     assert {k: SCENE_CLASSES[k][v] for k, v in named.items()} == {
         "num_lanes": 3, "ego_lane": 1, "road_shape": "left_curve", "weather": "clear_noon", "scene_kind": "urban",
-        "wet": False, "left_marking": "white_dashed", "right_marking": "white_dashed"}
+        "wet": False, "left_marking": "white_dashed", "right_marking": "white_dashed", "bend": "left"}
     other = dict(zip(SCENE_CLASSES, scene_classes(truth(num_lanes=4, ego_lane=0, slope="downhill", wet=1.0,
                                                        weather="night", markings=["white_solid"] * 4 + ["none"]))))
     assert {k: SCENE_CLASSES[k][v] for k, v in other.items()} == {
         "num_lanes": 4, "ego_lane": 0, "road_shape": "downhill", "weather": "night", "scene_kind": "urban",
-        "wet": True, "left_marking": "white_solid", "right_marking": "white_solid"}
+        "wet": True, "left_marking": "white_solid", "right_marking": "white_solid", "bend": "left"}
     with pytest.raises(ValueError, match="truth of c-1: ego_lane"):
         scene_classes(truth(ego_lane=3), "c-1")
