@@ -543,7 +543,7 @@ def training_aids(truth: dict, base_clip_id: str) -> list[dict]:
     Why: a small VLM trained from scratch (vlm/embedded.py) gets its say on the frames from a few answer tokens
     ("three", "left"); in the 5 benchmark QA of a clip those are rare (one steering question in about 30), in a
     description one token in 60. Short answers that turn on a fact make that fact's tokens a large part of the loss
-    (benchmarks/RESULTS.md: the lane count and the bend are read with them, not without)."""
+    (what that changes: benchmarks/RESULTS.md, "VLM fine-tuning")."""
     check_truth(truth, f"truth of {base_clip_id}")
     rng = np.random.default_rng([zlib.crc32(base_clip_id.encode("utf-8")), 0xA1D])
     facts = (_lane_count_open(truth, _pick(rng, LANE_COUNT_QUESTIONS)),
