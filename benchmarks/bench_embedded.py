@@ -36,7 +36,7 @@ from lanevil_train.vlm.clip_set import SEGMENTS, base_clip_id
 from lanevil_train.vlm.embedded import (GREY, build_embedded_vlm, count_parameters, fit_answers, pretrain_vision,
                                         qa_corpus)
 from lanevil_train.vlm.hf import HFVLM
-from lanevil_train.vlm.qa import describe_scene, make_qa, scene_classes
+from lanevil_train.vlm.qa import make_qa, scene_classes, training_aids
 from lanevil_train.vlm.qa_facts import WEATHER_TEXT
 from lanevil_train.vlm.qa_records import answer_is_correct, chosen_letter, prompt_text
 from lanevil_train.taxonomy import ILLUSION_NAMES
@@ -82,26 +82,26 @@ def load_split(first_seed: int, num_cases: int, size: tuple[int, int], cache: Pa
 
 
 def add_truth_facts(clips: list[dict], first_seed: int, size: tuple[int, int], cache: Path) -> None:
-    """Give each base clip its training-only scene description (qa.describe_scene) and scene classes
-    (qa.scene_classes, what the vision tower is pretrained on), cached as JSON."""
-    path = cache / f"truth_{size[0]}x{size[1]}_{first_seed}_{len(clips) // len(SEGMENTS)}.json"
+    """Give each base clip its training-only QA (qa.training_aids: the scene description and the open questions
+    naming its facts) and scene classes (qa.scene_classes, what the vision tower is pretrained on), cached as JSON."""
+    path = cache / f"aids_{size[0]}x{size[1]}_{first_seed}_{len(clips) // len(SEGMENTS)}.json"
     if not path.is_file():
         cases = geometry.clip_cases(len(clips) // len(SEGMENTS), first_seed, list(ILLUSION_NAMES))
         facts = {}
         for case in cases:
             for segment in SEGMENTS:
                 base, truth = base_clip_id(case, segment), geometry.clip_truth(case, segment, size=size)
-                facts[base] = {"describe": describe_scene(truth, base), "classes": scene_classes(truth, base)}
+                facts[base] = {"aids": training_aids(truth, base), "classes": scene_classes(truth, base)}
         atomic_write_text(path, json.dumps(facts))
     facts = json.loads(path.read_text())
     for clip in clips:
         clip.update(facts[clip["base_clip_id"]])
 
 
-def pairs_of(clips: list[dict], variants=(0, 1), describe: int = 0) -> list[tuple[int, int, dict]]:
-    """(clip index, variant, QA) for every QA of every clip variant, and `describe` times its scene description."""
+def pairs_of(clips: list[dict], variants=(0, 1), aids: int = 0) -> list[tuple[int, int, dict]]:
+    """(clip index, variant, QA) for every QA of every clip variant, and `aids` times each of its training aids."""
     return [(i, v, qa) for i, clip in enumerate(clips) for v in variants
-            for qa in clip["qa"] + ([clip["describe"]] * describe if describe else [])]
+            for qa in clip["qa"] + (clip["aids"] * aids if aids else [])]
 
 
 def clip_frames(clips: list[dict], index: int, variant: int, blind: bool) -> list[np.ndarray]:
@@ -132,19 +132,24 @@ def majority_text(qa: dict, majority: dict[str, str]) -> str:
     return "Yes." if majority[qa["type"]] == "yes" else ("No." if qa["type"] == "yes_no" else majority["choice"])
 
 
-_WEATHER_KEYS = {key: text.split(",")[0].split(" with ")[0].lower() for key, text in WEATHER_TEXT.items()}
+def first_cue(text: str, cues) -> str | None:
+    """The value of whichever (value, cue) pair's cue comes first in the text (None when none is there): an answer
+    that runs on into other phrases is read by what it says first."""
+    found = [(at, value) for value, cue in cues if (at := text.lower().find(cue)) >= 0]
+    return min(found)[1] if found else None
+
+
+_WEATHER_CUES = [(key, text.split(",")[0].split(" with ")[0].lower()) for key, text in WEATHER_TEXT.items()]
+_STEERING_CUES = [("left", "steer gently to the left"), ("right", "steer gently to the right"),
+                  ("straight", "no steering"), ("straight", "hold a straight course"),
+                  ("curve", "follow the road's curve")]
 FACTS = {
     "lane_count": lambda text: (m.group(1) if (m := re.search(r"\b(two|three|four|five) lanes\b", text.lower()))
                                 else None),
     "ego_lane": lambda text: (m.group(1) if (m := re.search(r"(?:is in|stay in) (the leftmost lane|the rightmost lane|"
                                                             r"the \w+ lane from the left)", text.lower())) else None),
-    "weather": lambda text: next((key for key, cue in _WEATHER_KEYS.items() if cue in text.lower()), None),
-    "steering": lambda text: next((name for name, cue in (("left", "steer gently to the left"),
-                                                          ("right", "steer gently to the right"),
-                                                          ("straight", "no steering"),
-                                                          ("straight", "hold a straight course"),
-                                                          ("curve", "follow the road's curve"))
-                                   if cue in text.lower()), None),
+    "weather": lambda text: first_cue(text, _WEATHER_CUES),
+    "steering": lambda text: first_cue(text, _STEERING_CUES),
 }
 
 
@@ -184,7 +189,7 @@ def train(model_dir: Path, clips: list[dict], args, blind: bool) -> tuple[HFVLM,
     """Load the built model, train it by the recipe on the train pairs (grey frames when blind); the model and
     what training did."""
     vlm = HFVLM(model_dir, max_new_tokens=args.max_new_tokens, batch_size=args.eval_batch, device="cpu")
-    pairs = pairs_of(clips, describe=args.describe)
+    pairs = pairs_of(clips, aids=args.aids)
     rng = np.random.default_rng(args.seed)
 
     def sample_batch(step: int):
@@ -252,9 +257,10 @@ def main(argv=None) -> None:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--max-new-tokens", type=int, default=48)
     parser.add_argument("--eval-batch", type=int, default=16)
-    parser.add_argument("--describe", type=int, default=0,
-                        help="scene-description pairs per train clip variant, beside its QA (the recipe's aid to "
-                             "learning the frames; 0: QA only)")
+    parser.add_argument("--aids", type=int, default=0,
+                        help="rounds of training aids per train clip variant beside its QA (qa.training_aids: the "
+                             "scene description and 4 fact questions; the recipe's aid to reading the frames; 0: QA "
+                             "only)")
     parser.add_argument("--pretrain-vision", type=int, default=0,
                         help="steps of vision-tower pretraining on the scene truth (embedded.pretrain_vision) before "
                              "the answer loss, which then leaves the tower frozen (0: none, the tower trains too)")
@@ -272,7 +278,7 @@ def main(argv=None) -> None:
     test_clips = load_split(TEST_FIRST_SEED, args.test_cases, size, args.cache, args.workers)
     print(f"clips ready in {time.perf_counter() - start:.0f} s: {len(train_clips)} train, {len(test_clips)} test "
           f"base clips", flush=True)
-    if args.describe or args.pretrain_vision:
+    if args.aids or args.pretrain_vision:
         add_truth_facts(train_clips, 0, size, args.cache)
     train_qas = [qa for clip in train_clips for qa in clip["qa"]]
     results: dict = {"args": {k: (list(v) if isinstance(v, tuple) else str(v) if isinstance(v, Path) else v)
@@ -288,8 +294,8 @@ def main(argv=None) -> None:
         name = "blind" if blind else "embedded"
         model_dir = args.out / f"model_{name}"
         if not model_dir.is_dir():
-            descriptions = [clip["describe"] for clip in train_clips] if args.describe else []
-            build_embedded_vlm(model_dir, qa_corpus(train_qas + descriptions), frame_size=size, seed=args.seed)
+            aids = [aid for clip in train_clips for aid in clip["aids"]] if args.aids else []
+            build_embedded_vlm(model_dir, qa_corpus(train_qas + aids), frame_size=size, seed=args.seed)
         vlm, trained = train(model_dir, train_clips, args, blind)
         trained["parameters"] = count_parameters(vlm.model)
         trained["held_out_loss"] = held_out_loss(vlm, test_clips, test_pairs["clean"][:256], blind)

@@ -45,7 +45,7 @@ import numpy as np
 from lanevil_train.progress import progress_counter
 from lanevil_train.vlm.qa import SCENE_CLASSES
 from lanevil_train.vlm.qa_records import prompt_text
-from lanevil_train.vlm.tiny import _TEMPLATES, _qwen_ids, _token_roles, train_tokenizer
+from lanevil_train.vlm.tiny import _qwen_ids, _token_roles, train_tokenizer
 
 FAMILY = "qwen2_vl"
 DEFAULT_FRAME_SIZE = (64, 112)
@@ -53,6 +53,27 @@ PATCH, MERGE, TEMPORAL = 8, 2, 2
 PARAMETER_RANGE = (0.8e6, 2.5e6)  # what the default sizes give (1.43 M), with room for the vocabulary
 DEFAULT_SIZES = {"hidden": 128, "layers": 4, "heads": 4, "kv_heads": 2, "intermediate": 384,
                  "vision_dim": 96, "vision_depth": 2, "vision_heads": 4, "vocab_size": 1024}
+
+# Where the decoder can see a vision token. Qwen2-VL's tower has no absolute positions, so only the decoder's M-RoPE
+# tells the 4 x 7 tokens of a frame apart, and Qwen's own settings (base 10000, the slowest frequencies for the
+# width) turn the width by at most 0.003 rad a column: blind to left and right. A base of 10 with sections of
+# 1/8, 1/4 and 5/8 of the rotary pairs for time, height and width turns a column by 0.12-0.42 rad and a row by
+# 0.49-0.75 rad (time, 3 steps a clip, needs least).
+ROPE_THETA = 10.0
+
+# The chat template: Qwen2-VL's turns, but the user's text before the video. With M-RoPE a text token's position
+# follows the tokens before it, so after a question of variable length the answer would meet the vision tokens at
+# a different relative position in every sample; with the question first, the video starts where the question
+# ends and an answer token sits at the same offset from each vision token whatever the question, so attending to
+# a column is learnable (held-out ego lane named 83.6 % instead of 75.2 %, benchmarks/RESULTS.md).
+CHAT_TEMPLATE = (
+    "{% for message in messages %}{% if loop.first and message['role'] != 'system' %}"
+    "{{ '<|im_start|>system\nYou are a helpful assistant.<|im_end|>\n' }}{% endif %}"
+    "{{ '<|im_start|>' + message['role'] + '\n' }}"
+    "{% for c in message['content'] %}{% if c['type'] == 'text' %}{{ c['text'] }}{% endif %}{% endfor %}"
+    "{% for c in message['content'] %}{% if c['type'] == 'image' %}{{ '<|vision_start|><|image_pad|><|vision_end|>' }}"
+    "{% elif c['type'] == 'video' %}{{ '<|vision_start|><|video_pad|><|vision_end|>' }}{% endif %}{% endfor %}"
+    "{{ '<|im_end|>\n' }}{% endfor %}{% if add_generation_prompt %}{{ '<|im_start|>assistant\n' }}{% endif %}")
 
 
 def check_sizes(size: dict) -> dict:
@@ -65,9 +86,9 @@ def check_sizes(size: dict) -> dict:
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
             raise ValueError(f"size.{key}: expected an integer >= 1, got {value!r}")
     head_dim, rest = divmod(sizes["hidden"], sizes["heads"])
-    if rest or head_dim % 8:
+    if rest or head_dim % 16:
         raise ValueError(f"size.hidden ({sizes['hidden']}) / size.heads ({sizes['heads']}): expected a head width "
-                         f"that is a multiple of 8 (M-RoPE splits it in 3 sections)")
+                         f"that is a multiple of 16 (M-RoPE splits its rotary pairs in 3 sections of 1/8, 1/4, 5/8)")
     if sizes["heads"] % sizes["kv_heads"]:
         raise ValueError(f"size.kv_heads ({sizes['kv_heads']}): expected a divisor of size.heads ({sizes['heads']})")
     if sizes["vision_dim"] % sizes["vision_heads"]:
@@ -104,23 +125,22 @@ def make_processor(tokenizer, frame_size: tuple[int, int]):
               "temporal_patch_size": TEMPORAL, "merge_size": MERGE}
     images = Qwen2VLImageProcessor(**pixels)
     videos = Qwen2VLVideoProcessor(**pixels, do_sample_frames=False, cap_pixels_per_frame=True)
-    return Qwen2VLProcessor(images, tokenizer, videos, chat_template=_TEMPLATES[FAMILY])
+    return Qwen2VLProcessor(images, tokenizer, videos, chat_template=CHAT_TEMPLATE)
 
 
 def make_config(tokenizer, sizes: dict):
     """The Qwen2-VL config of `sizes` with the token ids of `tokenizer`."""
     from transformers import Qwen2VLConfig
 
-    head_dim = sizes["hidden"] // sizes["heads"]
-    half = head_dim // 2
-    section = [half - 2 * (3 * half // 8), 3 * half // 8, 3 * half // 8]  # Qwen's 16:24:24 split of 64 halves
+    half = sizes["hidden"] // sizes["heads"] // 2  # rotary frequency pairs per head
+    section = [half // 8, half // 4, half - half // 8 - half // 4]  # time, height, width (ROPE_THETA)
     vision = dict(depth=sizes["vision_depth"], embed_dim=sizes["vision_dim"], hidden_size=sizes["hidden"],
                   num_heads=sizes["vision_heads"], mlp_ratio=2, patch_size=PATCH, spatial_merge_size=MERGE,
                   temporal_patch_size=TEMPORAL)
     text = dict(model_type="qwen2_vl_text", vocab_size=len(tokenizer), hidden_size=sizes["hidden"],
                 intermediate_size=sizes["intermediate"], num_hidden_layers=sizes["layers"],
                 num_attention_heads=sizes["heads"], num_key_value_heads=sizes["kv_heads"],
-                max_position_embeddings=2048, rope_parameters={"rope_type": "default", "rope_theta": 10000.0,
+                max_position_embeddings=2048, rope_parameters={"rope_type": "default", "rope_theta": ROPE_THETA,
                                                                "mrope_section": section},
                 **_token_roles(tokenizer), bos_token_id=None)
     return Qwen2VLConfig(vision_config=vision, text_config=text, **_qwen_ids(tokenizer), **_token_roles(tokenizer),
@@ -259,9 +279,11 @@ GREY = 128  # the blind ablation's frames: the same uniform grey as BlindVLM
 
 
 def fit_answers(vlm, sample_batch, steps: int, lr: float = 2e-3, warmup: int = 30, weight_decay: float = 0.01,
-                log=None, log_every: int = 25) -> list[float]:
+                log=None, log_every: int = 25, label_eos: bool = True) -> list[float]:
     """Train an HFVLM's weights in place for `steps` AdamW steps (linear warmup, cosine decay) on the answer loss
-    of `sample_batch(step) -> (clips, questions, answers)`; the mean loss of each step, in order."""
+    of `sample_batch(step) -> (clips, questions, answers)`; the mean loss of each step, in order. With `label_eos`
+    (as task=train's fine_tune.train_eos) the end-of-turn token after each answer is learned too, so the model
+    stops after its answer instead of running on into other answers' phrases."""
     import math
 
     import torch
@@ -278,7 +300,8 @@ def fit_answers(vlm, sample_batch, steps: int, lr: float = 2e-3, warmup: int = 3
     losses = []
     for step in range(steps):
         clips, questions, answers = sample_batch(step)
-        loss = vlm.loss_from_embeds(batch := vlm.encode(clips, questions, answers), vlm.embed(batch)).mean()
+        batch = vlm.encode(clips, questions, answers, label_eos=label_eos)
+        loss = vlm.loss_from_embeds(batch, vlm.embed(batch)).mean()
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)

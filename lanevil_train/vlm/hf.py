@@ -144,14 +144,13 @@ class HFVLM(VLM):
                     for i, (clip, q) in enumerate(zip(clips, questions))]
         texts = [text for text, _, _ in rendered]
         inputs = self._process(texts, clips)
-        question_spans, answer_spans = self._locate_spans(texts, rendered, inputs["input_ids"])
+        question_spans, answer_spans = self._locate_spans(texts, rendered, inputs)
         batch = EncodedBatch(inputs=inputs, question_spans=question_spans)
         if answers is not None:
             batch.answer_spans = answer_spans
             labelled = answer_spans
             if label_eos:
-                ends = self._locate_spans(texts, [(t, q, self._end_chars(t, a)) for t, q, a in rendered],
-                                          inputs["input_ids"])[1]
+                ends = self._locate_spans(texts, [(t, q, self._end_chars(t, a)) for t, q, a in rendered], inputs)[1]
                 labelled = [(start, end) for (start, _), (_, end) in zip(answer_spans, ends)]
             batch.labels = _answer_labels(inputs["input_ids"], labelled)
         return batch
@@ -266,26 +265,30 @@ class HFVLM(VLM):
         return {key: (value.to(self.device, dtype) if torch.is_floating_point(value) else value.to(self.device))
                 for key, value in outputs.items() if isinstance(value, torch.Tensor)}
 
-    def _locate_spans(self, texts, rendered, input_ids):
+    def _locate_spans(self, texts, rendered, inputs):
         """Token spans of questions and answers in the left-padded ids, from the text's own tokenisation.
 
-        Both come after every frame placeholder, so the tokens from the question to the end are those of the
-        unexpanded text: counted there, placed from the end of the padded row, and checked token by token."""
+        The processor expands each frame placeholder into many tokens and changes nothing else, so a text that
+        comes after every placeholder keeps its tokens' distance from the end of the padded row, and one before
+        every placeholder (a template that puts the question before the frames) its distance from the first
+        unpadded token: placed that way and checked token by token."""
         encoded = self.processor.tokenizer(texts, return_offsets_mapping=True)
-        length = input_ids.shape[1]
+        input_ids, length = inputs["input_ids"], inputs["input_ids"].shape[1]
+        placeholders = {getattr(self.processor, name, None) for name in ("image_token", "video_token")} - {None}
+        placeholder_ids = {self.processor.tokenizer.convert_tokens_to_ids(token) for token in placeholders}
         questions, answers = [], []
         for i, (_, q_chars, a_chars) in enumerate(rendered):
             ids, offsets = encoded["input_ids"][i], encoded["offset_mapping"][i]
-            q_first, q_last = _overlapping_tokens(offsets, q_chars, f"question {i}")
-            tail = ids[q_first:]
-            if input_ids[i, length - len(tail):].tolist() != list(tail):
-                raise RuntimeError(f"sample {i}: the processor's token ids after the frames differ from the text's "
-                                   f"own tokenisation in {self.path}; cannot place the question and answer tokens")
-            shift = length - len(ids)
-            questions.append((q_first + shift, q_last + 1 + shift))
-            if a_chars is not None:
-                a_first, a_last = _overlapping_tokens(offsets, a_chars, f"answer {i}")
-                answers.append((a_first + shift, a_last + 1 + shift))
+            marks = [k for k, token in enumerate(ids) if token in placeholder_ids] or [-1]
+            after, before = length - len(ids), length - int(inputs["attention_mask"][i].sum())
+            spans = [("question", q_chars, questions)] + ([("answer", a_chars, answers)] if a_chars is not None else [])
+            for what, chars, found in spans:
+                first, last = _overlapping_tokens(offsets, chars, f"{what} {i}")
+                shift = after if first > marks[-1] else before if last < marks[0] else None
+                if shift is None or input_ids[i, first + shift:last + 1 + shift].tolist() != ids[first:last + 1]:
+                    raise RuntimeError(f"sample {i}: the processor's token ids of the {what} differ from the text's "
+                                       f"own tokenisation in {self.path}; cannot place the question and answer tokens")
+                found.append((first + shift, last + 1 + shift))
         return questions, answers
 
     def _generate(self, clips: Sequence[Frames], questions: Sequence[str]) -> list[str]:

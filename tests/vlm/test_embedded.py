@@ -61,6 +61,41 @@ def test_hfvlm_answers_and_scores_with_it(model_dir):
     assert loss.shape == (1,) and 3.0 < float(loss.detach()) < 12.0  # random weights: about ln(vocab) = 6.9
 
 
+def test_question_comes_before_the_video_so_answers_meet_every_vision_token_at_a_fixed_offset(model_dir):
+    """The embedded template puts the question before the video: the encoded spans still decode to the question and
+    the answer, and an answer token's M-RoPE distance to each vision token is the same for a short and a long
+    question, which is what lets the decoder learn where on the frame to look."""
+    vlm = HFVLM(model_dir, device="cpu")
+    questions = ["Is the road wet?", prompt_text(QAS[1])]
+    batch = vlm.encode([_clip(0), _clip(1)], questions, ["No.", "C. Four lanes."])
+    tokenizer, ids = vlm.processor.tokenizer, batch.inputs["input_ids"]
+    video = vlm.model.config.video_token_id
+    positions = vlm.position_ids(batch)  # [3 (time, height, width), B, T]
+    offsets = []
+    for i in range(2):
+        start, end = batch.question_spans[i]
+        assert tokenizer.decode(ids[i, start:end]).strip() == questions[i]
+        vision = (ids[i] == video).nonzero().flatten()
+        assert end <= int(vision[0])  # the question, then the 84 video tokens
+        a_start, a_end = batch.answer_spans[i]
+        assert tokenizer.decode(ids[i, a_start:a_end]).strip() == ["No.", "C. Four lanes."][i]
+        offsets.append(positions[:, i, a_start:a_start + 1] - positions[:, i, vision])
+    assert torch.equal(offsets[0], offsets[1]) and len(set(offsets[0][2].tolist())) == 7  # 7 columns, fixed offsets
+
+
+def test_decoder_rope_turns_far_enough_to_tell_columns_and_rows_apart(model_dir):
+    """M-RoPE of the saved config: width gets the most rotary pairs, and its fastest one turns a column by well
+    over a tenth of a radian (Qwen's 10000 base gave 0.003); time, 3 steps a clip, gets the fewest."""
+    from transformers import AutoConfig
+
+    rope = AutoConfig.from_pretrained(model_dir, local_files_only=True).text_config.rope_parameters
+    time, height, width = rope["mrope_section"]
+    assert (time, height, width) == (2, 4, 10) and time + height + width == 128 // 4 // 2
+    inverse = [rope["rope_theta"] ** (-2 * k / 32) for k in range(16)]
+    assert inverse[time + height] > 0.4 and inverse[-1] > 0.1  # width: every pair turns > 0.1 rad a column
+    assert min(inverse[time:time + height]) > 0.4  # height: every pair turns > 0.4 rad a row
+
+
 def test_tokenizer_covers_the_qa_corpus_without_unknown_bytes(model_dir):
     from transformers import AutoProcessor
 
@@ -108,7 +143,7 @@ def test_vision_pretraining_teaches_the_tower_the_scene_classes_and_leaves_the_d
     changed = {name for name, p in vlm.model.named_parameters() if not torch.equal(p, before[name])}
     assert changed and all(name.startswith("model.visual.") for name in changed), sorted(changed)
     assert any(".blocks." in name for name in changed) and any(".merger." in name for name in changed)
-    with pytest.raises(ValueError, match=r"classes of shape \(4, 8\)"):
+    with pytest.raises(ValueError, match=r"classes of shape \(4, 9\)"):
         pretrain_vision(vlm.model, vlm.processor, lambda step: (clips, [[0, 1]] * 4), steps=1, progress="none")
 
 
@@ -117,6 +152,8 @@ def test_bad_arguments_are_refused_naming_them(tmp_path, model_dir):
         check_frame_size((60, 112))
     with pytest.raises(ValueError, match="size.hidden"):
         check_sizes({"hidden": 100})
+    with pytest.raises(ValueError, match="a multiple of 16"):  # 4 heads of 24: too few rotary pairs to share out
+        check_sizes({"hidden": 96})
     with pytest.raises(ValueError, match="unknown keys"):
         check_sizes({"width": 64})
     with pytest.raises(ValueError, match="corpus"):
