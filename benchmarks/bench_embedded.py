@@ -13,7 +13,9 @@
    / letter), and how often open answers name the true lane count, ego lane, weather and steering (vs the most
    common fact of the train split, and vs the blind model). Writes results.json and a few answers to --out.
 With --pretrain-vision N, step 2 starts with N steps of vision-tower pretraining on the scene truth
-(embedded.pretrain_vision, on every train clip variant) and then keeps the tower frozen, as the recipe does.
+(embedded.pretrain_vision, on every train clip variant and, as the recipe does, their mirror images) and then keeps
+the tower frozen. With --aids N each train clip variant is also paired N times with each of its training aids
+(qa.training_aids), as model.fine_tune.aids does.
 """
 
 from __future__ import annotations
@@ -208,7 +210,8 @@ def train(model_dir: Path, clips: list[dict], args, blind: bool) -> tuple[HFVLM,
             return [clip_frames(clips, i, v, blind) for i, v in chosen], [clips[i]["classes"] for i, _ in chosen]
 
         pretrain_vision(vlm.model, vlm.processor, scene_batch, args.pretrain_vision, lr=args.pretrain_lr,
-                        progress="none", log=lambda m: print(("blind " if blind else "") + m, flush=True))
+                        mirror=not args.no_pretrain_mirror, seed=args.seed, progress="none",
+                        log=lambda m: print(("blind " if blind else "") + m, flush=True))
         vlm.model.model.visual.requires_grad_(False)  # the recipe's fine_tune.freeze_vision
     losses = fit_answers(vlm, sample_batch, args.steps, lr=args.lr, warmup=args.warmup,
                          log=lambda m: print(("blind " if blind else "") + m, flush=True))
@@ -265,6 +268,8 @@ def main(argv=None) -> None:
                         help="steps of vision-tower pretraining on the scene truth (embedded.pretrain_vision) before "
                              "the answer loss, which then leaves the tower frozen (0: none, the tower trains too)")
     parser.add_argument("--pretrain-lr", type=float, default=1e-3)
+    parser.add_argument("--no-pretrain-mirror", action="store_true",
+                        help="pretrain the tower without its left-right mirror images (the recipe flips half a batch)")
     parser.add_argument("--no-blind", action="store_true", help="skip the blind (grey-frame) ablation")
     parser.add_argument("--blind-only", action="store_true", help="run only the blind (grey-frame) ablation")
     args = parser.parse_args(argv)

@@ -61,7 +61,7 @@ def base_model_dir(cfg: DictConfig, train_set, out: Path) -> Path:
             sample = scene_batches(train_set, _spread(all_bases, pretraining["clips"]), pretraining["batch"],
                                    seed=settings["seed"], progress=cfg.progress)
             pretrain_vision(model, processor, sample, pretraining["steps"], lr=pretraining["lr"],
-                            progress=cfg.progress)
+                            mirror=pretraining.get("mirror", True), seed=settings["seed"], progress=cfg.progress)
         save_model_dir(model, processor, init)
     return init
 

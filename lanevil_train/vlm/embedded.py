@@ -46,7 +46,7 @@ from typing import Sequence
 import numpy as np
 
 from lanevil_train.progress import progress_counter
-from lanevil_train.vlm.qa import SCENE_CLASSES
+from lanevil_train.vlm.qa import SCENE_CLASSES, UNKNOWN_CLASS, mirror_scene_classes
 from lanevil_train.vlm.qa_records import prompt_text
 from lanevil_train.vlm.tiny import _qwen_ids, _token_roles, train_tokenizer
 
@@ -226,16 +226,19 @@ def vision_tokens(model, processor, clips):
 
 
 def pretrain_vision(model, processor, sample_batch, steps: int, lr: float = 1e-3, log=None,
-                    progress: str = "auto") -> list[float]:
+                    progress: str = "auto", mirror: bool = True, seed: int = 0) -> list[float]:
     """Pretrain the vision tower (patch embedding, blocks, merger) in place to tell a clip's scene truth: a linear
-    probe on its flattened output tokens learns every SCENE_CLASSES fact (lane count, ego lane, road shape, weather,
-    setting, wet surface, the ego lane's markings) by cross-entropy, and is then discarded. `sample_batch(step) ->
-    (clips, classes [B, len(SCENE_CLASSES)])` (qa.scene_classes); `progress` a progress.MODES display. The loss
-    of each step, in order.
+    probe on its flattened output tokens learns every SCENE_CLASSES fact (lane count, ego lane, road shape and bend,
+    weather, setting, wet surface, the ego lane's markings) by cross-entropy, and is then discarded.
+    `sample_batch(step) -> (clips, classes [B, len(SCENE_CLASSES)])` (qa.scene_classes); with `mirror`, about half
+    of each batch is flipped left-right with its classes mirrored (`mirrored_batch`, drawn from `seed`); `progress`
+    a progress.MODES display. The loss of each step, in order.
 
     Why: trained from scratch on the answer loss alone, the decoder reads only what an average over the vision
     tokens shows (weather, light), never where the lines are; a tower that has learned the scene's geometry first,
-    then kept frozen (fine_tune.freeze_vision), gives it features to read (benchmarks/RESULTS.md)."""
+    then kept frozen (fine_tune.freeze_vision), gives it features to read. The mirror images make left and right
+    bends equally common (right ones are twice as common in the simulator) and keep the tower from telling them
+    apart by the scenery; without them the decoder answered "right" for most straight roads (benchmarks/RESULTS.md)."""
     import math
 
     import torch
@@ -245,16 +248,19 @@ def pretrain_vision(model, processor, sample_batch, steps: int, lr: float = 1e-3
     if not isinstance(lr, (int, float)) or not lr > 0:
         raise ValueError(f"lr: expected a number > 0, got {lr!r}")
     sizes = [len(values) for values in SCENE_CLASSES.values()]
+    rng = np.random.default_rng(seed)
     tower = model.model.visual.train()
     probe = None
     losses: list[float] = []
     bar = progress_counter(steps, desc="vision pretraining", unit="step", mode=progress)
     for step in range(steps):
         clips, classes = sample_batch(step)
-        classes = torch.as_tensor(np.asarray(classes), dtype=torch.long, device=model.device)
-        if classes.shape != (len(clips), len(sizes)):
+        if np.shape(classes) != (len(clips), len(sizes)):
             raise ValueError(f"sample_batch: expected classes of shape ({len(clips)}, {len(sizes)}), "
-                             f"got {tuple(classes.shape)}")
+                             f"got {np.shape(classes)}")
+        if mirror:
+            clips, classes = mirrored_batch(clips, classes, rng.random(len(clips)) < 0.5)
+        classes = torch.as_tensor(np.asarray(classes), dtype=torch.long, device=model.device)
         features = vision_tokens(model, processor, clips).flatten(1)
         if probe is None:
             probe = torch.nn.Linear(features.shape[1], sum(sizes)).to(model.device, features.dtype)
@@ -263,7 +269,8 @@ def pretrain_vision(model, processor, sample_batch, steps: int, lr: float = 1e-3
             schedule = torch.optim.lr_scheduler.LambdaLR(
                 optimizer, lambda s: 0.5 * (1 + math.cos(math.pi * min(s, steps) / steps)))
         logits = probe(features).split(sizes, dim=1)
-        loss = sum(torch.nn.functional.cross_entropy(part, classes[:, k]) for k, part in enumerate(logits))
+        loss = sum(torch.nn.functional.cross_entropy(part, classes[:, k], ignore_index=UNKNOWN_CLASS)
+                   for k, part in enumerate(logits) if (classes[:, k] != UNKNOWN_CLASS).any())
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(params, 1.0)
@@ -276,6 +283,16 @@ def pretrain_vision(model, processor, sample_batch, steps: int, lr: float = 1e-3
     bar.close()
     tower.eval()
     return losses
+
+
+def mirrored_batch(clips, classes, flip) -> tuple[list, list]:
+    """The batch with clip i flipped left-right (every frame) and its classes mirrored (qa.mirror_scene_classes)
+    where flip[i]; the other clips and classes unchanged."""
+    out_clips, out_classes = [], []
+    for clip, cls, flipped in zip(clips, classes, flip):
+        out_clips.append([np.ascontiguousarray(np.asarray(frame)[:, ::-1]) for frame in clip] if flipped else clip)
+        out_classes.append(mirror_scene_classes(cls) if flipped else list(cls))
+    return out_clips, out_classes
 
 
 GREY = 128  # the blind ablation's frames: the same uniform grey as BlindVLM

@@ -564,6 +564,30 @@ SCENE_CLASSES = MappingProxyType({
 })
 
 
+UNKNOWN_CLASS = -100  # a fact a clip does not tell (cross-entropy's ignore index)
+
+
+def mirror_scene_classes(classes) -> list[int]:
+    """The SCENE_CLASSES of the clip's left-right mirror image: the ego lane counted from the other side, left and
+    right bends and curves swapped, the ego lane's two markings swapped; a solid-and-dashed pair mirrors into a
+    dashed-and-solid one, which no marking name describes, so it becomes UNKNOWN_CLASS."""
+    names, values = list(SCENE_CLASSES), list(classes)
+    if len(values) != len(names) or not all(isinstance(v, (int, np.integer)) and 0 <= v < len(SCENE_CLASSES[n])
+                                            for n, v in zip(names, values)):
+        raise ValueError(f"classes: expected {len(names)} class indices in SCENE_CLASSES order, got {classes!r}")
+    fact = {name: SCENE_CLASSES[name][int(v)] for name, v in zip(names, values)}
+    if fact["ego_lane"] >= fact["num_lanes"]:
+        raise ValueError(f"classes: ego lane {fact['ego_lane']} on a road of {fact['num_lanes']} lanes; expected an "
+                         f"ego lane index below the lane count")
+    swap = {"left": "right", "right": "left", "left_curve": "right_curve", "right_curve": "left_curve"}
+    fact["ego_lane"] = fact["num_lanes"] - 1 - fact["ego_lane"]
+    fact["road_shape"], fact["bend"] = swap.get(fact["road_shape"], fact["road_shape"]), swap.get(fact["bend"],
+                                                                                                  fact["bend"])
+    fact["left_marking"], fact["right_marking"] = fact["right_marking"], fact["left_marking"]
+    return [UNKNOWN_CLASS if name.endswith("_marking") and fact[name].endswith("solid_dashed")
+            else SCENE_CLASSES[name].index(fact[name]) for name in names]
+
+
 def scene_classes(truth: dict, base_clip_id: str = "truth") -> list[int]:
     """The class index of each SCENE_CLASSES fact of a clip's truth, in SCENE_CLASSES order."""
     check_truth(truth, f"truth of {base_clip_id}")

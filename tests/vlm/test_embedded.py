@@ -135,16 +135,32 @@ def test_vision_pretraining_teaches_the_tower_the_scene_classes_and_leaves_the_d
     clips = [_clip(i) for i in range(4)]
     rng = np.random.default_rng(0)
     classes = [[int(rng.integers(len(v))) for v in SCENE_CLASSES.values()] for _ in clips]
+    for row in classes:  # an ego lane on the road (mirroring needs it)
+        row[1] = row[1] % SCENE_CLASSES["num_lanes"][row[0]]
     assert vision_tokens(vlm.model, vlm.processor, clips).shape == (4, 84, vlm.model.config.text_config.hidden_size)
     torch.manual_seed(0)
     losses = pretrain_vision(vlm.model, vlm.processor, lambda step: (clips, classes), steps=15, lr=3e-3,
-                             progress="none")
+                             progress="none", mirror=False)
     assert len(losses) == 15 and losses[-1] < 0.5 * losses[0], losses
     changed = {name for name, p in vlm.model.named_parameters() if not torch.equal(p, before[name])}
     assert changed and all(name.startswith("model.visual.") for name in changed), sorted(changed)
     assert any(".blocks." in name for name in changed) and any(".merger." in name for name in changed)
+    mirrored = pretrain_vision(vlm.model, vlm.processor, lambda step: (clips, classes), steps=3, progress="none")
+    assert len(mirrored) == 3 and all(np.isfinite(mirrored))
     with pytest.raises(ValueError, match=r"classes of shape \(4, 9\)"):
         pretrain_vision(vlm.model, vlm.processor, lambda step: (clips, [[0, 1]] * 4), steps=1, progress="none")
+
+
+def test_mirrored_batch_flips_the_chosen_clips_and_mirrors_their_classes():
+    from lanevil_train.vlm.embedded import mirrored_batch
+    from lanevil_train.vlm.qa import mirror_scene_classes
+
+    clips = [_clip(0), _clip(1)]
+    classes = [[1, 0, 1, 0, 0, 0, 0, 1, 0], [0, 1, 2, 1, 1, 1, 1, 0, 2]]
+    flipped, mirrored = mirrored_batch(clips, classes, [True, False])
+    assert all(np.array_equal(f, frame[:, ::-1]) for f, frame in zip(flipped[0], clips[0]))
+    assert flipped[1] is clips[1] and mirrored == [mirror_scene_classes(classes[0]), classes[1]]
+    assert mirrored[0][1] == 2 and mirrored[0][8] == 2  # 3 lanes: ego lane 0 -> 2; bend left -> right
 
 
 def test_bad_arguments_are_refused_naming_them(tmp_path, model_dir):

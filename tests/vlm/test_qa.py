@@ -286,6 +286,27 @@ def test_the_scene_description_says_what_the_frames_show_in_the_qas_own_words():
         describe_scene(truth(num_lanes=9), "c")
 
 
+def test_mirror_scene_classes_are_the_classes_of_the_mirrored_scene():
+    """The mirror image of a 4-lane road, ego in lane 1 of 0..3, bending left between a dashed line and a
+    solid-and-dashed pair: ego lane 2, bending right, the markings swapped, and the pair (no name mirrors it)
+    unknown; mirroring twice gives the classes back where nothing became unknown."""
+    from lanevil_train.vlm.qa import SCENE_CLASSES, UNKNOWN_CLASS, mirror_scene_classes, scene_classes
+
+    markings = ["white_solid", "white_dashed", "yellow_solid_dashed", "white_dashed", "white_solid"]
+    classes = scene_classes(truth(num_lanes=4, ego_lane=1, curvature_sign=-1, markings=markings))
+    named = {k: (SCENE_CLASSES[k][v] if v != UNKNOWN_CLASS else None)
+             for k, v in zip(SCENE_CLASSES, mirror_scene_classes(classes))}
+    assert named == {"num_lanes": 4, "ego_lane": 2, "road_shape": "right_curve", "weather": "clear_noon",
+                     "scene_kind": "urban", "wet": False, "left_marking": None, "right_marking": "white_dashed",
+                     "bend": "right"}
+    plain = scene_classes(truth(num_lanes=3, ego_lane=0, curvature_sign=1, slope="uphill"))
+    assert mirror_scene_classes(mirror_scene_classes(plain)) == plain != mirror_scene_classes(plain)
+    with pytest.raises(ValueError, match="classes: expected 9 class indices"):
+        mirror_scene_classes(plain[:-1])
+    with pytest.raises(ValueError, match="classes: ego lane 4 on a road of 3 lanes"):
+        mirror_scene_classes([plain[0], 4, *plain[2:]])
+
+
 def test_training_aids_are_the_description_and_open_questions_whose_answers_turn_on_the_frames():
     """training_aids: the description, then the lane count, ego lane, steering and safe action asked openly, each
     answer the truth's (a hill's bend included), phrased as the benchmark's own kinds, the same for the same clip."""
