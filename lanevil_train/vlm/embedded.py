@@ -29,9 +29,9 @@ benchmarks/bench_embedded.py uses): first `pretrain_vision` teaches the vision t
 on the answer loss (and end-of-turn token), the tower frozen, of (clip variant, QA) pairs of the train split, clean
 and perturbed, plus the clip's training aids (qa.training_aids: a scene description and open questions on its lane
 count, ego lane, steering and safe action). On the QA alone it learns only the questions' text prior. 1,500 steps
-of 16 (7 min here), 300 held-out cases: yes/no accuracy 84.5 % and choice 34.7 % against a majority answer of
-51.0 % / 25.5 %; open answers name the weather 97.9 % of the time, the ego lane 83.6 % and the lane count 43.6 %
-(the most common value: 14.2 %, 32.3 %, 37.6 %), but the steering the road's bend asks for only 44.0 %, below
+of 16 (7 min here), 300 held-out cases: yes/no accuracy 85.5 % and choice 36.8 % against a majority answer of
+51.0 % / 25.5 %; open answers name the weather 97.9 % of the time, the ego lane 85.4 % and the lane count 52.3 %
+(the most common value: 14.2 %, 32.3 %, 37.6 %), but the steering the road's bend asks for only 54.0 %, below
 always answering "straight" (59.8 %): it has not learned the bend (docs/vlm.md, "The embedded VLM").
 """
 
