@@ -70,7 +70,7 @@ class PlainProgress:
 
 
 class _Silent:
-    def update(self, n: int = 1) -> None:
+    def update(self, n: int = 1, note: str = "") -> None:
         pass
 
     def close(self) -> None:

@@ -173,7 +173,8 @@ class HFVLM(VLM):
         logits = self.model(inputs_embeds=inputs_embeds, position_ids=self.position_ids(batch), use_cache=False,
                             **extra).logits
         labels = batch.labels[:, 1:]
-        nll = F.cross_entropy(logits[:, :-1].float().transpose(1, 2), labels, ignore_index=IGNORE_INDEX,
+        logits = logits if logits.dtype == torch.float64 else logits.float()  # float64 kept for exact checks
+        nll = F.cross_entropy(logits[:, :-1].transpose(1, 2), labels, ignore_index=IGNORE_INDEX,
                               reduction="none")
         counts = (labels != IGNORE_INDEX).sum(dim=1)
         return nll.sum(dim=1) / torch.clamp(counts, min=1)
