@@ -85,6 +85,9 @@ def build_defense(cfg: DictConfig) -> dict:
     mixer; model-aware ones are a Lightning callback. Any part may be empty.
     """
     defense = cfg.defense
+    if defense.get("prompt") is not None:
+        raise ValueError(f"defense={defense.name}: a textual defense of VLMs (a prompt prefix); a lane detector has "
+                         f"no prompt: use it with model=vlm/<backend>")
     unknown = set(defense) - {"name", "transforms", "mixer", "callback"}
     if unknown:
         raise ValueError(f"defense={defense.name}: unknown keys {sorted(unknown)}; a defense config has "

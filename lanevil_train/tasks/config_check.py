@@ -8,8 +8,8 @@ accepts). Every problem is collected; one ConfigError lists them all, one per li
 
 A rule applies only when its key is in the composed config, so a data group without e.g. `root` is fine.
 Only root-level paths are checked for existence (ckpt_path, task.init_from, backbone.checkpoint, data.root,
-task.suite); what is inside a file is for its reader. A defense's own parameters (thresholds, probabilities)
-are checked by its constructor when it is built.
+task.suite, defense.prefix_path); what is inside a file is for its reader. A detector defense's own parameters
+(thresholds, probabilities) are checked by its constructor when it is built.
 """
 
 from __future__ import annotations
@@ -37,6 +37,9 @@ SUPPLIED = {"model.head": ("in_channels", "feature_stride", "image_size")}
 # Keys of a target node that the code reads itself (not arguments of its target): a VLM's training settings.
 READ_BY_CODE = {"model": ("lora", "fine_tune", "embedded")}
 DEFENSE_KEYS = ("name", "transforms", "mixer", "callback")
+# The keys of a textual defense of VLMs (defense=pat++: tasks/vlm_defense.py), beside DEFENSE_KEYS.
+PROMPT_DEFENSE_KEYS = ("prompt", "alpha", "hard_target", "hardness", "pool_clips", "examples", "steps",
+                       "prefix_length", "top_k", "num_candidates", "chunk", "prefix_path")
 SPLITS = ("train", "val", "test")
 
 
@@ -216,6 +219,17 @@ def illusion_suite() -> Rule:
                 "VLM), or a DriveLM QA .json file", test)
 
 
+def defense_keys() -> Rule:
+    """The defense node: DEFENSE_KEYS, and PROMPT_DEFENSE_KEYS too when it is a textual defense (has `prompt`)."""
+    def test(v):
+        if not isinstance(v, dict):
+            return ""
+        unknown = sorted(set(v) - set(DEFENSE_KEYS) - set(PROMPT_DEFENSE_KEYS if "prompt" in v else ()))
+        return f"unknown keys: {', '.join(unknown)}" if unknown else None
+    return Rule(f"a mapping with the keys {', '.join(DEFENSE_KEYS)} (and, in a textual defense of VLMs, "
+                f"{', '.join(PROMPT_DEFENSE_KEYS)})", test)
+
+
 def defense_names() -> Rule:
     """task.defenses of task=compare: names of conf/defense/*.yaml, each once, `none` and at least one other."""
     import lanevil_train.conf
@@ -377,11 +391,18 @@ RULES: dict[str, Rule] = {
     "backbone.checkpoint": null_or(existing_file("state dict file")),
     "backbone.out_indices": int_list(),  # which stages each backbone has: check_feature_map
     # defense (its parameters: the constructors)
-    "defense": mapping_of(DEFENSE_KEYS),
+    "defense": defense_keys(),
     "defense.name": text(),
     "defense.transforms": null_or(target_list()),
     "defense.mixer": null_or(target_node()),
     "defense.callback": null_or(target_node()),
+    "defense.prompt": one_of("pat++"),
+    "defense.alpha": number(0, 1),
+    "defense.hard_target": one_of("goal", "goal_then_answer"),
+    "defense.hardness": one_of("accuracy", "judge"),
+    **{f"defense.{key}": integer(1) for key in ("pool_clips", "examples", "steps", "prefix_length", "top_k",
+                                                "num_candidates", "chunk")},
+    "defense.prefix_path": null_or(existing_file("prefix.json file")),
     # task (each task has some of these)
     "task.name": text(),
     "task.out_dir": null_or(output_folder()),

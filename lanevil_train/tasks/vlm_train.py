@@ -105,7 +105,14 @@ def train_vlm(cfg: DictConfig) -> float | None:
     from lanevil_train.vlm.qa_data import ClipQADataset, collate_clip_qa
     from lanevil_train.vlm.training import SkipTrainedBatches, VLMFineTuner
 
+    from lanevil_train.tasks.vlm_defense import is_prompt_defense, tune_prompt_defense
+
     pl.seed_everything(cfg.seed, workers=True)
+    if is_prompt_defense(cfg):  # defense=pat++: a prefix for the frozen model, no weight changes
+        return tune_prompt_defense(cfg)
+    if cfg.defense.name != "none":
+        raise ValueError(f"defense={cfg.defense.name}: VLM fine-tuning applies no visual defense yet; use "
+                         f"defense=none, or defense=pat++ to tune a defense prefix for a trained VLM")
     if cfg.data.name != "clips":
         raise ValueError(f"data: a VLM trains on the clip suite's QA: use data=clips (got data={cfg.data.name})")
     check_sharded_merge(cfg)
@@ -174,11 +181,24 @@ def _evaluate_hint(cfg: DictConfig, saved: Path) -> str:
 
 
 def _test(cfg: DictConfig, saved: Path, out: Path) -> float:
-    """The saved model on the test clips (task.suite, else data=clips' test split), loaded as task=evaluate would,
-    with its blind baseline when task.blind: the tables of task=evaluate in out/."""
-    from lanevil_train.tasks.vlm_evaluate import build_judge, clip_suite, evaluate_into, generation_settings
-    from lanevil_train.vlm.base import BlindVLM
+    """The saved model on the test clips, loaded as task=evaluate would (test_vlm)."""
+    from lanevil_train.tasks.vlm_evaluate import generation_settings
     from lanevil_train.vlm.hf import HFVLM
+
+    settings = {**generation_settings(cfg), "dtype": cfg.model.get("dtype", "auto"),
+                "device": cfg.model.get("device", "auto")}
+    if cfg.model.get("lora") is not None and not cfg.model.get("merge_adapter", False):
+        vlm = HFVLM(cfg.model.path, adapter=saved, **settings)
+    else:
+        vlm = HFVLM(saved, **settings)
+    return test_vlm(cfg, vlm, cfg.task.get("label") or vlm.name, out)
+
+
+def test_vlm(cfg: DictConfig, vlm, name: str, out: Path) -> float:
+    """The VLM on the test clips (task.suite, else task.cases scenes of data=clips' test split, rendered on the
+    fly), with its blind baseline when task.blind: the tables of task=evaluate in out/."""
+    from lanevil_train.tasks.vlm_evaluate import build_judge, clip_suite, evaluate_into
+    from lanevil_train.vlm.base import BlindVLM
 
     if cfg.task.suite is None:  # not the whole test split: the task.cases scenes of it, rendered on the fly
         cfg = cfg.copy()
@@ -186,13 +206,6 @@ def _test(cfg: DictConfig, saved: Path, out: Path) -> float:
             cfg.task.suite = "synthetic"
     dataset, dataset_name = clip_suite(cfg)
     judge = build_judge(cfg, out)
-    settings = {**generation_settings(cfg), "dtype": cfg.model.get("dtype", "auto"),
-                "device": cfg.model.get("device", "auto")}
-    if cfg.model.get("lora") is not None and not cfg.model.get("merge_adapter", False):
-        vlm = HFVLM(cfg.model.path, adapter=saved, **settings)
-    else:
-        vlm = HFVLM(saved, **settings)
-    name = cfg.task.get("label") or vlm.name
     files = [evaluate_into(vlm, dataset, judge, out, {"model": name, "dataset": dataset_name}, cfg.progress)]
     if cfg.task.get("blind"):
         files.append(evaluate_into(BlindVLM(vlm), dataset, judge, out / "blind",

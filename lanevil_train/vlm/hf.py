@@ -294,9 +294,12 @@ class HFVLM(VLM):
 
     def _generate(self, clips: Sequence[Frames], questions: Sequence[str]) -> list[str]:
         """Answers for one batch: generate after the prompt, decode only the new tokens."""
+        return self.generate_encoded(self.encode(clips, questions))
+
+    def generate_encoded(self, batch: EncodedBatch) -> list[str]:
+        """Answers to an encoded batch (a prompt without answers, possibly with a defense prefix spliced in)."""
         import torch
 
-        batch = self.encode(clips, questions)
         options = dict(max_new_tokens=self.max_new_tokens, do_sample=self.do_sample)
         if self.do_sample:
             torch.manual_seed(self.seed)

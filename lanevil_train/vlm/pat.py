@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
 
-from lanevil_train.vlm.base import Frames
+from lanevil_train.vlm.base import VLM, Frames, check_batch
 from lanevil_train.vlm.hf import IGNORE_INDEX, EncodedBatch, HFVLM
 
 RES_GOAL = "I will focus on the factors affecting the road"
@@ -133,6 +133,41 @@ def retokenises(tokenizer, ids: Sequence[int]) -> bool:
     """Whether the decoded prefix re-tokenises to as many tokens as it has (GCG's filter)."""
     text = tokenizer.decode(list(ids))
     return len(tokenizer(text, add_special_tokens=False)["input_ids"]) == len(ids)
+
+
+class PrefixedVLM(VLM):
+    """A local VLM that answers with a defense prefix before every question (PAT++'s prefix.json at evaluation).
+
+    The prefix goes in as token ids (`splice_prefix`), exactly as it was tuned; the name is the model's unless
+    given; the identity gains the prefix, so results with and without it never mix."""
+
+    def __init__(self, vlm: HFVLM, prefix_ids: Sequence[int], name: str | None = None):
+        if not isinstance(vlm, HFVLM):
+            raise ValueError(f"defense prefix: {type(vlm).__name__} gives no token ids to splice a prefix into; "
+                             f"PAT++ needs a local model (model=vlm/hf or model=vlm/embedded)")
+        self.vlm, self.prefix_ids = vlm, [int(t) for t in prefix_ids]
+        vocabulary = vlm.model.get_input_embeddings().num_embeddings
+        if not self.prefix_ids or max(self.prefix_ids) >= vocabulary or min(self.prefix_ids) < 0:
+            raise ValueError(f"defense prefix: expected token ids in [0, {vocabulary}), got {self.prefix_ids}")
+        self.name, self.batch_size = name or vlm.name, vlm.batch_size
+
+    def answer(self, clips: Sequence[Frames], questions: Sequence[str]) -> list[str]:
+        import torch
+
+        check_batch(clips, questions)
+        answers: list[str] = []
+        with torch.inference_mode():
+            for start in range(0, len(questions), self.batch_size):
+                batch = self.vlm.encode(clips[start:start + self.batch_size], questions[start:start + self.batch_size])
+                answers.extend(self.vlm.generate_encoded(splice_prefix(batch, self.prefix_ids)[0]))
+        return answers
+
+    def answer_loss(self, clips: Sequence[Frames], questions: Sequence[str], answers: Sequence[str]):
+        batch = splice_prefix(self.vlm.encode(clips, questions, answers), self.prefix_ids)[0]
+        return self.vlm.loss_from_embeds(batch, self.vlm.embed(batch))
+
+    def identity(self) -> dict:
+        return {**self.vlm.identity(), "defense_prefix_ids": self.prefix_ids}
 
 
 # ---- the objective ----------------------------------------------------------------------------------------------

@@ -92,6 +92,16 @@ def test_every_shipped_option_passes(group, option, files):
     assert problems(f"{group}={option}", *needs(group, option, files)) == []
 
 
+def test_pat_plus_plus_settings_are_checked_naming_the_key(files):
+    assert only_problem("defense=pat++", "defense.alpha=1.5").startswith("defense.alpha: expected a number")
+    assert only_problem("defense=pat++", "defense.hard_target=answer").startswith(
+        "defense.hard_target: expected one of goal, goal_then_answer, got 'answer'")
+    assert only_problem("defense=pat++", "defense.top_k=0").startswith("defense.top_k: expected an integer")
+    assert only_problem("defense=pat++", f"defense.prefix_path={files / 'none.json'}").startswith(
+        "defense.prefix_path: expected null or the path of an existing prefix.json file")
+    assert problems("defense=pat++", f"defense.prefix_path={files / 'model.ckpt'}") == []
+
+
 @pytest.mark.parametrize("extra", [[], ["task=compare"], ["task=evaluate", "ckpt_path=FILE"], ["defense=aam++"],
                                    ["backbone=vgg16"], ["trainer=ddp"], ["hparams_search=aam_optuna"]],
                          ids=lambda value: " ".join(value) or "alone")
@@ -110,7 +120,7 @@ def test_build_on_a_real_dataset_may_take_every_image(files):
 
 # ------------------------------------------------------------------------------------------- each group
 DEFENSES = ("task.defenses: expected a list of defense names from aam, aam++, copypaste, cutout, hsv, mixup, none, "
-            "pgd, each once, with none and at least one other")
+            "pat++, pgd, each once, with none and at least one other")
 
 BAD = [
     # root
@@ -225,7 +235,7 @@ BAD = [
      "feature map of vgg16 (backbone.out_indices[-1]=5)"),
     # defense
     (["+defense.callbacks=[]"],
-     "defense: expected a mapping with the keys name, transforms, mixer, callback, got"),
+     "defense: expected a mapping with the keys name, transforms, mixer, callback (and, in a textual defense"),
     (["defense=aam++", "+defense.callback.t_hha=0.5"],
      "defense.callback.t_hha: not a parameter of lanevil_train.callbacks.AttentionAreaMixing; it accepts layer, "
      "mode"),

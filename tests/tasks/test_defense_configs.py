@@ -28,8 +28,17 @@ def compose_defense(name: str, tmp_path: Path, extra: list[str] = ()):
         return compose(config_name="config", overrides=overrides)
 
 
+VLM_DEFENSES = {"pat++"}  # textual defenses: tests/tasks/test_vlm_defense_cli.py
+
+
 def test_the_defense_configs_are_the_papers_baselines():
-    assert {p.stem for p in DEFENSE_DIR.glob("*.yaml")} == set(EXPECTED)
+    assert {p.stem for p in DEFENSE_DIR.glob("*.yaml")} == set(EXPECTED) | VLM_DEFENSES
+
+
+def test_a_textual_defense_is_refused_for_a_lane_detector(tmp_path):
+    with pytest.raises(ValueError, match=r"defense=pat\+\+: a textual defense of VLMs .* use it with "
+                                         r"model=vlm/<backend>"):
+        build_defense(compose_defense("pat++", tmp_path))
 
 
 @pytest.mark.parametrize("name", sorted(EXPECTED))

@@ -202,3 +202,19 @@ def test_a_bad_value_in_a_later_job_stops_the_sweep_before_the_first_job(tmp_pat
     assert "data.batch_size: expected an integer >= 1, got -1" in proc.stderr
     assert "No job of the sweep was started." in proc.stderr
     assert not sweep_dir.exists()
+
+
+def test_the_pat_alpha_sweep_is_the_papers_grid_and_every_point_a_valid_pat_plus_plus():
+    from lanevil_train.tasks.vlm_defense import prompt_settings
+
+    cfg = compose_root(["hparams_search=pat_alpha", "model=vlm/hf", "model.path=/models/some-vlm", "data=clips"])
+    assert cfg.hydra.mode == RunMode.MULTIRUN
+    params = dict(cfg.hydra.sweeper.params)
+    assert list(params) == ["defense.alpha"]
+    grid = sweep_values("defense.alpha", params["defense.alpha"])
+    assert grid == [0.1, 0.2, 0.3, 0.4, 0.6, 0.8]
+    assert cfg.defense.name == "pat++" and cfg.task.name == "train"
+    for value in grid:
+        point = compose_root(["hparams_search=pat_alpha", "model=vlm/hf", "model.path=/models/some-vlm",
+                              "data=clips", f"defense.alpha={value}"])
+        assert prompt_settings(point.defense)["alpha"] == value

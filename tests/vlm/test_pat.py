@@ -245,3 +245,26 @@ def test_tuning_keeps_the_best_prefix_and_a_stopped_run_resumes_where_it_was(tin
                     facts={"model": "tiny"})
     with pytest.raises(ValueError, match="defense.num_candidates: expected a positive integer, got 0"):
         GCGSettings(num_candidates=0)
+
+
+@pytest.mark.parametrize("family", ["qwen2_vl", "idefics3"])
+def test_a_prefixed_vlm_answers_and_scores_with_the_prefix_spliced_in(family, tiny_hf_vlm, small_clips):
+    from lanevil_train.vlm.pat import PrefixedVLM
+
+    vlm = tiny_hf_vlm(family)
+    prefix = vlm.processor.tokenizer("keep to the lane", add_special_tokens=False)["input_ids"]
+    defended = PrefixedVLM(vlm, prefix)
+    spliced, _ = splice_prefix(vlm.encode(small_clips, QUESTIONS), prefix)
+    with torch.no_grad():
+        expected = vlm.generate_encoded(spliced)
+    assert defended.answer(small_clips, QUESTIONS) == expected
+    objective = PrefixObjective(vlm, Examples(small_clips, QUESTIONS, ANSWERS), Examples([], [], []))
+    with torch.no_grad():
+        assert defended.answer_loss(small_clips, QUESTIONS, ANSWERS).mean().item() == pytest.approx(
+            objective.loss(prefix), rel=1e-5)
+        without = vlm.answer_loss(small_clips, QUESTIONS, ANSWERS).mean().item()
+        assert abs(without - objective.loss(prefix)) > 1e-5  # the prefix is there
+    assert defended.identity()["defense_prefix_ids"] == prefix and defended.name == vlm.name
+    assert "defense_prefix_ids" not in vlm.identity()
+    with pytest.raises(ValueError, match=r"defense prefix: expected token ids in \[0, "):
+        PrefixedVLM(vlm, [10 ** 9])

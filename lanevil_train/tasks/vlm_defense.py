@@ -1,0 +1,187 @@
+"""Textual defenses of a VLM (defense=pat++): tune a defense prefix for a trained, frozen VLM and apply it.
+
+    python -m lanevil_train task=train model=vlm/hf model.path=RUN/model data=clips data.size=[64,112] defense=pat++
+    python -m lanevil_train task=evaluate model=vlm/hf model.path=RUN/model defense=pat++ \\
+        defense.prefix_path=PAT_RUN/prefix.json task.suite=synthetic
+
+task=train with a prompt defense:
+  1. checks every defense.* value first;
+  2. asks the model `defense.pool_clips` clip variants' questions, spread over the train split (seeds never
+     in the test split). Each answer is scored by `defense.hardness`:
+     - accuracy: yes/no and choice questions, right or wrong;
+     - judge: every question, with the configured judge's score.
+     Answers below the mean make hard examples, the rest benign ones, as AAM++ picks them. `defense.examples`
+     of each are drawn and written to examples.json, and a resumed run reuses them;
+  3. tunes the prefix (vlm/pat.py) into prefix.json, resuming from it;
+  4. with task.test_after_fit, evaluates the model with the prefix on the test clips, as task=evaluate would.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+
+from lanevil_train.data.formats.atomic import atomic_write_text
+
+HARDNESS = ("accuracy", "judge")
+EXAMPLES_FILE = "examples.json"
+
+
+def is_prompt_defense(cfg: DictConfig) -> bool:
+    """Whether cfg.defense is a textual defense of VLMs (it names a `prompt` method)."""
+    return cfg.get("defense") is not None and cfg.defense.get("prompt") is not None
+
+
+def prompt_settings(defense: DictConfig) -> dict:
+    """defense.* of a prompt defense as plain values, checked; a ValueError names the first bad key."""
+    from lanevil_train.vlm.pat import HARD_TARGETS
+
+    settings = OmegaConf.to_container(defense, resolve=True)
+    if settings.get("prompt") != "pat++":
+        raise ValueError(f"defense.prompt: expected pat++ (the one textual defense so far), got "
+                         f"{settings.get('prompt')!r}")
+    alpha = settings.get("alpha")
+    if isinstance(alpha, bool) or not isinstance(alpha, (int, float)) or not 0 <= alpha <= 1:
+        raise ValueError(f"defense.alpha: expected a weight in [0, 1], got {alpha!r}")
+    if settings.get("hard_target") not in HARD_TARGETS:
+        raise ValueError(f"defense.hard_target: expected one of {', '.join(HARD_TARGETS)}, got "
+                         f"{settings.get('hard_target')!r}")
+    if settings.get("hardness") not in HARDNESS:
+        raise ValueError(f"defense.hardness: expected one of {', '.join(HARDNESS)}, got {settings.get('hardness')!r}")
+    for key in ("steps", "prefix_length", "top_k", "num_candidates", "chunk", "examples", "pool_clips"):
+        value = settings.get(key)
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"defense.{key}: expected a positive integer, got {value!r}")
+    return settings
+
+
+def check_prompt_model(cfg: DictConfig) -> None:
+    """A prefix is tuned for a trained model: model.path or ckpt_path must name one."""
+    if cfg.ckpt_path is None and cfg.model.get("path") is None:
+        raise ValueError(f"model.path: defense={cfg.defense.name} tunes a prefix for a trained model; give "
+                         f"model.path=RUN/model (task=train model=vlm/embedded writes one) or ckpt_path=...")
+
+
+def with_prompt_defense(cfg: DictConfig, vlm):
+    """task=evaluate: the VLM with the tuned prefix of defense.prefix_path before every question."""
+    from lanevil_train.vlm.pat import PrefixedVLM, load_prefix
+
+    prompt_settings(cfg.defense)
+    path = cfg.defense.get("prefix_path")
+    if path is None:
+        raise ValueError(f"defense.prefix_path: task=evaluate defense={cfg.defense.name} applies a tuned prefix; give "
+                         f"defense.prefix_path=RUN/prefix.json (task=train defense={cfg.defense.name} writes it)")
+    tokenizer = getattr(getattr(vlm, "processor", None), "tokenizer", None)
+    return PrefixedVLM(vlm, load_prefix(path, tokenizer)["ids"], name=f"{vlm.name}+{cfg.defense.name}")
+
+
+def tune_prompt_defense(cfg: DictConfig) -> float | None:
+    """task=train with defense=pat++: the prefix in the run's prefix.json; returns the test score when tested."""
+    from lanevil_train.tasks.builders import build_split, output_dir
+    from lanevil_train.tasks.vlm_evaluate import build_judge, build_vlm
+    from lanevil_train.vlm.pat import GCGSettings, PrefixedVLM, PrefixObjective, tune_prefix
+
+    settings = prompt_settings(cfg.defense)
+    if cfg.data.name != "clips":
+        raise ValueError(f"data: PAT++ tunes its prefix on the clip suite's train split: use data=clips "
+                         f"(got data={cfg.data.name})")
+    check_prompt_model(cfg)
+    out = output_dir(cfg)
+    train_set = build_split(cfg, "train")
+    vlm = build_vlm(cfg)
+    judge = build_judge(cfg, out) if settings["hardness"] == "judge" else None
+    if settings["hardness"] == "judge" and judge is None:
+        raise ValueError("defense.hardness: judge needs a judge (judge=minilm or judge=openai); got judge=none")
+    chosen = choose_examples(vlm, train_set, settings, judge, out / EXAMPLES_FILE, cfg.seed, cfg.progress)
+    benign, hard = (examples_of(train_set, [e for e in chosen if e["hard"] == kind]) for kind in (False, True))
+    objective = PrefixObjective(vlm, benign, hard, alpha=settings["alpha"], chunk=settings["chunk"])
+    gcg = GCGSettings(steps=settings["steps"], prefix_length=settings["prefix_length"], top_k=settings["top_k"],
+                      num_candidates=settings["num_candidates"], seed=int(cfg.seed))
+    facts = {"model": vlm.identity(), "hardness": settings["hardness"], "hard_target": settings["hard_target"],
+             "examples": [[e["index"], e["qa_id"], e["hard"]] for e in chosen]}
+    record = tune_prefix(objective, gcg, out, progress=cfg.progress, facts=facts)
+    print(f"defense prefix: {record['text']!r} (loss {record['history'][0]:.4f} -> {record['loss']:.4f}); "
+          f"{out / 'prefix.json'} (evaluate with defense={cfg.defense.name} "
+          f"defense.prefix_path={out / 'prefix.json'})")
+    if not cfg.task.get("test_after_fit"):
+        return None
+    from lanevil_train.tasks.vlm_train import test_vlm
+
+    defended = PrefixedVLM(vlm, record["ids"], name=f"{vlm.name}+{cfg.defense.name}")
+    return test_vlm(cfg, defended, cfg.task.get("label") or defended.name, out / "test")
+
+
+def choose_examples(vlm, train_set, settings: dict, judge, path: Path, seed: int, progress: str) -> list[dict]:
+    """Benign and hard examples of the train split (read from `path` when an earlier run wrote it): the answers
+    to the pool's questions scored, those below the mean hard; `examples` of each drawn at random."""
+    import numpy as np
+
+    from lanevil_train.progress import progress_counter
+    from lanevil_train.vlm.pat import hard_mask
+    from lanevil_train.vlm.qa_records import answer_is_correct, prompt_text
+
+    if path.is_file():
+        return json.loads(path.read_text())["examples"]
+    closed = settings["hardness"] == "accuracy"
+    indices = list(range(len(train_set)))[::max(1, len(train_set) // settings["pool_clips"])][:settings["pool_clips"]]
+    pool, answers = [], []
+    bar = progress_counter(len(indices), desc="PAT++ hard examples", unit="clip", mode=progress)
+    for index in indices:
+        item = train_set[index]
+        qas = [qa for qa in item["qa"] if not closed or qa["type"] in ("yes_no", "choice")]
+        if qas:
+            frames = [np.asarray(frame, dtype=np.uint8) for frame in item["frames"]]
+            answers += vlm.answer([frames] * len(qas), [prompt_text(qa) for qa in qas])
+            pool += [(index, qa) for qa in qas]
+        bar.update(1)
+    bar.close()
+    if not pool:
+        raise ValueError(f"defense.pool_clips: the {len(indices)} train clips asked have no questions to score "
+                         f"by defense.hardness={settings['hardness']}")
+    if closed:
+        scores = [float(bool(answer_is_correct(qa, text))) for (_, qa), text in zip(pool, answers)]
+    else:
+        scores = [float(s) for s in judge.score([qa["question"] for _, qa in pool], [qa["answer"] for _, qa in pool],
+                                                answers)]
+    hard = hard_mask(scores)
+    if not any(hard):
+        print(f"PAT++: all {len(scores)} answers of the pool score {scores[0]:g} by {settings['hardness']}: no hard "
+              f"examples, so the prefix is tuned on benign ones only")
+    rng = np.random.default_rng(seed)
+    chosen = []
+    for kind in (False, True):
+        members = [i for i, h in enumerate(hard) if h == kind]
+        for i in sorted(rng.permutation(members)[:settings["examples"]].tolist()):
+            index, qa = pool[i]
+            chosen.append({"index": index, "qa_id": qa["qa_id"], "hard": kind, "score": scores[i],
+                           "answer": answers[i], "target": _target(qa, kind, settings["hard_target"])})
+    atomic_write_text(path, json.dumps({"mean_score": float(np.mean(scores)), "pool": len(pool),
+                                        "examples": chosen}, indent=1))
+    return chosen
+
+
+def _target(qa: dict, hard: bool, mode: str) -> str:
+    from lanevil_train.vlm.pat import hard_target
+
+    return hard_target(qa["answer"], mode) if hard else qa["answer"]
+
+
+def examples_of(train_set, chosen: list[dict]):
+    """The chosen examples' frames, prompts and targets (pat.Examples)."""
+    import numpy as np
+
+    from lanevil_train.vlm.pat import Examples
+    from lanevil_train.vlm.qa_records import prompt_text
+
+    clips, questions = [], []
+    for example in chosen:
+        item = train_set[example["index"]]
+        qa = next((q for q in item["qa"] if q["qa_id"] == example["qa_id"]), None)
+        if qa is None:
+            raise ValueError(f"{EXAMPLES_FILE}: train clip {example['index']} has no QA {example['qa_id']!r}; the "
+                             f"train split changed since the examples were chosen: use a new output directory")
+        clips.append([np.asarray(frame, dtype=np.uint8) for frame in item["frames"]])
+        questions.append(prompt_text(qa))
+    return Examples(clips, questions, [example["target"] for example in chosen])

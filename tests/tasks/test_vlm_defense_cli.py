@@ -1,0 +1,65 @@
+"""defense=pat++ from the command line: a prefix tuned for a saved tiny VLM (hard examples found by asking it),
+written to prefix.json, tested after tuning, resumed, and applied again by task=evaluate."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from lanevil_train.results_log import ResultsLog
+from lanevil_train.vlm.tiny import build_tiny_vlm
+from tests.tasks.cli_helpers import run_cli
+from tests.tasks.test_vlm_train_cli import ANSWERS, TINY_CLIPS
+
+TINY_PAT = ["defense=pat++", "defense.steps=2", "defense.prefix_length=3", "defense.top_k=8",
+            "defense.num_candidates=6", "defense.examples=2", "defense.pool_clips=4", "defense.chunk=8"]
+
+
+@pytest.fixture(scope="module")
+def tiny_model(tmp_path_factory):
+    return build_tiny_vlm("qwen2_vl", tmp_path_factory.mktemp("models") / "tiny-qwen2-vl")
+
+
+def test_pat_plus_plus_tunes_a_prefix_tests_it_resumes_and_evaluates_with_it(tiny_model, tmp_path):
+    run = tmp_path / "pat"
+    # a random tiny model gets every yes/no wrong: the offline judge's scores tell its answers apart
+    clips = [a for a in TINY_CLIPS if a != "judge=none"] + ["judge=minilm"]
+    common = ["model=vlm/hf", f"model.path={tiny_model}", "model.max_new_tokens=4", *clips]
+    run_cli(["task=train", *common, *TINY_PAT, "defense.hardness=judge"], run)
+    record = json.loads((run / "prefix.json").read_text())
+    assert record["step"] == 2 and len(record["ids"]) == 3 and len(record["history"]) == 3
+    assert record["history"][-1] <= record["history"][0]
+    chosen = json.loads((run / "examples.json").read_text())
+    examples = chosen["examples"]
+    assert sorted(e["hard"] for e in examples) == [False, False, True, True]
+    assert all((e["score"] < chosen["mean_score"]) == e["hard"] for e in examples)
+    assert all(e["target"] == "I will focus on the factors affecting the road" for e in examples if e["hard"])
+    tested = ResultsLog(run / "test" / "per_answer.jsonl").records()
+    assert len(tested) == ANSWERS and {r["model"] for r in tested} == {"tiny-qwen2-vl+pat++"}
+
+    # more steps resume from the prefix reached, reusing the examples chosen
+    run_cli(["task=train", *common, *TINY_PAT, "defense.hardness=judge", "defense.steps=3",
+             "task.test_after_fit=false"], run)
+    resumed = json.loads((run / "prefix.json").read_text())
+    assert resumed["step"] == 3 and resumed["history"][:3] == pytest.approx(record["history"])
+    assert json.loads((run / "examples.json").read_text())["examples"] == examples
+
+    # task=evaluate with the prefix answers as the tuning run's test did (with its 2-step prefix)
+    out = tmp_path / "eval"
+    (tmp_path / "two_steps.json").write_text(json.dumps(record))
+    run_cli(["task=evaluate", *common, "defense=pat++", f"defense.prefix_path={tmp_path / 'two_steps.json'}",
+             "task.suite=synthetic", f"task.out_dir={out}"], tmp_path / "eval-run")
+    answers = {r["key"]: r["answer"] for r in ResultsLog(out / "per_answer.jsonl").records()}
+    assert answers == {r["key"]: r["answer"] for r in tested}
+
+
+def test_pat_plus_plus_misuse_is_refused_naming_the_key(tiny_model, tmp_path):
+    common = ["model=vlm/hf", f"model.path={tiny_model}", *TINY_CLIPS]
+    with pytest.raises(AssertionError, match="defense.prefix_path: task=evaluate defense=pat\\+\\+ applies a tuned "
+                                             "prefix"):
+        run_cli(["task=evaluate", *common, "defense=pat++", "task.suite=synthetic"], tmp_path / "no-prefix")
+    with pytest.raises(AssertionError, match="model.path: defense=pat\\+\\+ tunes a prefix for a trained model"):
+        run_cli(["task=train", "model=vlm/embedded", *TINY_CLIPS, "defense=pat++"], tmp_path / "untrained")
+    with pytest.raises(AssertionError, match="defense=aam\\+\\+: VLM fine-tuning applies no visual defense yet"):
+        run_cli(["task=train", *common, "defense=aam++"], tmp_path / "visual")
