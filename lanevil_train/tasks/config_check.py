@@ -39,7 +39,7 @@ READ_BY_CODE = {"model": ("lora", "fine_tune", "embedded")}
 DEFENSE_KEYS = ("name", "transforms", "mixer", "callback")
 # The keys of a textual defense of VLMs (defense=pat++: tasks/vlm_defense.py), beside DEFENSE_KEYS.
 PROMPT_DEFENSE_KEYS = ("prompt", "alpha", "hard_target", "hardness", "pool_clips", "examples", "steps",
-                       "prefix_length", "top_k", "num_candidates", "chunk", "prefix_path")
+                       "prefix_length", "top_k", "num_candidates", "chunk", "prefix_path", "before", "after")
 SPLITS = ("train", "val", "test")
 
 
@@ -396,7 +396,9 @@ RULES: dict[str, Rule] = {
     "defense.transforms": null_or(target_list()),
     "defense.mixer": null_or(target_node()),
     "defense.callback": null_or(target_node()),
-    "defense.prompt": one_of("pat++"),
+    "defense.prompt": one_of("pat++", "self_reminder"),
+    "defense.before": text(),
+    "defense.after": text(),
     "defense.alpha": number(0, 1),
     "defense.hard_target": one_of("goal", "goal_then_answer"),
     "defense.hardness": one_of("accuracy", "judge"),

@@ -1,10 +1,12 @@
-"""Textual defenses of a VLM (defense=pat++): tune a defense prefix for a trained, frozen VLM and apply it.
+"""Textual defenses of a VLM: PAT++ (defense=pat++) tunes a defense prefix for a trained, frozen VLM; Self-Reminder
+(defense=self_reminder) wraps every question in two reminders and needs no training.
 
     python -m lanevil_train task=train model=vlm/hf model.path=RUN/model data=clips data.size=[64,112] defense=pat++
     python -m lanevil_train task=evaluate model=vlm/hf model.path=RUN/model defense=pat++ \\
         defense.prefix_path=PAT_RUN/prefix.json task.suite=synthetic
+    python -m lanevil_train task=evaluate model=vlm/hf model.path=RUN/model defense=self_reminder task.suite=synthetic
 
-task=train with a prompt defense:
+task=train with defense=self_reminder only tests the reminded model. task=train with defense=pat++:
   1. checks every defense.* value first;
   2. asks the model `defense.pool_clips` clip variants' questions, spread over the train split (seeds never
      in the test split). Each answer is scored by `defense.hardness`:
@@ -25,6 +27,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from lanevil_train.data.formats.atomic import atomic_write_text
 
+PROMPT_DEFENSES = ("pat++", "self_reminder")
 HARDNESS = ("accuracy", "judge")
 EXAMPLES_FILE = "examples.json"
 
@@ -39,9 +42,14 @@ def prompt_settings(defense: DictConfig) -> dict:
     from lanevil_train.vlm.pat import HARD_TARGETS
 
     settings = OmegaConf.to_container(defense, resolve=True)
-    if settings.get("prompt") != "pat++":
-        raise ValueError(f"defense.prompt: expected pat++ (the one textual defense so far), got "
-                         f"{settings.get('prompt')!r}")
+    if settings.get("prompt") not in PROMPT_DEFENSES:
+        raise ValueError(f"defense.prompt: expected one of {', '.join(PROMPT_DEFENSES)}, got {settings.get('prompt')!r}")
+    if settings["prompt"] == "self_reminder":
+        for key in ("before", "after"):
+            if not isinstance(settings.get(key), str) or not settings[key].strip():
+                raise ValueError(f"defense.{key}: expected the reminder sentence, a non-empty string, got "
+                                 f"{settings.get(key)!r}")
+        return settings
     alpha = settings.get("alpha")
     if isinstance(alpha, bool) or not isinstance(alpha, (int, float)) or not 0 <= alpha <= 1:
         raise ValueError(f"defense.alpha: expected a weight in [0, 1], got {alpha!r}")
@@ -65,16 +73,21 @@ def check_prompt_model(cfg: DictConfig) -> None:
 
 
 def with_prompt_defense(cfg: DictConfig, vlm):
-    """task=evaluate: the VLM with the tuned prefix of defense.prefix_path before every question."""
+    """task=evaluate: the VLM with its questions wrapped in the reminders (self_reminder), or with the tuned prefix
+    of defense.prefix_path before every question (pat++)."""
     from lanevil_train.vlm.pat import PrefixedVLM, load_prefix
+    from lanevil_train.vlm.reminder import RemindedVLM
 
-    prompt_settings(cfg.defense)
+    settings = prompt_settings(cfg.defense)
+    name = f"{vlm.name}+{cfg.defense.name}"
+    if settings["prompt"] == "self_reminder":
+        return RemindedVLM(vlm, settings["before"], settings["after"], name=name)
     path = cfg.defense.get("prefix_path")
     if path is None:
         raise ValueError(f"defense.prefix_path: task=evaluate defense={cfg.defense.name} applies a tuned prefix; give "
                          f"defense.prefix_path=RUN/prefix.json (task=train defense={cfg.defense.name} writes it)")
     tokenizer = getattr(getattr(vlm, "processor", None), "tokenizer", None)
-    return PrefixedVLM(vlm, load_prefix(path, tokenizer)["ids"], name=f"{vlm.name}+{cfg.defense.name}")
+    return PrefixedVLM(vlm, load_prefix(path, tokenizer)["ids"], name=name)
 
 
 def tune_prompt_defense(cfg: DictConfig) -> float | None:
@@ -83,7 +96,15 @@ def tune_prompt_defense(cfg: DictConfig) -> float | None:
     from lanevil_train.tasks.vlm_evaluate import build_judge, build_vlm
     from lanevil_train.vlm.pat import GCGSettings, PrefixedVLM, PrefixObjective, tune_prefix
 
+    from lanevil_train.tasks.vlm_train import test_vlm
+
     settings = prompt_settings(cfg.defense)
+    if settings["prompt"] == "self_reminder":  # nothing to tune: the reminded model tested, as task=evaluate would
+        defended = with_prompt_defense(cfg, build_vlm(cfg))
+        print(f"defense={cfg.defense.name}: nothing to train; the reminders wrap every question")
+        if not cfg.task.get("test_after_fit"):
+            return None
+        return test_vlm(cfg, defended, cfg.task.get("label") or defended.name, output_dir(cfg) / "test")
     if cfg.data.name != "clips":
         raise ValueError(f"data: PAT++ tunes its prefix on the clip suite's train split: use data=clips "
                          f"(got data={cfg.data.name})")
@@ -107,8 +128,6 @@ def tune_prompt_defense(cfg: DictConfig) -> float | None:
           f"defense.prefix_path={out / 'prefix.json'})")
     if not cfg.task.get("test_after_fit"):
         return None
-    from lanevil_train.tasks.vlm_train import test_vlm
-
     defended = PrefixedVLM(vlm, record["ids"], name=f"{vlm.name}+{cfg.defense.name}")
     return test_vlm(cfg, defended, cfg.task.get("label") or defended.name, out / "test")
 

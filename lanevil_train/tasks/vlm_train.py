@@ -112,7 +112,8 @@ def train_vlm(cfg: DictConfig) -> float | None:
         return tune_prompt_defense(cfg)
     if cfg.defense.name != "none":
         raise ValueError(f"defense={cfg.defense.name}: VLM fine-tuning applies no visual defense yet; use "
-                         f"defense=none, or defense=pat++ to tune a defense prefix for a trained VLM")
+                         f"defense=none, or a textual defense for a trained VLM (defense=pat++, "
+                         f"defense=self_reminder)")
     if cfg.data.name != "clips":
         raise ValueError(f"data: a VLM trains on the clip suite's QA: use data=clips (got data={cfg.data.name})")
     check_sharded_merge(cfg)

@@ -120,7 +120,7 @@ def test_build_on_a_real_dataset_may_take_every_image(files):
 
 # ------------------------------------------------------------------------------------------- each group
 DEFENSES = ("task.defenses: expected a list of defense names from aam, aam++, copypaste, cutout, hsv, mixup, none, "
-            "pat++, pgd, each once, with none and at least one other")
+            "pat++, pgd, self_reminder, each once, with none and at least one other")
 
 BAD = [
     # root

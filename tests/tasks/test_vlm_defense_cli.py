@@ -1,5 +1,6 @@
-"""defense=pat++ from the command line: a prefix tuned for a saved tiny VLM (hard examples found by asking it),
-written to prefix.json, tested after tuning, resumed, and applied again by task=evaluate."""
+"""Textual VLM defenses from the command line: defense=pat++ tunes a prefix for a saved tiny VLM (hard examples
+found by asking it), writes prefix.json, tests it, resumes, and task=evaluate applies it again; defense=self_reminder
+needs no training and tests the reminded model."""
 
 from __future__ import annotations
 
@@ -63,3 +64,12 @@ def test_pat_plus_plus_misuse_is_refused_naming_the_key(tiny_model, tmp_path):
         run_cli(["task=train", "model=vlm/embedded", *TINY_CLIPS, "defense=pat++"], tmp_path / "untrained")
     with pytest.raises(AssertionError, match="defense=aam\\+\\+: VLM fine-tuning applies no visual defense yet"):
         run_cli(["task=train", *common, "defense=aam++"], tmp_path / "visual")
+
+
+def test_self_reminder_trains_nothing_and_tests_the_reminded_model(tiny_model, tmp_path):
+    run = tmp_path / "reminder"
+    run_cli(["task=train", "model=vlm/hf", f"model.path={tiny_model}", "model.max_new_tokens=4", *TINY_CLIPS,
+             "defense=self_reminder"], run)
+    tested = ResultsLog(run / "test" / "per_answer.jsonl").records()
+    assert len(tested) == ANSWERS and {r["model"] for r in tested} == {"tiny-qwen2-vl+self_reminder"}
+    assert not (run / "checkpoints").exists() and not (run / "model").exists()
