@@ -91,12 +91,12 @@ def with_prompt_defense(cfg: DictConfig, vlm):
 
 
 def tune_prompt_defense(cfg: DictConfig) -> float | None:
-    """task=train with defense=pat++: the prefix in the run's prefix.json; returns the test score when tested."""
+    """task=train with a textual defense: for pat++ the prefix tuned into the run's prefix.json, for self_reminder
+    nothing; then the defended model tested. Returns the test score when tested."""
     from lanevil_train.tasks.builders import build_split, output_dir
     from lanevil_train.tasks.vlm_evaluate import build_judge, build_vlm
-    from lanevil_train.vlm.pat import GCGSettings, PrefixedVLM, PrefixObjective, tune_prefix
-
     from lanevil_train.tasks.vlm_train import test_vlm
+    from lanevil_train.vlm.pat import GCGSettings, PrefixedVLM, PrefixObjective, tune_prefix
 
     settings = prompt_settings(cfg.defense)
     if settings["prompt"] == "self_reminder":  # nothing to tune: the reminded model tested, as task=evaluate would
@@ -109,12 +109,12 @@ def tune_prompt_defense(cfg: DictConfig) -> float | None:
         raise ValueError(f"data: PAT++ tunes its prefix on the clip suite's train split: use data=clips "
                          f"(got data={cfg.data.name})")
     check_prompt_model(cfg)
+    if settings["hardness"] == "judge" and (cfg.get("judge") is None or cfg.judge.get("_target_") is None):
+        raise ValueError("defense.hardness: judge needs a judge (judge=minilm or judge=openai); got judge=none")
     out = output_dir(cfg)
     train_set = build_split(cfg, "train")
     vlm = build_vlm(cfg)
     judge = build_judge(cfg, out) if settings["hardness"] == "judge" else None
-    if settings["hardness"] == "judge" and judge is None:
-        raise ValueError("defense.hardness: judge needs a judge (judge=minilm or judge=openai); got judge=none")
     chosen = choose_examples(vlm, train_set, settings, judge, out / EXAMPLES_FILE, cfg.seed, cfg.progress)
     benign, hard = (examples_of(train_set, [e for e in chosen if e["hard"] == kind]) for kind in (False, True))
     objective = PrefixObjective(vlm, benign, hard, alpha=settings["alpha"], chunk=settings["chunk"])

@@ -55,15 +55,34 @@ def test_pat_plus_plus_tunes_a_prefix_tests_it_resumes_and_evaluates_with_it(tin
     assert answers == {r["key"]: r["answer"] for r in tested}
 
 
-def test_pat_plus_plus_misuse_is_refused_naming_the_key(tiny_model, tmp_path):
-    common = ["model=vlm/hf", f"model.path={tiny_model}", *TINY_CLIPS]
-    with pytest.raises(AssertionError, match="defense.prefix_path: task=evaluate defense=pat\\+\\+ applies a tuned "
-                                             "prefix"):
-        run_cli(["task=evaluate", *common, "defense=pat++", "task.suite=synthetic"], tmp_path / "no-prefix")
-    with pytest.raises(AssertionError, match="model.path: defense=pat\\+\\+ tunes a prefix for a trained model"):
-        run_cli(["task=train", "model=vlm/embedded", *TINY_CLIPS, "defense=pat++"], tmp_path / "untrained")
-    with pytest.raises(AssertionError, match="defense=aam\\+\\+: VLM fine-tuning applies no visual defense yet"):
-        run_cli(["task=train", *common, "defense=aam++"], tmp_path / "visual")
+def compose(overrides: list[str]):
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_module(config_module="lanevil_train.conf", version_base="1.3"):
+            return hydra_compose(config_name="config", overrides=overrides)
+    finally:
+        GlobalHydra.instance().clear()
+
+
+def test_textual_defense_misuse_is_refused_naming_the_key_before_any_work(tiny_model, tmp_path):
+    from lanevil_train.tasks.vlm_evaluate import evaluate_vlm
+    from lanevil_train.tasks.vlm_train import train_vlm
+
+    common = ["model=vlm/hf", f"model.path={tiny_model}", *TINY_CLIPS, f"output_dir={tmp_path / 'run'}"]
+    with pytest.raises(ValueError, match="defense.prefix_path: task=evaluate defense=pat\\+\\+ applies a tuned prefix"):
+        evaluate_vlm(compose(["task=evaluate", *common, "defense=pat++", "task.suite=synthetic",
+                              f"task.out_dir={tmp_path / 'eval'}"]))
+    with pytest.raises(ValueError, match="model.path: defense=pat\\+\\+ tunes a prefix for a trained model"):
+        train_vlm(compose(["task=train", "model=vlm/embedded", *TINY_CLIPS, "defense=pat++"]))
+    with pytest.raises(ValueError, match="defense.hardness: judge needs a judge .* got judge=none"):
+        train_vlm(compose(["task=train", *common, "defense=pat++", "defense.hardness=judge"]))
+    with pytest.raises(ValueError, match="defense=aam\\+\\+: VLM fine-tuning applies no visual defense yet"):
+        train_vlm(compose(["task=train", *common, "defense=aam++"]))
+    assert not (tmp_path / "run").exists()  # refused before any output
 
 
 def test_self_reminder_trains_nothing_and_tests_the_reminded_model(tiny_model, tmp_path):
