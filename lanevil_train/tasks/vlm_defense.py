@@ -90,12 +90,35 @@ def with_prompt_defense(cfg: DictConfig, vlm):
     return PrefixedVLM(vlm, load_prefix(path, tokenizer)["ids"], name=name)
 
 
+def describe_defense(vlm) -> str | None:
+    """A markdown section naming the textual defense a VLM answers with (its prefix, or its reminders), else None."""
+    from lanevil_train.vlm.pat import PrefixedVLM
+    from lanevil_train.vlm.reminder import RemindedVLM
+
+    if isinstance(vlm, PrefixedVLM):
+        text = vlm.vlm.processor.tokenizer.decode(vlm.prefix_ids)
+        return (f"## Defense: PAT++ prefix\n\nBefore every question, {len(vlm.prefix_ids)} tokens: `{text}`\n\n"
+                f"Token ids: {vlm.prefix_ids}\n")
+    if isinstance(vlm, RemindedVLM):
+        return (f"## Defense: Self-Reminder\n\nEvery question between\n\n> {vlm.before}\n\nand\n\n"
+                f"> {vlm.after}\n")
+    return None
+
+
+def add_defense_to_report(out: Path, vlm) -> None:
+    """Put the defense's section right after the title of out/report.md (when both exist)."""
+    report, section = out / "report.md", describe_defense(vlm)
+    if section is None or not report.is_file():
+        return
+    title, _, rest = report.read_text().partition("\n")
+    atomic_write_text(report, f"{title}\n\n{section}{rest}")
+
+
 def tune_prompt_defense(cfg: DictConfig) -> float | None:
     """task=train with a textual defense: for pat++ the prefix tuned into the run's prefix.json, for self_reminder
     nothing; then the defended model tested. Returns the test score when tested."""
     from lanevil_train.tasks.builders import build_split, output_dir
     from lanevil_train.tasks.vlm_evaluate import build_judge, build_vlm
-    from lanevil_train.tasks.vlm_train import test_vlm
     from lanevil_train.vlm.pat import GCGSettings, PrefixedVLM, PrefixObjective, tune_prefix
 
     settings = prompt_settings(cfg.defense)
@@ -104,7 +127,7 @@ def tune_prompt_defense(cfg: DictConfig) -> float | None:
         print(f"defense={cfg.defense.name}: nothing to train; the reminders wrap every question")
         if not cfg.task.get("test_after_fit"):
             return None
-        return test_vlm(cfg, defended, cfg.task.get("label") or defended.name, output_dir(cfg) / "test")
+        return _test(cfg, defended, output_dir(cfg) / "test")
     if cfg.data.name != "clips":
         raise ValueError(f"data: PAT++ tunes its prefix on the clip suite's train split: use data=clips "
                          f"(got data={cfg.data.name})")
@@ -128,8 +151,16 @@ def tune_prompt_defense(cfg: DictConfig) -> float | None:
           f"defense.prefix_path={out / 'prefix.json'})")
     if not cfg.task.get("test_after_fit"):
         return None
-    defended = PrefixedVLM(vlm, record["ids"], name=f"{vlm.name}+{cfg.defense.name}")
-    return test_vlm(cfg, defended, cfg.task.get("label") or defended.name, out / "test")
+    return _test(cfg, PrefixedVLM(vlm, record["ids"], name=f"{vlm.name}+{cfg.defense.name}"), out / "test")
+
+
+def _test(cfg: DictConfig, defended, out: Path) -> float:
+    """The defended VLM tested as task=evaluate would, its defense named in the report."""
+    from lanevil_train.tasks.vlm_train import test_vlm
+
+    score = test_vlm(cfg, defended, cfg.task.get("label") or defended.name, out)
+    add_defense_to_report(out, defended)
+    return score
 
 
 def choose_examples(vlm, train_set, settings: dict, judge, path: Path, seed: int, progress: str) -> list[dict]:

@@ -19,7 +19,7 @@ from lanevil_train.errors import prefixed
 from lanevil_train.tasks.builders import build_logger, build_split, instantiate_at, output_dir
 from lanevil_train.tasks.results import log_results, write_results
 from lanevil_train.tasks.streaming import claim_results
-from lanevil_train.tasks.vlm_defense import is_prompt_defense, with_prompt_defense
+from lanevil_train.tasks.vlm_defense import add_defense_to_report, is_prompt_defense, with_prompt_defense
 from lanevil_train.vlm.base import VLM, BlindVLM
 from lanevil_train.vlm.evaluation import ANSWERS, PER_ANSWER, evaluate_clips
 
@@ -112,6 +112,7 @@ def evaluate_vlm(cfg: DictConfig) -> float:
         files.append(evaluate_into(blind, dataset, judge, out / "blind",
                                    {"model": f"{name}-blind", "dataset": dataset_name}, cfg.progress))
     value = write_results(files, out, baseline=cfg.task.baseline)
+    add_defense_to_report(out, vlm)
     write_language_summary(files, out)
     write_worst_answers(results, out)
     log_results(build_logger(cfg), out)

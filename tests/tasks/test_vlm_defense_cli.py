@@ -38,6 +38,9 @@ def test_pat_plus_plus_tunes_a_prefix_tests_it_resumes_and_evaluates_with_it(tin
     assert all(e["target"] == "I will focus on the factors affecting the road" for e in examples if e["hard"])
     tested = ResultsLog(run / "test" / "per_answer.jsonl").records()
     assert len(tested) == ANSWERS and {r["model"] for r in tested} == {"tiny-qwen2-vl+pat++"}
+    report = (run / "test" / "report.md").read_text()
+    assert report.startswith("# Robustness report\n\n## Defense: PAT++ prefix")
+    assert f"3 tokens: `{record['text']}`" in report and str(record["ids"]) in report
 
     # more steps resume from the prefix reached, reusing the examples chosen
     run_cli(["task=train", *common, *TINY_PAT, "defense.hardness=judge", "defense.steps=3",
@@ -53,6 +56,7 @@ def test_pat_plus_plus_tunes_a_prefix_tests_it_resumes_and_evaluates_with_it(tin
              "task.suite=synthetic", f"task.out_dir={out}"], tmp_path / "eval-run")
     answers = {r["key"]: r["answer"] for r in ResultsLog(out / "per_answer.jsonl").records()}
     assert answers == {r["key"]: r["answer"] for r in tested}
+    assert str(record["ids"]) in (out / "report.md").read_text()
 
 
 def compose(overrides: list[str]):
@@ -92,3 +96,4 @@ def test_self_reminder_trains_nothing_and_tests_the_reminded_model(tiny_model, t
     tested = ResultsLog(run / "test" / "per_answer.jsonl").records()
     assert len(tested) == ANSWERS and {r["model"] for r in tested} == {"tiny-qwen2-vl+self_reminder"}
     assert not (run / "checkpoints").exists() and not (run / "model").exists()
+    assert "## Defense: Self-Reminder" in (run / "test" / "report.md").read_text()
