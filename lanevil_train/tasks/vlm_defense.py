@@ -43,7 +43,8 @@ def prompt_settings(defense: DictConfig) -> dict:
 
     settings = OmegaConf.to_container(defense, resolve=True)
     if settings.get("prompt") not in PROMPT_DEFENSES:
-        raise ValueError(f"defense.prompt: expected one of {', '.join(PROMPT_DEFENSES)}, got {settings.get('prompt')!r}")
+        raise ValueError(f"defense.prompt: expected one of {', '.join(PROMPT_DEFENSES)}, got "
+                         f"{settings.get('prompt')!r}")
     if settings["prompt"] == "self_reminder":
         for key in ("before", "after"):
             if not isinstance(settings.get(key), str) or not settings[key].strip():
@@ -66,10 +67,26 @@ def prompt_settings(defense: DictConfig) -> dict:
 
 
 def check_prompt_model(cfg: DictConfig) -> None:
-    """A prefix is tuned for a trained model: model.path or ckpt_path must name one."""
+    """A prefix is tuned for a trained local model: model=vlm/hf or vlm/embedded, with model.path or ckpt_path."""
+    target = cfg.model.get("_target_")
+    if cfg.ckpt_path is None and target != "lanevil_train.vlm.hf.HFVLM":
+        raise ValueError(f"model: defense={cfg.defense.name} splices a prefix into a local model's token ids; use "
+                         f"model=vlm/hf or model=vlm/embedded (got model._target_={target})")
     if cfg.ckpt_path is None and cfg.model.get("path") is None:
         raise ValueError(f"model.path: defense={cfg.defense.name} tunes a prefix for a trained model; give "
                          f"model.path=RUN/model (task=train model=vlm/embedded writes one) or ckpt_path=...")
+
+
+def check_prompt_defense(cfg: DictConfig) -> None:
+    """task=evaluate, before the model loads: the defense's settings, and for pat++ the prefix to apply and a backend
+    it can be spliced into."""
+    settings = prompt_settings(cfg.defense)
+    if settings["prompt"] == "pat++":
+        if cfg.defense.get("prefix_path") is None:
+            raise ValueError(f"defense.prefix_path: task=evaluate defense={cfg.defense.name} applies a tuned prefix; "
+                             f"give defense.prefix_path=RUN/prefix.json (task=train defense={cfg.defense.name} writes "
+                             f"it)")
+        check_prompt_model(cfg)
 
 
 def with_prompt_defense(cfg: DictConfig, vlm):
@@ -82,10 +99,8 @@ def with_prompt_defense(cfg: DictConfig, vlm):
     name = f"{vlm.name}+{cfg.defense.name}"
     if settings["prompt"] == "self_reminder":
         return RemindedVLM(vlm, settings["before"], settings["after"], name=name)
-    path = cfg.defense.get("prefix_path")
-    if path is None:
-        raise ValueError(f"defense.prefix_path: task=evaluate defense={cfg.defense.name} applies a tuned prefix; give "
-                         f"defense.prefix_path=RUN/prefix.json (task=train defense={cfg.defense.name} writes it)")
+    check_prompt_defense(cfg)
+    path = cfg.defense.prefix_path
     tokenizer = getattr(getattr(vlm, "processor", None), "tokenizer", None)
     return PrefixedVLM(vlm, load_prefix(path, tokenizer)["ids"], name=name)
 
@@ -97,7 +112,7 @@ def describe_defense(vlm) -> str | None:
 
     if isinstance(vlm, PrefixedVLM):
         text = vlm.vlm.processor.tokenizer.decode(vlm.prefix_ids)
-        return (f"## Defense: PAT++ prefix\n\nBefore every question, {len(vlm.prefix_ids)} tokens: `{text}`\n\n"
+        return (f"## Defense: PAT++ prefix\n\nBefore every question, {len(vlm.prefix_ids)} tokens: `` {text} ``\n\n"
                 f"Token ids: {vlm.prefix_ids}\n")
     if isinstance(vlm, RemindedVLM):
         return (f"## Defense: Self-Reminder\n\nEvery question between\n\n> {vlm.before}\n\nand\n\n"
@@ -137,14 +152,16 @@ def tune_prompt_defense(cfg: DictConfig) -> float | None:
     out = output_dir(cfg)
     train_set = build_split(cfg, "train")
     vlm = build_vlm(cfg)
+    vlm.model.requires_grad_(False)  # frozen: only the prefix's one-hot matrix takes gradients
     judge = build_judge(cfg, out) if settings["hardness"] == "judge" else None
-    chosen = choose_examples(vlm, train_set, settings, judge, out / EXAMPLES_FILE, cfg.seed, cfg.progress)
+    choosing = {"model": vlm.identity(), "seed": int(cfg.seed),
+                **{key: settings[key] for key in ("hardness", "hard_target", "examples", "pool_clips")}}
+    chosen = choose_examples(vlm, train_set, settings, judge, out / EXAMPLES_FILE, choosing, cfg.progress)
     benign, hard = (examples_of(train_set, [e for e in chosen if e["hard"] == kind]) for kind in (False, True))
     objective = PrefixObjective(vlm, benign, hard, alpha=settings["alpha"], chunk=settings["chunk"])
     gcg = GCGSettings(steps=settings["steps"], prefix_length=settings["prefix_length"], top_k=settings["top_k"],
                       num_candidates=settings["num_candidates"], seed=int(cfg.seed))
-    facts = {"model": vlm.identity(), "hardness": settings["hardness"], "hard_target": settings["hard_target"],
-             "examples": [[e["index"], e["qa_id"], e["hard"]] for e in chosen]}
+    facts = {**choosing, "examples": [[e["index"], e["qa_id"], e["hard"], e["target"]] for e in chosen]}
     record = tune_prefix(objective, gcg, out, progress=cfg.progress, facts=facts)
     print(f"defense prefix: {record['text']!r} (loss {record['history'][0]:.4f} -> {record['loss']:.4f}); "
           f"{out / 'prefix.json'} (evaluate with defense={cfg.defense.name} "
@@ -163,9 +180,11 @@ def _test(cfg: DictConfig, defended, out: Path) -> float:
     return score
 
 
-def choose_examples(vlm, train_set, settings: dict, judge, path: Path, seed: int, progress: str) -> list[dict]:
-    """Benign and hard examples of the train split (read from `path` when an earlier run wrote it): the answers
-    to the pool's questions scored, those below the mean hard; `examples` of each drawn at random."""
+def choose_examples(vlm, train_set, settings: dict, judge, path: Path, choosing: dict, progress: str) -> list[dict]:
+    """Benign and hard examples of the train split: the answers to the pool's questions scored, those below the
+    mean hard; `examples` of each drawn at random (choosing["seed"]). Kept in `path` with `choosing` (what they
+    were chosen by), and read back from it when a rerun chooses by the same; a rerun that would choose otherwise
+    is refused."""
     import numpy as np
 
     from lanevil_train.progress import progress_counter
@@ -173,7 +192,14 @@ def choose_examples(vlm, train_set, settings: dict, judge, path: Path, seed: int
     from lanevil_train.vlm.qa_records import answer_is_correct, prompt_text
 
     if path.is_file():
-        return json.loads(path.read_text())["examples"]
+        stored = json.loads(path.read_text())
+        now = json.loads(json.dumps(choosing))
+        for key, value in now.items():
+            if stored.get("choosing", {}).get(key) != value:
+                raise ValueError(f"{path}: examples chosen with {key}={stored.get('choosing', {}).get(key)!r}, this "
+                                 f"run has {key}={value!r}; resume with the same settings or write to another "
+                                 f"directory")
+        return stored["examples"]
     closed = settings["hardness"] == "accuracy"
     indices = list(range(len(train_set)))[::max(1, len(train_set) // settings["pool_clips"])][:settings["pool_clips"]]
     pool, answers = [], []
@@ -193,13 +219,18 @@ def choose_examples(vlm, train_set, settings: dict, judge, path: Path, seed: int
     if closed:
         scores = [float(bool(answer_is_correct(qa, text))) for (_, qa), text in zip(pool, answers)]
     else:
-        scores = [float(s) for s in judge.score([qa["question"] for _, qa in pool], [qa["answer"] for _, qa in pool],
-                                                answers)]
+        judged = judge.score([qa["question"] for _, qa in pool], [qa["answer"] for _, qa in pool], answers)
+        kept = [i for i, s in enumerate(judged) if s is not None]
+        if len(kept) < len(pool):
+            print(f"PAT++: the judge left {len(pool) - len(kept)} of {len(pool)} answers unscored; they are left out")
+        if not kept:
+            raise ValueError("defense.hardness=judge: the judge scored none of the pool's answers")
+        pool, answers, scores = [pool[i] for i in kept], [answers[i] for i in kept], [float(judged[i]) for i in kept]
     hard = hard_mask(scores)
     if not any(hard):
         print(f"PAT++: all {len(scores)} answers of the pool score {scores[0]:g} by {settings['hardness']}: no hard "
               f"examples, so the prefix is tuned on benign ones only")
-    rng = np.random.default_rng(seed)
+    rng = np.random.default_rng(choosing["seed"])
     chosen = []
     for kind in (False, True):
         members = [i for i, h in enumerate(hard) if h == kind]
@@ -207,7 +238,7 @@ def choose_examples(vlm, train_set, settings: dict, judge, path: Path, seed: int
             index, qa = pool[i]
             chosen.append({"index": index, "qa_id": qa["qa_id"], "hard": kind, "score": scores[i],
                            "answer": answers[i], "target": _target(qa, kind, settings["hard_target"])})
-    atomic_write_text(path, json.dumps({"mean_score": float(np.mean(scores)), "pool": len(pool),
+    atomic_write_text(path, json.dumps({"choosing": choosing, "mean_score": float(np.mean(scores)), "pool": len(pool),
                                         "examples": chosen}, indent=1))
     return chosen
 

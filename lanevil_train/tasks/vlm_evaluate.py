@@ -19,7 +19,8 @@ from lanevil_train.errors import prefixed
 from lanevil_train.tasks.builders import build_logger, build_split, instantiate_at, output_dir
 from lanevil_train.tasks.results import log_results, write_results
 from lanevil_train.tasks.streaming import claim_results
-from lanevil_train.tasks.vlm_defense import add_defense_to_report, is_prompt_defense, with_prompt_defense
+from lanevil_train.tasks.vlm_defense import (add_defense_to_report, check_prompt_defense, is_prompt_defense,
+                                            with_prompt_defense)
 from lanevil_train.vlm.base import VLM, BlindVLM
 from lanevil_train.vlm.evaluation import ANSWERS, PER_ANSWER, evaluate_clips
 
@@ -100,6 +101,8 @@ def evaluate_vlm(cfg: DictConfig) -> float:
     """Evaluate the VLM; returns its headline score (the judge's, else Language) over the perturbed answers."""
     dataset, dataset_name = clip_suite(cfg)  # read and checked before the model is loaded
     out = Path(cfg.task.out_dir) if cfg.task.out_dir else output_dir(cfg)
+    if is_prompt_defense(cfg):
+        check_prompt_defense(cfg)
     vlm = build_vlm(cfg)
     if is_prompt_defense(cfg):  # defense=pat++ defense.prefix_path=...: the tuned prefix before every question
         vlm = with_prompt_defense(cfg, vlm)

@@ -254,27 +254,29 @@ class PrefixObjective:
         import torch
 
         examples = len(getattr(self, part))
-        per_pass = max(1, int(self.chunk) // examples)
+        per_pass = min(max(1, int(self.chunk) // examples), len(candidates))
         rows = []
         for first in range(0, len(candidates), per_pass):
             group = [list(c) for c in candidates[first:first + per_pass]]
-            batch = self._batch(part, len(group))
+            used = len(group)
+            group += [group[-1]] * (per_pass - used)  # a short last group padded: one batch size, one encoding
             prefixes = torch.tensor(group).repeat_interleave(examples, dim=0)
-            spliced, _ = splice_prefix(batch, prefixes)
+            spliced, _ = splice_prefix(self._batch(part, per_pass), prefixes)
             nll = self.vlm.loss_from_embeds(spliced, self.vlm.embed(spliced))
-            rows.append(nll.view(len(group), examples))
+            rows.append(nll.view(per_pass, examples)[:used])
         return torch.cat(rows)
 
     def gradient(self, prefix_ids: Sequence[int]):
         """The loss of `prefix_ids` and its gradient [n, V] w.r.t. the one-hot matrix of the prefix's tokens."""
         import torch
 
-        weights_matrix = self.vlm.model.get_input_embeddings().weight
+        embedding = self.vlm.model.get_input_embeddings()
+        weights_matrix = embedding.weight
         one_hot = torch.zeros(len(prefix_ids), weights_matrix.shape[0], dtype=weights_matrix.dtype,
                               device=weights_matrix.device)
         one_hot[torch.arange(len(prefix_ids)), torch.as_tensor(list(prefix_ids))] = 1.0
         one_hot.requires_grad_(True)
-        prefix_embeds = one_hot @ weights_matrix
+        prefix_embeds = one_hot @ weights_matrix * getattr(embedding, "embed_scale", 1.0)  # scaled tables (Gemma3)
         total = 0.0
         for part, weight in self.weights().items():
             spliced, starts = splice_prefix(self._batch(part, 1), list(prefix_ids))
@@ -327,7 +329,8 @@ def gcg_step(objective: PrefixObjective, prefix: Sequence[int], allowed, tokeniz
     import torch
 
     generator = generator if generator is not None else torch.Generator().manual_seed(0)
-    loss, gradient = objective.gradient(prefix)
+    _, gradient = objective.gradient(prefix)
+    loss = float(objective.losses([list(prefix)])[0])  # scored as the candidates are, so they compare exactly
     candidates = [c for c in sample_candidates(prefix, gradient, allowed, top_k, num_candidates, generator)
                   if retokenises(tokenizer, c)]
     if not candidates:
@@ -419,6 +422,9 @@ def tune_prefix(objective: PrefixObjective, settings: GCGSettings, out_dir: str 
             if key != "steps" and stored.get(key) != value:
                 raise ValueError(f"{path}: tuned with {key}={stored.get(key)!r}, this run has {key}={value!r}; "
                                  f"resume with the same settings or write to another directory")
+        if not isinstance(record.get("step"), int) or not isinstance(record.get("history"), list):
+            raise ValueError(f"{path}: no 'step' and 'history'; expected a prefix.json written by tune_prefix (use "
+                             f"another output directory)")
         prefix, step, history = list(record["ids"]), int(record["step"]), list(record["history"])
     else:
         prefix, step = initial_prefix(tokenizer, settings.prefix_length, allowed), 0

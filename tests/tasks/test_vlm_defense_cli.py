@@ -40,7 +40,7 @@ def test_pat_plus_plus_tunes_a_prefix_tests_it_resumes_and_evaluates_with_it(tin
     assert len(tested) == ANSWERS and {r["model"] for r in tested} == {"tiny-qwen2-vl+pat++"}
     report = (run / "test" / "report.md").read_text()
     assert report.startswith("# Robustness report\n\n## Defense: PAT++ prefix")
-    assert f"3 tokens: `{record['text']}`" in report and str(record["ids"]) in report
+    assert f"3 tokens: `` {record['text']} ``" in report and str(record["ids"]) in report
 
     # more steps resume from the prefix reached, reusing the examples chosen
     run_cli(["task=train", *common, *TINY_PAT, "defense.hardness=judge", "defense.steps=3",
@@ -48,6 +48,10 @@ def test_pat_plus_plus_tunes_a_prefix_tests_it_resumes_and_evaluates_with_it(tin
     resumed = json.loads((run / "prefix.json").read_text())
     assert resumed["step"] == 3 and resumed["history"][:3] == pytest.approx(record["history"])
     assert json.loads((run / "examples.json").read_text())["examples"] == examples
+    with pytest.raises(AssertionError, match="examples chosen with hard_target='goal', this run has "
+                                             "hard_target='goal_then_answer'"):
+        run_cli(["task=train", *common, *TINY_PAT, "defense.hardness=judge", "defense.hard_target=goal_then_answer"],
+                run)
 
     # task=evaluate with the prefix answers as the tuning run's test did (with its 2-step prefix)
     out = tmp_path / "eval"

@@ -111,10 +111,11 @@ def test_the_loss_is_alpha_times_benign_plus_one_minus_alpha_times_hard_by_hand(
     assert objective.loss(prefix) == pytest.approx(0.3 * l_bgn + 0.7 * l_hard, rel=1e-4)
     other = prefix[:-1] + [prefix[0] + 1]
     assert objective.loss(other) != pytest.approx(objective.loss(prefix), rel=1e-6)  # the prefix matters
-    # several candidates scored in small chunks give each one's own loss
-    chunked = PrefixObjective(vlm, benign, hard, alpha=0.3, chunk=3)
-    assert chunked.losses([prefix, other]).tolist() == pytest.approx([objective.loss(prefix),
-                                                                      objective.loss(other)], rel=1e-4)
+    # candidates scored two to a pass (the last pass padded) each get their own loss
+    third = [prefix[1]] + prefix[1:]
+    chunked = PrefixObjective(vlm, benign, hard, alpha=0.3, chunk=4)
+    assert chunked.losses([prefix, other, third]).tolist() == pytest.approx(
+        [objective.loss(prefix), objective.loss(other), objective.loss(third)], rel=1e-4)
     only_benign = PrefixObjective(vlm, benign, Examples([], [], []), alpha=0.3)
     assert only_benign.loss(prefix) == pytest.approx(l_bgn, rel=1e-4)
 
