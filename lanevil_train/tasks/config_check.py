@@ -29,6 +29,8 @@ from lanevil_train.illusions import ILLUSIONS, SEVERITIES
 from lanevil_train.models.backbones import STAGE_STRIDES
 from lanevil_train.models.detector import SCHEDULERS
 from lanevil_train.progress import MODES
+from lanevil_train.tasks.vlm_defense import HARDNESS, PROMPT_DEFENSES
+from lanevil_train.vlm.pat import HARD_TARGETS
 
 # Keys of a `_target_` node that Hydra reads itself (not passed to the target).
 HYDRA_KEYS = {"_target_", "_recursive_", "_convert_", "_partial_", "_args_"}
@@ -396,12 +398,12 @@ RULES: dict[str, Rule] = {
     "defense.transforms": null_or(target_list()),
     "defense.mixer": null_or(target_node()),
     "defense.callback": null_or(target_node()),
-    "defense.prompt": one_of("pat++", "self_reminder"),
+    "defense.prompt": one_of(*PROMPT_DEFENSES),
     "defense.before": text(),
     "defense.after": text(),
     "defense.alpha": number(0, 1),
-    "defense.hard_target": one_of("goal", "goal_then_answer"),
-    "defense.hardness": one_of("accuracy", "judge"),
+    "defense.hard_target": one_of(*HARD_TARGETS),
+    "defense.hardness": one_of(*HARDNESS),
     **{f"defense.{key}": integer(1) for key in ("pool_clips", "examples", "steps", "prefix_length", "top_k",
                                                 "num_candidates", "chunk")},
     "defense.prefix_path": null_or(existing_file("prefix.json file")),
@@ -467,6 +469,14 @@ def _get(cfg: DictConfig, key: str) -> Any:
 
 def _problem(key: str, expected: str, value: Any, why: str = "") -> str:
     return f"{key}: expected {expected}, got {_show(value)}" + (f" ({why})" if why else "")
+
+
+def value_problem(key: str, value: Any) -> str | None:
+    """The problem RULES[key] finds with `value` (a plain value, absent counts as None), else None: for code that
+    checks a node of settings by the same rules outside a composed config."""
+    rule = RULES[key]
+    why = rule.test(value)
+    return None if why is None else _problem(key, rule.expected, value, why)
 
 
 def _apply(cfg: DictConfig, key: str, rule: Rule) -> str | None:

@@ -28,7 +28,7 @@ from omegaconf import DictConfig, OmegaConf
 from lanevil_train.data.formats.atomic import atomic_write_text
 
 PROMPT_DEFENSES = ("pat++", "self_reminder")
-HARDNESS = ("accuracy", "judge")
+HARDNESS = ("accuracy", "judge")  # how PAT++ finds hard examples (choose_examples)
 EXAMPLES_FILE = "examples.json"
 
 
@@ -38,31 +38,19 @@ def is_prompt_defense(cfg: DictConfig) -> bool:
 
 
 def prompt_settings(defense: DictConfig) -> dict:
-    """defense.* of a prompt defense as plain values, checked; a ValueError names the first bad key."""
-    from lanevil_train.vlm.pat import HARD_TARGETS
+    """defense.* of a prompt defense as plain values, each present and good by config_check's rules; a ValueError
+    names the first bad key."""
+    from lanevil_train.tasks.config_check import value_problem
 
     settings = OmegaConf.to_container(defense, resolve=True)
-    if settings.get("prompt") not in PROMPT_DEFENSES:
-        raise ValueError(f"defense.prompt: expected one of {', '.join(PROMPT_DEFENSES)}, got "
-                         f"{settings.get('prompt')!r}")
-    if settings["prompt"] == "self_reminder":
-        for key in ("before", "after"):
-            if not isinstance(settings.get(key), str) or not settings[key].strip():
-                raise ValueError(f"defense.{key}: expected the reminder sentence, a non-empty string, got "
-                                 f"{settings.get(key)!r}")
-        return settings
-    alpha = settings.get("alpha")
-    if isinstance(alpha, bool) or not isinstance(alpha, (int, float)) or not 0 <= alpha <= 1:
-        raise ValueError(f"defense.alpha: expected a weight in [0, 1], got {alpha!r}")
-    if settings.get("hard_target") not in HARD_TARGETS:
-        raise ValueError(f"defense.hard_target: expected one of {', '.join(HARD_TARGETS)}, got "
-                         f"{settings.get('hard_target')!r}")
-    if settings.get("hardness") not in HARDNESS:
-        raise ValueError(f"defense.hardness: expected one of {', '.join(HARDNESS)}, got {settings.get('hardness')!r}")
-    for key in ("steps", "prefix_length", "top_k", "num_candidates", "chunk", "examples", "pool_clips"):
-        value = settings.get(key)
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            raise ValueError(f"defense.{key}: expected a positive integer, got {value!r}")
+    method = settings.get("prompt")
+    keys = ("prompt",) + (("before", "after") if method == "self_reminder" else
+                          ("alpha", "hard_target", "hardness", "steps", "prefix_length", "top_k", "num_candidates",
+                           "chunk", "examples", "pool_clips") if method == "pat++" else ())
+    for key in keys:
+        problem = value_problem(f"defense.{key}", settings.get(key))
+        if problem is not None:
+            raise ValueError(problem)
     return settings
 
 

@@ -102,10 +102,9 @@ def scene_batches(suite, bases: list[str], batch: int, seed: int, progress: str 
 
 def train_vlm(cfg: DictConfig) -> float | None:
     """Fine-tune the VLM; returns its headline score on the perturbed test clips when the test runs, else None."""
+    from lanevil_train.tasks.vlm_defense import is_prompt_defense, tune_prompt_defense
     from lanevil_train.vlm.qa_data import ClipQADataset, collate_clip_qa
     from lanevil_train.vlm.training import SkipTrainedBatches, VLMFineTuner
-
-    from lanevil_train.tasks.vlm_defense import is_prompt_defense, tune_prompt_defense
 
     pl.seed_everything(cfg.seed, workers=True)
     if is_prompt_defense(cfg):  # defense=pat++: a prefix for the frozen model, no weight changes

@@ -107,6 +107,11 @@ class HFVLM(VLM):
 
     def answer(self, clips: Sequence[Frames], questions: Sequence[str]) -> list[str]:
         """Greedy (or sampled) answers, batch_size pairs at a time, only the new tokens decoded and stripped."""
+        return self.answer_encoded(clips, questions, self.encode)
+
+    def answer_encoded(self, clips: Sequence[Frames], questions: Sequence[str], encode) -> list[str]:
+        """`answer`, each batch_size pairs encoded by `encode(clips, questions) -> EncodedBatch` (e.g. `encode`
+        with a defense prefix spliced in)."""
         import torch
 
         check_batch(clips, questions)
@@ -114,7 +119,7 @@ class HFVLM(VLM):
         with torch.inference_mode():
             for start in range(0, len(questions), self.batch_size):
                 stop = start + self.batch_size
-                answers.extend(self._generate(clips[start:stop], questions[start:stop]))
+                answers.extend(self.generate_encoded(encode(clips[start:stop], questions[start:stop])))
         return answers
 
     def answer_loss(self, clips: Sequence[Frames], questions: Sequence[str], answers: Sequence[str]):
@@ -291,10 +296,6 @@ class HFVLM(VLM):
                                        f"own tokenisation in {self.path}; cannot place the question and answer tokens")
                 found.append((first + shift, last + 1 + shift))
         return questions, answers
-
-    def _generate(self, clips: Sequence[Frames], questions: Sequence[str]) -> list[str]:
-        """Answers for one batch: generate after the prompt, decode only the new tokens."""
-        return self.generate_encoded(self.encode(clips, questions))
 
     def generate_encoded(self, batch: EncodedBatch) -> list[str]:
         """Answers to an encoded batch (a prompt without answers, possibly with a defense prefix spliced in)."""

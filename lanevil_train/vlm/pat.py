@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
 
-from lanevil_train.vlm.base import VLM, Frames, check_batch
+from lanevil_train.vlm.base import VLM, Frames
 from lanevil_train.vlm.hf import IGNORE_INDEX, EncodedBatch, HFVLM
 
 RES_GOAL = "I will focus on the factors affecting the road"
@@ -152,19 +152,15 @@ class PrefixedVLM(VLM):
         self.name, self.batch_size = name or vlm.name, vlm.batch_size
 
     def answer(self, clips: Sequence[Frames], questions: Sequence[str]) -> list[str]:
-        import torch
-
-        check_batch(clips, questions)
-        answers: list[str] = []
-        with torch.inference_mode():
-            for start in range(0, len(questions), self.batch_size):
-                batch = self.vlm.encode(clips[start:start + self.batch_size], questions[start:start + self.batch_size])
-                answers.extend(self.vlm.generate_encoded(splice_prefix(batch, self.prefix_ids)[0]))
-        return answers
+        return self.vlm.answer_encoded(clips, questions, self._encode)
 
     def answer_loss(self, clips: Sequence[Frames], questions: Sequence[str], answers: Sequence[str]):
-        batch = splice_prefix(self.vlm.encode(clips, questions, answers), self.prefix_ids)[0]
+        batch = self._encode(clips, questions, answers)
         return self.vlm.loss_from_embeds(batch, self.vlm.embed(batch))
+
+    def _encode(self, clips, questions, answers=None) -> EncodedBatch:
+        """The wrapped model's encoding with the prefix spliced in before each question."""
+        return splice_prefix(self.vlm.encode(clips, questions, answers), self.prefix_ids)[0]
 
     def identity(self) -> dict:
         return {**self.vlm.identity(), "defense_prefix_ids": self.prefix_ids}
@@ -324,13 +320,15 @@ def sample_candidates(prefix: Sequence[int], gradient, allowed, top_k: int, coun
 
 
 def gcg_step(objective: PrefixObjective, prefix: Sequence[int], allowed, tokenizer, top_k: int = 256,
-             num_candidates: int = 128, generator=None) -> StepResult:
-    """One greedy coordinate gradient step from `prefix`; the kept prefix's loss never rises."""
+             num_candidates: int = 128, generator=None, loss: float | None = None) -> StepResult:
+    """One greedy coordinate gradient step from `prefix`; the kept prefix's loss never rises. `loss`: the prefix's
+    `objective.losses` value when already known (scored as the candidates are, so they compare exactly)."""
     import torch
 
     generator = generator if generator is not None else torch.Generator().manual_seed(0)
     _, gradient = objective.gradient(prefix)
-    loss = float(objective.losses([list(prefix)])[0])  # scored as the candidates are, so they compare exactly
+    if loss is None:
+        loss = float(objective.losses([list(prefix)])[0])
     candidates = [c for c in sample_candidates(prefix, gradient, allowed, top_k, num_candidates, generator)
                   if retokenises(tokenizer, c)]
     if not candidates:
@@ -422,22 +420,27 @@ def tune_prefix(objective: PrefixObjective, settings: GCGSettings, out_dir: str 
             if key != "steps" and stored.get(key) != value:
                 raise ValueError(f"{path}: tuned with {key}={stored.get(key)!r}, this run has {key}={value!r}; "
                                  f"resume with the same settings or write to another directory")
-        if not isinstance(record.get("step"), int) or not isinstance(record.get("history"), list):
-            raise ValueError(f"{path}: no 'step' and 'history'; expected a prefix.json written by tune_prefix (use "
-                             f"another output directory)")
+        if not (isinstance(record.get("step"), int) and isinstance(record.get("history"), list)
+                and isinstance(record.get("terms"), dict)):
+            raise ValueError(f"{path}: no 'step', 'history' and 'terms'; expected a prefix.json written by "
+                             f"tune_prefix (use another output directory)")
         prefix, step, history = list(record["ids"]), int(record["step"]), list(record["history"])
+        terms = record["terms"]
     else:
         prefix, step = initial_prefix(tokenizer, settings.prefix_length, allowed), 0
-        history = [objective.loss(prefix)]
-        _save_state(path, prefix, tokenizer, objective, step, history, settings_record, facts)
+        history, terms = [objective.loss(prefix)], objective.terms(prefix)
+        _save_state(path, prefix, tokenizer, step, history, terms, settings_record, facts)
     bar = progress_counter(settings.steps, initial=min(step, settings.steps), desc="PAT++ prefix", unit="step",
                            mode=progress)
     while step < settings.steps:
         generator = torch.Generator().manual_seed(settings.seed * 1_000_003 + step)
-        result = gcg_step(objective, prefix, allowed, tokenizer, settings.top_k, settings.num_candidates, generator)
+        result = gcg_step(objective, prefix, allowed, tokenizer, settings.top_k, settings.num_candidates, generator,
+                          loss=history[-1])
         prefix, step = result.prefix, step + 1
         history.append(result.loss)
-        _save_state(path, prefix, tokenizer, objective, step, history, settings_record, facts)
+        if result.improved:  # a kept prefix keeps its terms
+            terms = objective.terms(prefix)
+        _save_state(path, prefix, tokenizer, step, history, terms, settings_record, facts)
         note = f"loss {result.loss:.4f} | prefix {tokenizer.decode(prefix)!r}"
         if hasattr(bar, "set_postfix_str"):
             bar.set_postfix_str(note)
@@ -448,8 +451,7 @@ def tune_prefix(objective: PrefixObjective, settings: GCGSettings, out_dir: str 
     return load_prefix(path, tokenizer)
 
 
-def _save_state(path: Path, prefix, tokenizer, objective: PrefixObjective, step: int, history: list[float],
-                settings: dict, facts: dict) -> None:
-    terms = objective.terms(prefix)
+def _save_state(path: Path, prefix, tokenizer, step: int, history: list[float], terms: dict, settings: dict,
+                facts: dict) -> None:
     save_prefix(path, prefix, tokenizer, loss=history[-1], terms=terms, step=step, history=history,
                 settings=settings, facts=facts)
