@@ -13,13 +13,20 @@ Each training step, with no extra forward pass:
 
 The module only has to return per-sample scores from training_step: a dict with "loss" and
 "per_sample_accuracy" or "per_sample_loss" (B,). A module with a boolean `score_train_batches`
-attribute has it switched on, so it can add per-image accuracy when it is able to.
+attribute has it switched on, so it can add per-image accuracy when it is able to; one with a boolean
+`attention_gradients` attribute has it switched on too, so it lets its input images take gradients and a layer
+behind frozen weights (a VLM's frozen vision tower) still receives them.
+
+A layer whose output is not a (B, C, H, W) map of the batch images (a vision transformer's tokens) takes a
+`feature_map` callable that lays its output out as one: a VLM's tokens on its frames (vlm/vision_maps.py).
 """
 
 from __future__ import annotations
 
 import numbers
 from collections import deque
+from collections.abc import Mapping
+from typing import Callable
 
 import numpy as np
 import pytorch_lightning as pl
@@ -71,7 +78,10 @@ class AttentionAreaMixing(pl.Callback):
             4-D (B, C, H, W) feature map with H, W > 1 that receives gradients. Anything else (a 2-D fc output,
             a 1x1 globally pooled map, a frozen layer, a layer the training step does not run) is a ValueError
             at the first training step, since it would bank no region.
-        output_index: which tensor, if that module returns a list or tuple.
+        output_index: which tensor, if that module returns a list or tuple (a position), or a mapping such as a
+            Hugging Face model output (a position among its values, or a key).
+        feature_map: a callable laying the layer's output tensor out as a (B, C, h, w) map aligned with the batch
+            images (B of them), for a layer that gives no such map itself (default: the output as it is).
         sigma: std of the Gaussian blur of M, in input pixels.
         t_haa, t_laa: thresholds on the [0, 1]-normalised blurred map (0.6, 0.4).
         min_area: S, as a fraction of the image area.
@@ -91,11 +101,12 @@ class AttentionAreaMixing(pl.Callback):
 
     MODEL_ARGUMENTS = ("layer",)  # the arguments check_model checks against the model (task=compare names them)
 
-    def __init__(self, layer: str, mode: str = "aam++", output_index: int = -1, sigma: float = 3.0,
+    def __init__(self, layer: str, mode: str = "aam++", output_index: int | str = -1, sigma: float = 3.0,
                  t_haa: float = 0.6, t_laa: float = 0.4, min_area: float = 0.002, overlap_threshold: float = 0.2,
                  lane_width: float = 0.02, beta: float = 0.5, mix_prob: float = 0.5, bank_size: int = 256,
                  max_region_fraction: float = 0.25, hardness: str = "auto",
-                 start_step: int = 0, adapter: BatchAdapter | None = None, seed: int = 0):
+                 start_step: int = 0, adapter: BatchAdapter | None = None, seed: int = 0,
+                 feature_map: Callable[[torch.Tensor], torch.Tensor] | None = None):
         if mode not in MODES:
             raise ValueError(f"AttentionAreaMixing: mode={mode!r}, expected one of {sorted(MODES)}")
         if hardness not in HARDNESS:
@@ -103,9 +114,12 @@ class AttentionAreaMixing(pl.Callback):
         if not isinstance(layer, str) or not layer:
             raise ValueError(f"AttentionAreaMixing: layer must be the dotted name of a module of the model "
                              f"(e.g. 'backbone.layer4'), got {layer!r}")
-        if not _is_int(output_index):
+        if not (_is_int(output_index) or isinstance(output_index, str)):
             raise ValueError(f"AttentionAreaMixing: output_index must be an integer (which of the layer's outputs, "
-                             f"when it returns a list), got {output_index!r}")
+                             f"when it returns a list) or a key (of a mapping output), got {output_index!r}")
+        if feature_map is not None and not callable(feature_map):
+            raise ValueError(f"AttentionAreaMixing: feature_map must be a callable (layer output -> (B, C, h, w) "
+                             f"map), got {type(feature_map).__name__}")
         # t_haa < t_laa is allowed (the paper's sensitivity grid has T_HAA 0.2 with T_LAA 0.4): the masks overlap
         for name, value in (("t_haa", t_haa), ("t_laa", t_laa), ("beta", beta), ("mix_prob", mix_prob), ("overlap_threshold", overlap_threshold),
                             ("min_area", min_area), ("max_region_fraction", max_region_fraction)):
@@ -136,6 +150,7 @@ class AttentionAreaMixing(pl.Callback):
         self.start_step = start_step
         self.adapter = adapter or BatchAdapter()
         self.seed = seed
+        self.feature_map = feature_map
         self.bank = RegionBank(self.kinds, bank_size)
         self.stats = {"hard": 0, "banked": 0, "mixed": 0}
         self._rng = np.random.default_rng(seed)
@@ -169,6 +184,8 @@ class AttentionAreaMixing(pl.Callback):
         self._handle = module.register_forward_hook(self._keep_activation)
         if self.hardness != "loss" and isinstance(getattr(pl_module, "score_train_batches", None), bool):
             pl_module.score_train_batches = True
+        if isinstance(getattr(pl_module, "attention_gradients", None), bool):
+            pl_module.attention_gradients = True
 
     def on_fit_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         if self._handle is not None:
@@ -181,27 +198,38 @@ class AttentionAreaMixing(pl.Callback):
     def _keep_activation(self, module, inputs, output) -> None:
         if not (self._capture and module.training and torch.is_grad_enabled()):
             return
-        self._indexed = isinstance(output, (list, tuple))
-        if self._indexed:
+        self._indexed = isinstance(output, (list, tuple, Mapping))
+        if isinstance(output, Mapping):
+            output = output[self.output_index] if isinstance(self.output_index, str) else \
+                list(output.values())[self.output_index]
+        elif self._indexed:
             output = output[self.output_index]
-        self._check_output(output)
-        self._activation = output.detach()
+        activation = self._as_map(output.detach()) if isinstance(output, torch.Tensor) else output
+        self._check_output(output, activation)
+        self._activation = activation
         output.register_hook(self._keep_gradient)
 
-    def _check_output(self, output) -> None:
+    def _as_map(self, tensor: torch.Tensor) -> torch.Tensor:
+        """The layer's output (or its gradient) as a (B, C, h, w) map of the batch images (feature_map's)."""
+        return tensor if self.feature_map is None else self.feature_map(tensor)
+
+    def _check_output(self, output, activation) -> None:
         """Refuse, at the first training step, a layer output AAM cannot use (it would bank nothing, silently).
 
         AAM needs a 4-D (B, C, H, W) feature map with H, W > 1 (a map of 1x1, e.g. after global pooling, has
-        no area to cut out) that receives gradients (Grad-CAM needs them: a frozen layer gets none).
+        no area to cut out; with a feature_map, the map it makes) that receives gradients (Grad-CAM needs them:
+        a frozen layer gets none).
         """
         if isinstance(output, torch.Tensor):
             gave = f"a {tuple(output.shape)} tensor (requires_grad={output.requires_grad})"
+            if self.feature_map is not None:
+                gave += f", mapped to {tuple(activation.shape)} by feature_map"
         else:
             gave = f"a {type(output).__name__}"
         problem = None
-        if not isinstance(output, torch.Tensor) or output.ndim != 4:
+        if not isinstance(activation, torch.Tensor) or activation.ndim != 4:
             problem = "not a 4-D feature map"
-        elif output.shape[-2] < 2 or output.shape[-1] < 2:
+        elif activation.shape[-2] < 2 or activation.shape[-1] < 2:
             problem = "no spatial extent to cut regions from (H, W must both be > 1)"
         elif not output.requires_grad:
             problem = "no gradient reaches it (is the layer frozen, or run under torch.no_grad?)"
@@ -213,7 +241,7 @@ class AttentionAreaMixing(pl.Callback):
                              f"'backbone.layer4', not a pooled or fully connected layer)")
 
     def _keep_gradient(self, grad: torch.Tensor) -> None:
-        self._gradient = grad.detach()
+        self._gradient = self._as_map(grad.detach())
 
     # ------------------------------------------------------------------ the training step
     def on_train_batch_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule, batch, batch_idx: int) -> None:

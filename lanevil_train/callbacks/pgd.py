@@ -31,15 +31,18 @@ def _is_number(value) -> bool:
 
 
 def default_loss(module: pl.LightningModule, batch: Any) -> torch.Tensor:
-    """The module's training loss on `batch`: `module.batch_loss(batch)` if it has one, else its training_step."""
+    """The module's training loss on `batch`: `module.batch_loss(batch)` if it has one, else its training_step; a
+    per-sample loss vector (a VLM's batch_loss) is averaged."""
     if hasattr(module, "batch_loss"):
         out = module.batch_loss(batch)
     else:
         out = module.training_step(batch, 0)
     loss = out["loss"] if isinstance(out, dict) else out
+    if isinstance(loss, torch.Tensor) and loss.ndim == 1:
+        loss = loss.mean()
     if not isinstance(loss, torch.Tensor) or loss.ndim != 0:
-        raise TypeError("PGDAdversarialTraining: the loss function must return a scalar tensor "
-                        "(or a dict with a scalar 'loss')")
+        raise TypeError("PGDAdversarialTraining: the loss function must return a scalar tensor, a per-sample loss "
+                        "vector (or a dict with either as 'loss')")
     return loss
 
 

@@ -1,5 +1,8 @@
-"""Textual defenses of a VLM: PAT++ (defense=pat++) tunes a defense prefix for a trained, frozen VLM; Self-Reminder
-(defense=self_reminder) wraps every question in two reminders and needs no training.
+"""Textual defenses of a VLM: PAT++ (defense=pat++) tunes a defense prefix for a trained, frozen VLM (discrete
+tokens, or with defense.soft continuous vectors); PAT (defense=pat, Mo et al. 2024) tunes one against an attack
+suffix tuned at the same time; Self-Reminder (defense=self_reminder) wraps every question in two reminders and needs
+no training. defense=mida fine-tunes with AAM++ on the frames first (tasks/vlm_train.py), then tunes PAT++ for the
+fine-tuned model.
 
     python -m lanevil_train task=train model=vlm/hf model.path=RUN/model data=clips data.size=[64,112] defense=pat++
     python -m lanevil_train task=evaluate model=vlm/hf model.path=RUN/model defense=pat++ \\
@@ -16,6 +19,8 @@ task=train with defense=self_reminder only tests the reminded model. task=train 
      of each are drawn and written to examples.json, and a resumed run reuses them;
   3. tunes the prefix (vlm/pat.py) into prefix.json, resuming from it;
   4. with task.test_after_fit, evaluates the model with the prefix on the test clips, as task=evaluate would.
+defense=pat draws its examples without asking the model (closed questions of perturbed clips to attack, questions
+of clean clips as benign ones) and tunes prefix and attack suffix in turn (vlm/pat_baseline.py).
 """
 
 from __future__ import annotations
@@ -27,14 +32,21 @@ from omegaconf import DictConfig, OmegaConf
 
 from lanevil_train.data.formats.atomic import atomic_write_text
 
-PROMPT_DEFENSES = ("pat++", "self_reminder")
+PROMPT_DEFENSES = ("pat++", "pat", "self_reminder")
 HARDNESS = ("accuracy", "judge")  # how PAT++ finds hard examples (choose_examples)
+TUNED = ("pat++", "pat")  # the prompt defenses whose prefix is tuned into prefix.json
 EXAMPLES_FILE = "examples.json"
 
 
 def is_prompt_defense(cfg: DictConfig) -> bool:
-    """Whether cfg.defense is a textual defense of VLMs (it names a `prompt` method)."""
+    """Whether cfg.defense is (or has) a textual defense of VLMs (it names a `prompt` method)."""
     return cfg.get("defense") is not None and cfg.defense.get("prompt") is not None
+
+
+def fine_tunes(defense: DictConfig) -> bool:
+    """Whether the defense changes the model's weights: a visual part (a callback or a mixer) that acts during
+    fine-tuning (defense=none, aam++, mida ...), not only a prompt for the model as it is (pat++, pat, ...)."""
+    return defense.get("prompt") is None or defense.get("callback") is not None or defense.get("mixer") is not None
 
 
 def prompt_settings(defense: DictConfig) -> dict:
@@ -44,9 +56,9 @@ def prompt_settings(defense: DictConfig) -> dict:
 
     settings = OmegaConf.to_container(defense, resolve=True)
     method = settings.get("prompt")
-    keys = ("prompt",) + (("before", "after") if method == "self_reminder" else
-                          ("alpha", "hard_target", "hardness", "steps", "prefix_length", "top_k", "num_candidates",
-                           "chunk", "examples", "pool_clips") if method == "pat++" else ())
+    gcg = ("alpha", "steps", "prefix_length", "top_k", "num_candidates", "chunk", "examples", "pool_clips")
+    keys = ("prompt",) + {"self_reminder": ("before", "after"), "pat": gcg + ("suffix_length",),
+                          "pat++": gcg + ("hard_target", "hardness", "soft", "soft_lr")}.get(method, ())
     for key in keys:
         problem = value_problem(f"defense.{key}", settings.get(key))
         if problem is not None:
@@ -69,7 +81,7 @@ def check_prompt_defense(cfg: DictConfig) -> None:
     """task=evaluate, before the model loads: the defense's settings, and for pat++ the prefix to apply and a backend
     it can be spliced into."""
     settings = prompt_settings(cfg.defense)
-    if settings["prompt"] == "pat++":
+    if settings["prompt"] in TUNED:
         if cfg.defense.get("prefix_path") is None:
             raise ValueError(f"defense.prefix_path: task=evaluate defense={cfg.defense.name} applies a tuned prefix; "
                              f"give defense.prefix_path=RUN/prefix.json (task=train defense={cfg.defense.name} writes "
@@ -80,7 +92,7 @@ def check_prompt_defense(cfg: DictConfig) -> None:
 def with_prompt_defense(cfg: DictConfig, vlm):
     """task=evaluate: the VLM with its questions wrapped in the reminders (self_reminder), or with the tuned prefix
     of defense.prefix_path before every question (pat++)."""
-    from lanevil_train.vlm.pat import PrefixedVLM, load_prefix
+    from lanevil_train.vlm.pat import load_prefix
     from lanevil_train.vlm.reminder import RemindedVLM
 
     settings = prompt_settings(cfg.defense)
@@ -88,9 +100,15 @@ def with_prompt_defense(cfg: DictConfig, vlm):
     if settings["prompt"] == "self_reminder":
         return RemindedVLM(vlm, settings["before"], settings["after"], name=name)
     check_prompt_defense(cfg)
-    path = cfg.defense.prefix_path
-    tokenizer = getattr(getattr(vlm, "processor", None), "tokenizer", None)
-    return PrefixedVLM(vlm, load_prefix(path, tokenizer)["ids"], name=name)
+    return prefixed(vlm, load_prefix(cfg.defense.prefix_path, getattr(getattr(vlm, "processor", None), "tokenizer",
+                                                                       None)), name)
+
+
+def prefixed(vlm, record: dict, name: str):
+    """The VLM with a tuned prefix.json `record` before every question (its token ids, or its soft vectors)."""
+    from lanevil_train.vlm.pat import PrefixedVLM
+
+    return PrefixedVLM(vlm, record["ids"], name=name, embeddings=record.get("embeddings"))
 
 
 def describe_defense(vlm) -> str | None:
@@ -98,10 +116,13 @@ def describe_defense(vlm) -> str | None:
     from lanevil_train.vlm.pat import PrefixedVLM
     from lanevil_train.vlm.reminder import RemindedVLM
 
+    if isinstance(vlm, PrefixedVLM) and vlm.embeddings is not None:
+        return (f"## Defense: PAT++ soft prefix\n\nBefore every question, {len(vlm.prefix_ids)} tuned vectors of width "
+                f"{vlm.embeddings.shape[1]} in place of the tokens {vlm.prefix_ids}\n")
     if isinstance(vlm, PrefixedVLM):
         text = vlm.vlm.processor.tokenizer.decode(vlm.prefix_ids)
-        return (f"## Defense: PAT++ prefix\n\nBefore every question, {len(vlm.prefix_ids)} tokens: `` {text} ``\n\n"
-                f"Token ids: {vlm.prefix_ids}\n")
+        return (f"## Defense: {'PAT' if vlm.name.endswith('+pat') else 'PAT++'} prefix\n\nBefore every question, "
+                f"{len(vlm.prefix_ids)} tokens: `` {text} ``\n\nToken ids: {vlm.prefix_ids}\n")
     if isinstance(vlm, RemindedVLM):
         return (f"## Defense: Self-Reminder\n\nEvery question between\n\n> {vlm.before}\n\nand\n\n"
                 f"> {vlm.after}\n")
@@ -118,11 +139,10 @@ def add_defense_to_report(out: Path, vlm) -> None:
 
 
 def tune_prompt_defense(cfg: DictConfig) -> float | None:
-    """task=train with a textual defense: for pat++ the prefix tuned into the run's prefix.json, for self_reminder
-    nothing; then the defended model tested. Returns the test score when tested."""
+    """task=train with a textual defense: for pat++ and pat the prefix tuned into the run's prefix.json, for
+    self_reminder nothing; then the defended model tested. Returns the test score when tested."""
     from lanevil_train.tasks.builders import build_split, output_dir
-    from lanevil_train.tasks.vlm_evaluate import build_judge, build_vlm
-    from lanevil_train.vlm.pat import GCGSettings, PrefixedVLM, PrefixObjective, tune_prefix
+    from lanevil_train.tasks.vlm_evaluate import build_vlm
 
     settings = prompt_settings(cfg.defense)
     if settings["prompt"] == "self_reminder":  # nothing to tune: the reminded model tested, as task=evaluate would
@@ -132,31 +152,113 @@ def tune_prompt_defense(cfg: DictConfig) -> float | None:
             return None
         return _test(cfg, defended, output_dir(cfg) / "test")
     if cfg.data.name != "clips":
-        raise ValueError(f"data: PAT++ tunes its prefix on the clip suite's train split: use data=clips "
-                         f"(got data={cfg.data.name})")
+        raise ValueError(f"data: {settings['prompt'].upper()} tunes its prefix on the clip suite's train split: use "
+                         f"data=clips (got data={cfg.data.name})")
     check_prompt_model(cfg)
-    if settings["hardness"] == "judge" and (cfg.get("judge") is None or cfg.judge.get("_target_") is None):
+    if settings.get("hardness") == "judge" and (cfg.get("judge") is None or cfg.judge.get("_target_") is None):
         raise ValueError("defense.hardness: judge needs a judge (judge=minilm or judge=openai); got judge=none")
     out = output_dir(cfg)
     train_set = build_split(cfg, "train")
     vlm = build_vlm(cfg)
-    vlm.model.requires_grad_(False)  # frozen: only the prefix's one-hot matrix takes gradients
+    vlm.model.requires_grad_(False)  # frozen: only the prefix (its one-hot matrix, or its vectors) takes gradients
+    tune = _tune_pat if settings["prompt"] == "pat" else _tune_pat_plus_plus
+    record = tune(cfg, settings, vlm, train_set, out)
+    shown = f"{len(record['ids'])} soft vectors" if record.get("soft") else repr(record["text"])
+    print(f"defense prefix: {shown} (loss {record['history'][0]:.4f} -> {record['history'][-1]:.4f}); "
+          f"{out / 'prefix.json'} (evaluate with defense={cfg.defense.name} "
+          f"defense.prefix_path={out / 'prefix.json'})")
+    if not cfg.task.get("test_after_fit"):
+        return None
+    return _test(cfg, prefixed(vlm, record, f"{vlm.name}+{cfg.defense.name}"), out / "test")
+
+
+def _tune_pat_plus_plus(cfg: DictConfig, settings: dict, vlm, train_set, out: Path) -> dict:
+    """PAT++: hard examples found by asking the model, then the prefix tuned by GCG (or, soft, by Adam)."""
+    from lanevil_train.tasks.vlm_evaluate import build_judge
+    from lanevil_train.vlm.pat import (GCGSettings, PrefixObjective, SoftSettings, tune_prefix,
+                                       tune_soft_prefix)
+
     judge = build_judge(cfg, out) if settings["hardness"] == "judge" else None
     choosing = {"model": vlm.identity(), "seed": int(cfg.seed),
                 **{key: settings[key] for key in ("hardness", "hard_target", "examples", "pool_clips")}}
     chosen = choose_examples(vlm, train_set, settings, judge, out / EXAMPLES_FILE, choosing, cfg.progress)
     benign, hard = (examples_of(train_set, [e for e in chosen if e["hard"] == kind]) for kind in (False, True))
     objective = PrefixObjective(vlm, benign, hard, alpha=settings["alpha"], chunk=settings["chunk"])
+    facts = {**choosing, "examples": [[e["index"], e["qa_id"], e["hard"], e["target"]] for e in chosen]}
+    if settings["soft"]:
+        soft = SoftSettings(steps=settings["steps"], prefix_length=settings["prefix_length"], lr=settings["soft_lr"],
+                            seed=int(cfg.seed))
+        return tune_soft_prefix(objective, soft, out, progress=cfg.progress, facts=facts)
     gcg = GCGSettings(steps=settings["steps"], prefix_length=settings["prefix_length"], top_k=settings["top_k"],
                       num_candidates=settings["num_candidates"], seed=int(cfg.seed))
-    facts = {**choosing, "examples": [[e["index"], e["qa_id"], e["hard"], e["target"]] for e in chosen]}
-    record = tune_prefix(objective, gcg, out, progress=cfg.progress, facts=facts)
-    print(f"defense prefix: {record['text']!r} (loss {record['history'][0]:.4f} -> {record['loss']:.4f}); "
-          f"{out / 'prefix.json'} (evaluate with defense={cfg.defense.name} "
-          f"defense.prefix_path={out / 'prefix.json'})")
-    if not cfg.task.get("test_after_fit"):
+    return tune_prefix(objective, gcg, out, progress=cfg.progress, facts=facts)
+
+
+def _tune_pat(cfg: DictConfig, settings: dict, vlm, train_set, out: Path) -> dict:
+    """PAT: attacked and benign examples drawn from the train split, then prefix and attack suffix in turn."""
+    from lanevil_train.vlm.pat_baseline import PATSettings, tune_pat
+
+    choosing = {"method": "pat", "seed": int(cfg.seed), "examples": settings["examples"],
+                "pool_clips": settings["pool_clips"]}
+    chosen = choose_pat_examples(train_set, settings, out / EXAMPLES_FILE, choosing)
+    attacked = examples_of(train_set, [e for e in chosen if e["attacked"]])
+    benign = examples_of(train_set, [e for e in chosen if not e["attacked"]])
+    gcg = PATSettings(steps=settings["steps"], prefix_length=settings["prefix_length"], top_k=settings["top_k"],
+                      num_candidates=settings["num_candidates"], seed=int(cfg.seed),
+                      suffix_length=settings["suffix_length"])
+    facts = {"model": vlm.identity(), **choosing,
+             "examples": [[e["index"], e["qa_id"], e["attacked"], e["wrong"]] for e in chosen]}
+    return tune_pat(vlm, attacked, [e["wrong"] for e in chosen if e["attacked"]], benign, gcg, settings["alpha"],
+                    out, chunk=settings["chunk"], progress=cfg.progress, facts=facts)
+
+
+def _stored_examples(path: Path, choosing: dict) -> list[dict] | None:
+    """The examples a previous run chose into `path` by the same `choosing`, None when there is no file; a file
+    chosen otherwise is refused."""
+    if not path.is_file():
         return None
-    return _test(cfg, PrefixedVLM(vlm, record["ids"], name=f"{vlm.name}+{cfg.defense.name}"), out / "test")
+    stored = json.loads(path.read_text())
+    for key, value in json.loads(json.dumps(choosing)).items():
+        if stored.get("choosing", {}).get(key) != value:
+            raise ValueError(f"{path}: examples chosen with {key}={stored.get('choosing', {}).get(key)!r}, this "
+                             f"run has {key}={value!r}; resume with the same settings or write to another "
+                             f"directory")
+    return stored["examples"]
+
+
+def choose_pat_examples(train_set, settings: dict, path: Path, choosing: dict) -> list[dict]:
+    """PAT's examples, drawn without asking the model: `examples` closed questions of perturbed clip variants to
+    attack (each with the wrong answer the attack pushes toward) and `examples` questions of clean variants as
+    benign ones, from `pool_clips` variants spread over the train split (seed choosing["seed"]); kept in `path`."""
+    import numpy as np
+
+    from lanevil_train.tasks.vlm_train import spread
+    from lanevil_train.vlm.pat_baseline import wrong_answer
+
+    stored = _stored_examples(path, choosing)
+    if stored is not None:
+        return stored
+    rng = np.random.default_rng(choosing["seed"])
+    perturbed = [i for i in range(len(train_set)) if train_set.clip_meta(i)["severity"] > 0]
+    clean = [i for i in range(len(train_set)) if train_set.clip_meta(i)["severity"] == 0]
+    attackable, benign = [], []
+    for attacked, variants in ((True, perturbed), (False, clean)):
+        for index in spread(variants, settings["pool_clips"])[:settings["pool_clips"]]:
+            for qa in train_set.qa_for(train_set.clip_meta(index)["base_clip_id"]):
+                if attacked and qa["type"] != "open":
+                    attackable.append({"index": index, "qa_id": qa["qa_id"], "attacked": True,
+                                       "target": qa["answer"], "wrong": wrong_answer(qa, int(rng.integers(3)))})
+                elif not attacked:
+                    benign.append({"index": index, "qa_id": qa["qa_id"], "attacked": False, "target": qa["answer"],
+                                   "wrong": None})
+    if not attackable or not benign:
+        raise ValueError(f"defense.pool_clips: {settings['pool_clips']} clean and perturbed train clips hold "
+                         f"{len(benign)} questions and {len(attackable)} closed questions; PAT needs both (raise "
+                         f"defense.pool_clips, or train on a split with perturbed clips)")
+    chosen = [group[i] for group in (benign, attackable)
+              for i in sorted(rng.permutation(len(group))[:settings["examples"]].tolist())]
+    atomic_write_text(path, json.dumps({"choosing": choosing, "examples": chosen}, indent=1))
+    return chosen
 
 
 def _test(cfg: DictConfig, defended, out: Path) -> float:
@@ -176,20 +278,15 @@ def choose_examples(vlm, train_set, settings: dict, judge, path: Path, choosing:
     import numpy as np
 
     from lanevil_train.progress import progress_counter
+    from lanevil_train.tasks.vlm_train import spread
     from lanevil_train.vlm.pat import hard_mask
     from lanevil_train.vlm.qa_records import answer_is_correct, prompt_text
 
-    if path.is_file():
-        stored = json.loads(path.read_text())
-        now = json.loads(json.dumps(choosing))
-        for key, value in now.items():
-            if stored.get("choosing", {}).get(key) != value:
-                raise ValueError(f"{path}: examples chosen with {key}={stored.get('choosing', {}).get(key)!r}, this "
-                                 f"run has {key}={value!r}; resume with the same settings or write to another "
-                                 f"directory")
-        return stored["examples"]
+    stored = _stored_examples(path, choosing)
+    if stored is not None:
+        return stored
     closed = settings["hardness"] == "accuracy"
-    indices = list(range(len(train_set)))[::max(1, len(train_set) // settings["pool_clips"])][:settings["pool_clips"]]
+    indices = spread(list(range(len(train_set))), settings["pool_clips"])[:settings["pool_clips"]]
     pool, answers = [], []
     bar = progress_counter(len(indices), desc="PAT++ hard examples", unit="clip", mode=progress)
     for index in indices:
@@ -241,7 +338,7 @@ def examples_of(train_set, chosen: list[dict]):
     """The chosen examples' frames, prompts and targets (pat.Examples)."""
     import numpy as np
 
-    from lanevil_train.vlm.pat import Examples
+    from lanevil_train.vlm.gcg import Examples
     from lanevil_train.vlm.qa_records import prompt_text
 
     clips, questions = [], []

@@ -19,7 +19,7 @@ from lanevil_train.tasks.results import write_results
 from lanevil_train.tasks.train import remove_stale_checkpoint_temporaries
 
 # Keys of a VLM model node read by the training code, not arguments of its inference `_target_`.
-TRAINING_KEYS = ("lora", "fine_tune", "embedded")
+TRAINING_KEYS = ("lora", "fine_tune", "embedded", "attention_layer")
 TOKENIZER_CLIPS = 600  # base clips of the train split whose QA texts train the embedded VLM's tokenizer
 MODEL_FOLDER = "model"  # the trained model (or adapter) in the Hugging Face format, in the run folder
 
@@ -49,7 +49,7 @@ def base_model_dir(cfg: DictConfig, train_set, out: Path) -> Path:
     init = out / "init"
     if not (init / "config.json").is_file():
         all_bases = list(dict.fromkeys(train_set.clip_meta(i)["base_clip_id"] for i in range(len(train_set))))
-        bases = _spread(all_bases, TOKENIZER_CLIPS)  # the templates' words: a spread sample is enough
+        bases = spread(all_bases, TOKENIZER_CLIPS)  # the templates' words: a spread sample is enough
         qas = [qa for base in bases for qa in train_set.qa_for(base)]
         if cfg.model.fine_tune.get("aids"):  # the training aids it will train on, too
             qas += [aid for base in bases for aid in train_set.training_aids_for(base)]
@@ -58,7 +58,7 @@ def base_model_dir(cfg: DictConfig, train_set, out: Path) -> Path:
                                              seed=settings["seed"], **settings["sizes"])
         pretraining = settings.get("vision_pretraining") or {"steps": 0}
         if pretraining["steps"]:
-            sample = scene_batches(train_set, _spread(all_bases, pretraining["clips"]), pretraining["batch"],
+            sample = scene_batches(train_set, spread(all_bases, pretraining["clips"]), pretraining["batch"],
                                    seed=settings["seed"], progress=cfg.progress)
             pretrain_vision(model, processor, sample, pretraining["steps"], lr=pretraining["lr"],
                             mirror=pretraining.get("mirror", True), seed=settings["seed"], progress=cfg.progress)
@@ -66,7 +66,7 @@ def base_model_dir(cfg: DictConfig, train_set, out: Path) -> Path:
     return init
 
 
-def _spread(items: list, count: int) -> list:
+def spread(items: list, count: int) -> list:
     """About `count` of `items`, evenly spread over them."""
     return items[::max(1, len(items) // count)]
 
@@ -101,42 +101,165 @@ def scene_batches(suite, bases: list[str], batch: int, seed: int, progress: str 
 
 
 def train_vlm(cfg: DictConfig) -> float | None:
-    """Fine-tune the VLM; returns its headline score on the perturbed test clips when the test runs, else None."""
-    from lanevil_train.tasks.vlm_defense import is_prompt_defense, tune_prompt_defense
-    from lanevil_train.vlm.qa_data import ClipQADataset, collate_clip_qa
+    """Fine-tune the VLM (with the visual part of the defense: PGD, MixUp, AAM, AAM++ on its frames), then, for a
+    defense with a textual part, tune that for the fine-tuned model (defense=mida: AAM++ then PAT++); a textual
+    defense alone (pat++, pat, self_reminder) is tuned for the trained model given, which stays as it is. Returns
+    the headline score on the perturbed test clips when the test runs, else None."""
+    from lanevil_train.tasks.vlm_defense import fine_tunes, is_prompt_defense, tune_prompt_defense
+    from lanevil_train.vlm.qa_data import ClipQADataset, MixingClipCollate, collate_clip_qa
     from lanevil_train.vlm.training import SkipTrainedBatches, VLMFineTuner
 
     pl.seed_everything(cfg.seed, workers=True)
-    if is_prompt_defense(cfg):  # defense=pat++: a prefix for the frozen model, no weight changes
+    if is_prompt_defense(cfg) and not fine_tunes(cfg.defense):  # a prompt for the frozen model: no weight changes
         return tune_prompt_defense(cfg)
-    if cfg.defense.name != "none":
-        raise ValueError(f"defense={cfg.defense.name}: VLM fine-tuning applies no visual defense yet; use "
-                         f"defense=none, or a textual defense for a trained VLM (defense=pat++, "
-                         f"defense=self_reminder)")
-    if cfg.data.name != "clips":
-        raise ValueError(f"data: a VLM trains on the clip suite's QA: use data=clips (got data={cfg.data.name})")
+    check_vlm_run(cfg)
     check_sharded_merge(cfg)
     out = output_dir(cfg)
     train_set, val_set = build_split(cfg, "train"), (build_split(cfg, "val") if cfg.data.get("val") else None)
+    check_lanes_for_defense(cfg, train_set)
     fine_tune = OmegaConf.to_container(cfg.model.fine_tune, resolve=True)
     variants, aids = fine_tune.pop("variants", "all"), fine_tune.pop("aids", 0)
-    loaders = _loaders(cfg, ClipQADataset(train_set, variants=variants, aids=aids),
-                       ClipQADataset(val_set, variants="clean") if val_set is not None else None, collate_clip_qa)
     module = VLMFineTuner(str(base_model_dir(cfg, train_set, out)), lora=lora_settings(cfg),
                           frames_as=cfg.model.get("frames_as", "auto"), dtype=cfg.model.get("dtype", "float32"),
                           **fine_tune)
+    callback, mixer = visual_defense(cfg, module)
+    loaders = _loaders(cfg, ClipQADataset(train_set, variants=variants, aids=aids),
+                       ClipQADataset(val_set, variants="clean") if val_set is not None else None,
+                       MixingClipCollate(mixer) if mixer is not None else collate_clip_qa, collate_clip_qa)
     callbacks = build_callbacks(cfg)
     remove_stale_checkpoint_temporaries(callbacks)
     callbacks.append(SkipTrainedBatches(loaders[0].sampler, cfg.data.batch_size))
+    if callback is not None:
+        callbacks.append(callback)
     trainer = build_trainer(cfg, callbacks=callbacks)
     trainer.fit(module, *loaders, ckpt_path=cfg.ckpt_path)
     saved = _save(cfg, trainer, module, out / MODEL_FOLDER)
     if not trainer.is_global_zero:
         return None
-    print(f"trained model: {saved} (evaluate it with task=evaluate {_evaluate_hint(cfg, saved)})")
+    model = trained_model(cfg, saved)
+    print(f"trained model: {saved} (evaluate it with task=evaluate model=vlm/hf "
+          f"{' '.join(f'model.{k}={v}' for k, v in model.items() if v is not None)})")
+    if is_prompt_defense(cfg):  # defense=mida: the textual part tuned for the model just trained
+        return tune_prompt_defense(with_model(cfg, model))
     if not cfg.task.test_after_fit:
         return None
     return _test(cfg, saved, out / "test")
+
+
+def check_vlm_run(cfg: DictConfig) -> None:
+    """A VLM training run's data and defense, before anything loads (task=compare checks every run so): a textual
+    part's settings, and for a run that fine-tunes the clip suite's data and a visual part it can apply."""
+    from lanevil_train.tasks.vlm_defense import fine_tunes, is_prompt_defense, prompt_settings
+
+    if is_prompt_defense(cfg):
+        prompt_settings(cfg.defense)
+    if not fine_tunes(cfg.defense):
+        return
+    if cfg.data.name != "clips":
+        raise ValueError(f"data: a VLM trains on the clip suite's QA: use data=clips (got data={cfg.data.name})")
+    check_visual_defense(cfg)
+
+
+def check_visual_defense(cfg: DictConfig) -> None:
+    """VLM fine-tuning takes the defenses that act on a batch of frames: a Lightning callback (PGD, AAM, AAM++ or
+    the user's own) and MixUp; image transforms and Copy-Paste work on lane-detector samples and are refused. AAM's
+    attention layer `auto` must know the model's family (read from its config.json)."""
+    from hydra.utils import get_class
+
+    from lanevil_train.callbacks import AttentionAreaMixing
+    from lanevil_train.data.mixers import MixUp
+    from lanevil_train.vlm.vision_maps import vision_layer
+
+    defense = cfg.defense
+    if defense.get("transforms"):
+        raise ValueError(f"defense={defense.name}: its image transforms act on a lane detector's samples; VLM "
+                         f"fine-tuning takes defenses on the batch's frames: pgd, mixup, aam, aam++ (and mida, or a "
+                         f"textual defense: pat++, pat, self_reminder)")
+    mixer = defense.get("mixer")
+    if mixer is not None and not issubclass(get_class(mixer._target_), MixUp):
+        raise ValueError(f"defense={defense.name}: {mixer._target_} moves lanes with their labels in a lane "
+                         f"detector's batch; a clip's questions cannot follow it. VLM fine-tuning mixes clips with "
+                         f"mixup only")
+    callback = defense.get("callback")
+    if callback is not None and issubclass(get_class(callback._target_), AttentionAreaMixing) and \
+            cfg.model.get("attention_layer", "auto") == "auto":
+        try:
+            vision_layer(model_family(cfg))
+        except ValueError as error:
+            raise ValueError(f"defense={defense.name}: {error}") from None
+
+
+def model_family(cfg: DictConfig) -> str:
+    """The model_type of the VLM a run trains: the embedded VLM's, or that in model.path's config.json."""
+    import json
+
+    if cfg.model.get("embedded") is not None:
+        from lanevil_train.vlm.embedded import FAMILY
+
+        return FAMILY
+    config = Path(str(cfg.model.path)) / "config.json"
+    try:
+        return str(json.loads(config.read_text()).get("model_type"))
+    except (OSError, ValueError) as error:
+        raise ValueError(f"model.path: cannot read {config} ({error}); expected a saved Hugging Face model") from None
+
+
+def visual_defense(cfg: DictConfig, module) -> tuple:
+    """(callback, mixer) of the defense for a VLM being fine-tuned: AAM / AAM++ on the vision layer
+    model.attention_layer names (its tokens laid on the frames by module.vision_maps) with each frame's lanes, PGD
+    on the float frames in [0, 1] pixel units; a user's own callback as configured."""
+    from hydra.utils import get_class
+
+    from lanevil_train.callbacks import AttentionAreaMixing, BatchAdapter, PGDAdversarialTraining
+    from lanevil_train.tasks.builders import instantiate_at
+
+    defense = cfg.defense
+    mixer = instantiate_at(defense.mixer, "defense.mixer") if defense.get("mixer") is not None else None
+    node = defense.get("callback")
+    if node is None:
+        return None, mixer
+    target = get_class(node._target_)
+    extra = {}
+    if issubclass(target, AttentionAreaMixing):
+        try:
+            layer = module.attention_layer(cfg.model.get("attention_layer", "auto"))
+        except ValueError as error:
+            raise ValueError(f"defense={defense.name}: {error}") from None
+        extra = {"layer": layer, "feature_map": module.vision_maps,
+                 "adapter": BatchAdapter(images="images", lanes="lanes")}
+    elif issubclass(target, PGDAdversarialTraining):  # the frames are [0, 1] pixels, not normalised
+        extra = {"mean": (0.0, 0.0, 0.0), "std": (1.0, 1.0, 1.0), "adapter": BatchAdapter(images="images")}
+    return instantiate_at(node, "defense.callback", **extra), mixer
+
+
+def check_lanes_for_defense(cfg: DictConfig, train_set) -> None:
+    """AAM compares a frame's attention with its lanes: the train split must know them (a synthetic split does)."""
+    from hydra.utils import get_class
+
+    from lanevil_train.callbacks import AttentionAreaMixing
+
+    node = cfg.defense.get("callback")
+    if node is not None and issubclass(get_class(node._target_), AttentionAreaMixing) and \
+            not hasattr(train_set, "lanes_for"):
+        raise ValueError(f"defense={cfg.defense.name}: AAM compares each frame's attention with its lanes, which "
+                         f"{type(train_set).__name__} does not keep; train on a synthetic split (data=clips)")
+
+
+def trained_model(cfg: DictConfig, saved: Path) -> dict:
+    """model.path and model.adapter that load what a run saved in `saved`: its LoRA adapter on model.path, or the
+    saved (merged, fully trained or embedded) model."""
+    if cfg.model.get("embedded") is None and cfg.model.get("lora") is not None and \
+            not cfg.model.get("merge_adapter", False):
+        return {"path": str(cfg.model.path), "adapter": str(saved)}
+    return {"path": str(saved), "adapter": None}
+
+
+def with_model(cfg: DictConfig, model: dict) -> DictConfig:
+    """A copy of cfg whose model node loads `model` (trained_model's path and adapter)."""
+    cfg = cfg.copy()
+    with open_dict(cfg):
+        cfg.model.path, cfg.model.adapter = model["path"], model["adapter"]
+    return cfg
 
 
 def _save(cfg: DictConfig, trainer: pl.Trainer, module, folder: Path) -> Path:
@@ -161,23 +284,18 @@ def check_sharded_merge(cfg: DictConfig) -> None:
                          "model=vlm/hf model.path=BASE model.adapter=RUN/model model.merge_adapter=true")
 
 
-def _loaders(cfg: DictConfig, train, val, collate):
+def _loaders(cfg: DictConfig, train, val, collate, val_collate):
     """The training pairs shuffled a window of data.shuffle_window base clips at a time (each base clip rendered or
     read once per epoch), the validation pairs in order."""
     from torch.utils.data import DataLoader
 
     from lanevil_train.vlm.qa_data import WindowShuffleSampler
 
-    common = {"batch_size": cfg.data.batch_size, "num_workers": cfg.data.num_workers, "collate_fn": collate,
+    common = {"batch_size": cfg.data.batch_size, "num_workers": cfg.data.num_workers,
               "persistent_workers": cfg.data.num_workers > 0}
     sampler = WindowShuffleSampler(train, cfg.data.shuffle_window, seed=cfg.seed)
-    return (DataLoader(train, sampler=sampler, **common), DataLoader(val, shuffle=False, **common) if val else None)
-
-
-def _evaluate_hint(cfg: DictConfig, saved: Path) -> str:
-    if cfg.model.get("embedded") is not None or cfg.model.get("lora") is None or cfg.model.get("merge_adapter"):
-        return f"model=vlm/hf model.path={saved}"
-    return f"model=vlm/hf model.path={cfg.model.path} model.adapter={saved}"
+    return (DataLoader(train, sampler=sampler, collate_fn=collate, **common),
+            DataLoader(val, shuffle=False, collate_fn=val_collate, **common) if val else None)
 
 
 def _test(cfg: DictConfig, saved: Path, out: Path) -> float:
@@ -187,11 +305,10 @@ def _test(cfg: DictConfig, saved: Path, out: Path) -> float:
 
     settings = {**generation_settings(cfg), "dtype": cfg.model.get("dtype", "auto"),
                 "device": cfg.model.get("device", "auto")}
-    if cfg.model.get("lora") is not None and not cfg.model.get("merge_adapter", False):
-        vlm = HFVLM(cfg.model.path, adapter=saved, **settings)
-    else:
-        vlm = HFVLM(saved, **settings)
-    return test_vlm(cfg, vlm, cfg.task.get("label") or vlm.name, out)
+    model = trained_model(cfg, saved)
+    vlm = HFVLM(model["path"], adapter=model["adapter"], **settings)
+    defense = "" if cfg.defense.name == "none" else f"+{cfg.defense.name}"
+    return test_vlm(cfg, vlm, cfg.task.get("label") or f"{vlm.name}{defense}", out)
 
 
 def test_vlm(cfg: DictConfig, vlm, name: str, out: Path) -> float:

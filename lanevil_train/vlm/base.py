@@ -32,8 +32,27 @@ def check_frames(frames, where: str = "clip") -> list[np.ndarray]:
     return list(frames)
 
 
+def check_clip_tensor(clips) -> None:
+    """A float tensor of clips [B, frames, 3, H, W] with values in [0, 1] (what VLM training feeds, so gradients
+    reach the pixels), else a ValueError saying what it is."""
+    import torch
+
+    if not torch.is_floating_point(clips) or clips.ndim != 5 or clips.shape[2] != 3 or clips.shape[1] < 1:
+        raise ValueError(f"clips: expected a float tensor [B, frames, 3, H, W] with values in [0, 1], got a "
+                         f"{clips.dtype} tensor {tuple(clips.shape)}")
+    low, high = float(clips.detach().min()), float(clips.detach().max())
+    if low < -1e-6 or high > 1 + 1e-6:
+        raise ValueError(f"clips: expected pixel values in [0, 1], got values in [{low:.3g}, {high:.3g}]")
+
+
+def is_clip_tensor(clips) -> bool:
+    """Whether `clips` is a tensor (training's differentiable clips) rather than lists of uint8 frames."""
+    return type(clips).__module__.startswith("torch") and hasattr(clips, "ndim")
+
+
 def check_batch(clips: Sequence[Frames], questions: Sequence[str], answers: Sequence[str] | None = None) -> None:
-    """One clip per question (and one answer per question when answers are given), every text a string."""
+    """One clip per question (and one answer per question when answers are given), every text a string; the clips
+    uint8 frames, or one float tensor [B, frames, 3, H, W] in [0, 1] (check_clip_tensor)."""
     if len(clips) != len(questions):
         raise ValueError(f"{len(clips)} clips for {len(questions)} questions: expected one clip per question")
     texts = [("question", questions)] + ([("answer", answers)] if answers is not None else [])
@@ -43,6 +62,9 @@ def check_batch(clips: Sequence[Frames], questions: Sequence[str], answers: Sequ
         for i, text in enumerate(values):
             if not isinstance(text, str):
                 raise ValueError(f"{name} {i}: expected a string, got {type(text).__name__}")
+    if is_clip_tensor(clips):
+        check_clip_tensor(clips)
+        return
     for i, clip in enumerate(clips):
         check_frames(clip, f"clip {i}")
 

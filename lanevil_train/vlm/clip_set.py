@@ -304,7 +304,7 @@ class SyntheticClipSuite(Dataset):
         self.items = [(case, segment, record) for case in self.cases for segment in SEGMENTS
                       for record in variant_records(case, segment, self.severities)]
         self.by_base = {base_clip_id(case, segment): (case, segment) for case, segment, _ in self.items}
-        self._qa: dict[str, tuple[list[dict], dict, list[int]]] = {}
+        self._qa: dict[str, tuple[list[dict], list[dict], list[int], list]] = {}
         self.cache_clips = cache_clips
         self._renders: OrderedDict[tuple, dict] = OrderedDict()  # (case, segment) -> severity -> frames, LRU
 
@@ -336,15 +336,21 @@ class SyntheticClipSuite(Dataset):
         pretrained on."""
         return self._facts(base_clip_id)[2]
 
-    def _facts(self, base_clip_id: str) -> tuple[list[dict], list[dict], list[int]]:
-        """(QA, training aids, scene classes) of a base clip, from its truth (computed once)."""
+    def lanes_for(self, base_clip_id: str) -> list[list[list[list[float]]]]:
+        """The lane polylines ([x, y] pixels at the suite's frame size) of each of the base clip's frames: every
+        variant's ground truth, as illusions never move a lane (AAM's lanes on a VLM's frames)."""
+        return self._facts(base_clip_id)[3]
+
+    def _facts(self, base_clip_id: str) -> tuple[list[dict], list[dict], list[int], list]:
+        """(QA, training aids, scene classes, lanes per frame) of a base clip, from its truth (computed once)."""
         if base_clip_id not in self._qa:
             if base_clip_id not in self.by_base:
                 raise KeyError(f"no base clip {base_clip_id!r} in this synthetic suite")
             case, segment = self.by_base[base_clip_id]
             truth = _geometry().clip_truth(case, segment, size=self.size)
             self._qa[base_clip_id] = (make_qa(truth, base_clip_id, case.seed, self.per_clip),
-                                      training_aids(truth, base_clip_id), scene_classes(truth, base_clip_id))
+                                      training_aids(truth, base_clip_id), scene_classes(truth, base_clip_id),
+                                      truth["lanes_px"])
         return self._qa[base_clip_id]
 
     def __getitem__(self, index: int) -> dict:

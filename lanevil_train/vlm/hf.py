@@ -21,7 +21,7 @@ from typing import Sequence
 
 import numpy as np
 
-from lanevil_train.vlm.base import VLM, Frames, check_batch
+from lanevil_train.vlm.base import VLM, Frames, check_batch, is_clip_tensor
 
 FRAMES_AS = ("auto", "images", "video")
 DTYPES = ("auto", "float32", "bfloat16", "float16")
@@ -141,7 +141,9 @@ class HFVLM(VLM):
     def encode(self, clips: Sequence[Frames], questions: Sequence[str],
                answers: Sequence[str] | None = None, label_eos: bool = False) -> EncodedBatch:
         """The left-padded batch through the chat template (answers as the assistant turn when given), with the
-        token spans of each question (and answer) and the answer-only labels. With `label_eos` the labels also
+        token spans of each question (and answer) and the answer-only labels. `clips`: per sample its uint8 frames,
+        or one float tensor [B, frames, 3, H, W] in [0, 1] whose pixel values keep their gradient (the processors'
+        own torch operations carry it: what training and the visual defenses use). With `label_eos` the labels also
         cover the end-of-turn token after each answer (inserted when the template puts none there), so a model
         trained on them learns to stop."""
         check_batch(clips, questions, answers)
@@ -262,8 +264,10 @@ class HFVLM(VLM):
         import torch
 
         self.processor.tokenizer.padding_side = "left"
+        if is_clip_tensor(clips):  # float [B, frames, 3, H, W] in [0, 1]: the processors' torch ops keep the graph
+            clips = [clip * 255.0 for clip in clips]
         if self.frames_as == "video":
-            media = {"videos": [np.stack(list(clip)) for clip in clips]}
+            media = {"videos": [clip if is_clip_tensor(clip) else np.stack(list(clip)) for clip in clips]}
         else:
             media = {"images": [list(clip) for clip in clips]}
         outputs = self.processor(text=texts, padding=True, return_tensors="pt", **media)

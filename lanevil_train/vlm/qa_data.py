@@ -3,13 +3,15 @@
 A clip suite (ClipSetDataset on disk, or SyntheticClipSuite rendered on the fly) lists clips (each a clean or
 perturbed variant of a base clip) and, per base clip, its QA. ClipQADataset pairs every chosen clip variant with
 every QA of its base clip, in clip order, so an unshuffled pass renders (or reads) each clip once per QA run.
-collate_clip_qa stacks the frames into one uint8 tensor [B, 6, H, W, 3], the place visual defenses edit them.
-WindowShuffleSampler shuffles for training without rendering a base clip once per pair.
+collate_clip_qa stacks the frames into one uint8 tensor [B, 6, H, W, 3]; in the training step they are the float
+`images` (B*6, 3, H, W) in [0, 1] that visual defenses edit (clip_images), beside each frame's lanes when the suite
+knows them. MixingClipCollate mixes a batch's clips first (MixUp). WindowShuffleSampler shuffles for training
+without rendering a base clip once per pair.
 """
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from typing import Sequence
 
 import numpy as np
 import torch
@@ -90,9 +92,12 @@ class ClipQADataset(Dataset):
         meta = self.clips.clip_meta(clip_index)
         qa = (self.clips.training_aids_for(meta["base_clip_id"])[-qa_index - 1] if qa_index < 0
               else self.clips.qa_for(meta["base_clip_id"])[qa_index])
-        return {"frames": self._clip_frames(clip_index), "question": prompt_text(qa), "answer": qa["answer"],
+        item = {"frames": self._clip_frames(clip_index), "question": prompt_text(qa), "answer": qa["answer"],
                 "key": f"{meta['clip_id']}/{qa['qa_id']}",
                 "meta": {**meta, "qa_id": qa["qa_id"], "qa_category": qa["category"], "qa_type": qa["type"]}}
+        if hasattr(self.clips, "lanes_for"):  # each frame's lane polylines (pixels), for AAM's ground truth
+            item["lanes"] = self.clips.lanes_for(meta["base_clip_id"])
+        return item
 
 
 def collate_clip_qa(items: Sequence[dict]) -> dict:
@@ -104,28 +109,37 @@ def collate_clip_qa(items: Sequence[dict]) -> dict:
         keys = ", ".join(f"{item['key']} {tuple(np.shape(item['frames']))}" for item in items[:4])
         raise ValueError(f"items: the clips of a batch must share one frame size, got {keys}")
     frames = torch.from_numpy(np.stack([np.asarray(item["frames"], dtype=np.uint8) for item in items]))
-    return {"frames": frames, "questions": [item["question"] for item in items],
-            "answers": [item["answer"] for item in items], "keys": [item["key"] for item in items],
-            "meta": [item["meta"] for item in items]}
+    batch = {"frames": frames, "questions": [item["question"] for item in items],
+             "answers": [item["answer"] for item in items], "keys": [item["key"] for item in items],
+             "meta": [item["meta"] for item in items]}
+    if all(item.get("lanes") is not None for item in items):  # per frame, in frame order: images' lanes
+        batch["lanes"] = [[np.asarray(lane, dtype=np.float64) for lane in frame_lanes]
+                          for item in items for frame_lanes in item["lanes"]]
+    return batch
 
 
-def batch_clips(batch: dict) -> list[list[np.ndarray]]:
-    """The batch's clips as the VLM interface takes them: per sample, 6 uint8 HxWx3 numpy frames (on the CPU)."""
-    frames = batch.get("frames") if isinstance(batch, dict) else None
+def clip_images(frames: torch.Tensor) -> torch.Tensor:
+    """A batch's uint8 frames [B, F, H, W, 3] as the float images (B*F, 3, H, W) in [0, 1] that training feeds the
+    model and visual defenses edit (BatchAdapter(images="images", lanes="lanes"))."""
     if not isinstance(frames, torch.Tensor) or frames.ndim != 5 or frames.dtype != torch.uint8 or \
             frames.shape[-1] != 3:
         got = (f"{frames.dtype} tensor {tuple(frames.shape)}" if isinstance(frames, torch.Tensor)
                else type(frames).__name__)
         raise ValueError(f"batch['frames']: expected a uint8 tensor [B, 6, H, W, 3], got {got}")
-    array = frames.detach().cpu().numpy()
-    return [list(clip) for clip in array]
+    return frames.flatten(0, 1).permute(0, 3, 1, 2).float().div(255.0).contiguous()
 
 
-def frames_as_images(batch: Any) -> torch.Tensor:
-    """A (B*6, 3, H, W) view of batch["frames"] for BatchAdapter(images=frames_as_images): edits to it edit the
-    batch's frames."""
-    frames = batch["frames"]
-    return frames.flatten(0, 1).permute(0, 3, 1, 2)
+class MixingClipCollate:
+    """collate_clip_qa after a batch mixer (data.mixers.MixUp) has mixed the clips: each clip's frames are the
+    mixer's `image` (all frames of a clip blended with one partner clip at one weight); questions, answers and
+    lanes stay the clip's own."""
+
+    def __init__(self, mixer):
+        self.mixer = mixer
+
+    def __call__(self, items: Sequence[dict]) -> dict:
+        mixed = self.mixer([{"image": np.asarray(item["frames"])} for item in items])
+        return collate_clip_qa([{**item, "frames": new["image"]} for item, new in zip(items, mixed)])
 
 
 class WindowShuffleSampler(Sampler):

@@ -25,11 +25,12 @@ import torch
 
 from lanevil_train.vlm.hf import (ADAPTER_CONFIG, DTYPES, FRAMES_AS, HFVLM, _check_architecture, _check_model_dir,
                                   _choice, _load_processor)
-from lanevil_train.vlm.qa_data import ClipQADataset, batch_clips, collate_clip_qa, frames_as_images
+from lanevil_train.vlm.qa_data import ClipQADataset, clip_images, collate_clip_qa
+from lanevil_train.vlm.vision_maps import VISION_LAYERS, VisionMaps, vision_layer
 
 ADAPTER_NAME = "default"  # peft's name for the one adapter get_peft_model adds
 
-__all__ = ["ClipQADataset", "collate_clip_qa", "frames_as_images", "VLMFineTuner", "default_lora_targets",
+__all__ = ["ClipQADataset", "collate_clip_qa", "clip_images", "VLMFineTuner", "default_lora_targets",
            "vision_tower_names"]
 
 # Attribute names of the vision tower and of the language model across the image-text-to-text families.
@@ -96,7 +97,17 @@ def check_lora(lora) -> dict | None:
 
 
 class VLMFineTuner(pl.LightningModule):
-    """A Hugging Face VLM trained on (clip, question, answer) batches: LoRA or full fine-tuning, answer-only loss."""
+    """A Hugging Face VLM trained on (clip, question, answer) batches: LoRA or full fine-tuning, answer-only loss.
+
+    In the training step a batch holds its frames as float `images` (B*6, 3, H, W) in [0, 1] (and each frame's
+    `lanes` when the suite knows them), the tensor visual defenses edit (BatchAdapter(images="images",
+    lanes="lanes")) and the loss reads, through the processor's own torch operations, so gradients reach the
+    pixels (PGD). training_step returns each frame's clip loss as `per_sample_loss` for AAM's hard examples;
+    `attention_layer` names the vision layer AAM takes its map from and `vision_maps` lays its tokens on the frames;
+    `attention_gradients` (switched on by AAM) lets the frames take gradients so a frozen tower's layer gets them.
+    """
+
+    attention_gradients = False
 
     def __init__(self, model_dir: str, lora: dict | None = None, freeze_vision: bool = True,
                  gradient_checkpointing: bool = False, lr: float = 1e-4, weight_decay: float = 0.0,
@@ -114,10 +125,11 @@ class VLMFineTuner(pl.LightningModule):
                                    "gradient_checkpointing": bool(gradient_checkpointing), "lr": float(lr),
                                    "weight_decay": float(weight_decay), "warmup_steps": warmup_steps,
                                    "frames_as": frames_as, "dtype": dtype, "train_eos": bool(train_eos)})
-        _check_architecture(Path(model_dir))
+        self.model_type = _check_architecture(Path(model_dir))
         self.processor = _load_processor(Path(model_dir))
         self.model = self._build_model(model_dir, lora, resolve_dtype(dtype))
         self.strict_loading = False  # checkpoints hold only the trainable weights; on_load_checkpoint checks them
+        self.vision_maps = VisionMaps(self.processor, self.model_type, self._wrapped().frames_as)
 
     def _build_model(self, model_dir: str, lora: dict | None, dtype: torch.dtype) -> torch.nn.Module:
         """The base model in `dtype`, vision tower frozen, LoRA-wrapped when asked, checkpointing on when asked."""
@@ -147,16 +159,35 @@ class VLMFineTuner(pl.LightningModule):
         generation.setdefault("frames_as", self.hparams.frames_as)
         return HFVLM.wrap(self.model, self.processor, self.hparams.model_dir, **generation)
 
+    def _wrapped(self) -> HFVLM:
+        return HFVLM.wrap(self.model, self.processor, self.hparams.model_dir, frames_as=self.hparams.frames_as)
+
     def batch_loss(self, batch: dict) -> torch.Tensor:
-        """Per-sample mean NLL [B] of the answers (and end-of-turn tokens with train_eos) of a collated batch."""
-        hf = HFVLM.wrap(self.model, self.processor, self.hparams.model_dir, frames_as=self.hparams.frames_as)
+        """Per-sample mean NLL [B] of the answers (and end-of-turn tokens with train_eos) of a batch: its float
+        `images` (on_after_batch_transfer's), or the uint8 `frames` of a batch straight from collate_clip_qa."""
+        hf = self._wrapped()
         for key in ("questions", "answers"):
             if not isinstance(batch.get(key), list):
                 raise ValueError(f"batch[{key!r}]: expected a list of strings (collate_clip_qa's batch), got "
                                  f"{type(batch.get(key)).__name__}")
-        encoded = hf.encode(batch_clips(batch), batch["questions"], batch["answers"],
-                            label_eos=self.hparams.train_eos)
+        images = batch["images"] if "images" in batch else clip_images(batch["frames"])
+        if self.attention_gradients and not images.requires_grad:  # a frozen tower's layer gets its gradient
+            images = images.detach().requires_grad_(True)
+        clips = images.unflatten(0, (len(batch["questions"]), -1))
+        encoded = hf.encode(clips, batch["questions"], batch["answers"], label_eos=self.hparams.train_eos)
+        self.vision_maps.observe(encoded.inputs, clips.shape[0], clips.shape[1], tuple(clips.shape[-2:]))
         return hf.loss_from_embeds(encoded, hf.embed(encoded))
+
+    def attention_layer(self, layer: str = "auto") -> str:
+        """The name in this module of the model's layer `layer` (auto: the family's vision output,
+        vision_maps.VISION_LAYERS), whatever wrappers (peft) put before it: AAM's `layer`."""
+        name = vision_layer(self.model_type, layer)
+        found = [full for full, _ in self.named_modules() if full == f"model.{name}" or full.endswith(f".{name}")]
+        if len(found) != 1:
+            raise ValueError(f"model.attention_layer: {name!r} names {len(found)} modules of the {self.model_type} "
+                             f"model ({found[:3]}); expected one, a dotted name as in the Hugging Face model (e.g. "
+                             f"{vision_layer(self.model_type) if self.model_type in VISION_LAYERS else 'model.visual'})")
+        return found[0]
 
     # ---- Lightning hooks -----------------------------------------------------------------------------------------
 
@@ -169,10 +200,18 @@ class VLMFineTuner(pl.LightningModule):
         """Training mode again after an epoch's validation or a vlm() view (both leave the model in eval mode)."""
         self.model.train()
 
-    def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
-        loss = self.batch_loss(batch).mean()
+    def on_after_batch_transfer(self, batch, dataloader_idx: int):
+        """The batch's uint8 frames become the float images the step (and any visual defense) works on."""
+        if isinstance(batch, dict) and "frames" in batch:
+            batch["images"] = clip_images(batch.pop("frames"))
+        return batch
+
+    def training_step(self, batch: dict, batch_idx: int) -> dict:
+        per_sample = self.batch_loss(batch)
+        loss = per_sample.mean()
         self.log("train/loss", loss, prog_bar=True, batch_size=len(batch["questions"]))
-        return loss
+        frames = len(batch["images"]) // len(per_sample) if "images" in batch else 1
+        return {"loss": loss, "per_sample_loss": per_sample.detach().repeat_interleave(frames)}
 
     def validation_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
         loss = self.batch_loss(batch).mean()

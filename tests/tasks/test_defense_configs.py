@@ -28,7 +28,7 @@ def compose_defense(name: str, tmp_path: Path, extra: list[str] = ()):
         return compose(config_name="config", overrides=overrides)
 
 
-VLM_DEFENSES = {"pat++", "self_reminder"}  # textual defenses: tests/tasks/test_vlm_defense_cli.py
+VLM_DEFENSES = {"pat++", "pat", "self_reminder", "mida"}  # textual (and cross-modal) defenses of VLMs
 
 
 def test_the_defense_configs_are_the_papers_baselines():

@@ -10,8 +10,8 @@ import pytest
 import torch
 
 from lanevil_train.vlm.hf import IGNORE_INDEX, HFVLM
-from lanevil_train.vlm.pat import (RES_GOAL, Examples, PrefixObjective, allowed_tokens, gcg_step, hard_mask,
-                                   hard_target, initial_prefix, load_prefix, retokenises, save_prefix, splice_prefix)
+from lanevil_train.vlm.gcg import Examples, allowed_tokens, gcg_step, initial_prefix, retokenises, splice_prefix
+from lanevil_train.vlm.pat import RES_GOAL, PrefixObjective, hard_mask, hard_target, load_prefix, save_prefix
 from lanevil_train.vlm.tiny import FAMILIES
 
 QUESTIONS = ["How many lanes does the road have in front of the ego vehicle?", "Is it wet?"]
@@ -269,3 +269,66 @@ def test_a_prefixed_vlm_answers_and_scores_with_the_prefix_spliced_in(family, ti
     assert "defense_prefix_ids" not in vlm.identity()
     with pytest.raises(ValueError, match=r"defense prefix: expected token ids in \[0, "):
         PrefixedVLM(vlm, [10 ** 9])
+
+
+def test_a_soft_prefix_lowers_the_loss_keeps_its_best_vectors_and_resumes_exactly(tiny_hf_vlm, small_clips, tmp_path):
+    from lanevil_train.vlm.pat import SoftSettings, tune_soft_prefix
+
+    vlm = tiny_hf_vlm("qwen2_vl")
+    objective = PrefixObjective(vlm, Examples(small_clips, QUESTIONS, ANSWERS),
+                                Examples(small_clips[:1], QUESTIONS[:1], [RES_GOAL]), alpha=0.6)
+    settings = dict(prefix_length=3, lr=0.05, seed=1)
+    whole = tune_soft_prefix(objective, SoftSettings(steps=4, **settings), tmp_path / "whole", progress="none",
+                             facts={"model": "tiny"})
+    history = whole["history"]
+    assert whole["soft"] is True and len(history) == 4 and history[-1] < history[0]
+    assert whole["loss"] == pytest.approx(min(history)) and len(whole["embeddings"]) == 3
+    vectors = torch.tensor(whole["embeddings"])
+    with torch.no_grad():
+        total, terms = objective.loss_with_embeds(whole["ids"], vectors)
+    assert float(total) == pytest.approx(whole["loss"], rel=1e-5) and terms == pytest.approx(whole["terms"], rel=1e-5)
+    # the ids are the placeholders "! ! !"; a run stopped after 2 steps ends where the unbroken one does
+    assert vlm.processor.tokenizer.decode(whole["ids"]).replace(" ", "") == "!!!"
+    tune_soft_prefix(objective, SoftSettings(steps=2, **settings), tmp_path / "split", progress="none",
+                     facts={"model": "tiny"})
+    resumed = tune_soft_prefix(objective, SoftSettings(steps=4, **settings), tmp_path / "split", progress="none",
+                               facts={"model": "tiny"})
+    assert resumed["history"] == pytest.approx(history, rel=1e-6)
+    assert torch.allclose(torch.tensor(resumed["embeddings"]), vectors, atol=1e-6)
+    with pytest.raises(ValueError, match="defense.soft_lr: expected a learning rate > 0"):
+        SoftSettings(lr=0)
+
+
+def test_a_prefixed_vlm_with_soft_vectors_embeds_them_in_the_prompt_pass_only(tiny_hf_vlm, small_clips):
+    from lanevil_train.vlm.pat import PrefixedVLM
+
+    vlm = tiny_hf_vlm("qwen2_vl")
+    ids = _prefix_for(vlm, 3)
+    vectors = torch.randn(3, vlm.model.get_input_embeddings().embedding_dim, generator=torch.Generator().manual_seed(0))
+    soft = PrefixedVLM(vlm, ids, embeddings=vectors)
+    objective = PrefixObjective(vlm, Examples(small_clips, QUESTIONS, ANSWERS), Examples([], [], []))
+    with torch.no_grad():
+        assert soft.answer_loss(small_clips, QUESTIONS, ANSWERS).mean().item() == pytest.approx(
+            float(objective.loss_with_embeds(ids, vectors)[0]), rel=1e-5)
+        assert soft.answer_loss(small_clips, QUESTIONS, ANSWERS).mean().item() != pytest.approx(
+            PrefixedVLM(vlm, ids).answer_loss(small_clips, QUESTIONS, ANSWERS).mean().item(), rel=1e-4)
+    seen = []  # what the decoder is given: the input embeddings, frames placed
+    decoder = vlm.model.model.language_model
+    handle = decoder.register_forward_pre_hook(lambda m, a, k: seen.append(k["inputs_embeds"].detach()),
+                                               with_kwargs=True)
+    try:
+        answers = soft.answer(small_clips, QUESTIONS)
+    finally:
+        handle.remove()
+    assert len(answers) == 2
+    batch, starts = splice_prefix(vlm.encode(small_clips, QUESTIONS), ids)
+    prompt = seen[0]
+    assert prompt.shape[1] == batch.inputs["input_ids"].shape[1]
+    for i, start in enumerate(starts):
+        assert torch.allclose(prompt[i, start:start + 3], vectors)
+    assert all(step.shape[1] == 1 for step in seen[1:])  # generation steps after the prompt: new tokens only
+    assert len(vlm.model.get_input_embeddings()._forward_hooks) == 0  # nothing left on the wrapped model
+    assert soft.identity()["defense_prefix_embeddings"] != PrefixedVLM(vlm, ids, embeddings=vectors + 1).identity()[
+        "defense_prefix_embeddings"]
+    with pytest.raises(ValueError, match=r"expected soft embeddings \[3, "):
+        PrefixedVLM(vlm, ids, embeddings=vectors[:2])

@@ -13,7 +13,7 @@ from torch.utils.data import DataLoader, Dataset, Subset
 
 from lanevil_train.callbacks.adapter import BatchAdapter
 from lanevil_train.vlm.hf import IGNORE_INDEX, HFVLM
-from lanevil_train.vlm.training import (ClipQADataset, VLMFineTuner, collate_clip_qa, frames_as_images,
+from lanevil_train.vlm.training import (ClipQADataset, VLMFineTuner, clip_images, collate_clip_qa,
                                         vision_tower_names)
 
 QA = [("How many lanes does the road have?", "The road has three lanes."), ("Is it wet?", "Yes."),
@@ -65,16 +65,57 @@ def _trainer(tmp_path, max_steps: int, callbacks=()) -> pl.Trainer:
                       num_sanity_val_steps=0, deterministic=True)
 
 
-def test_batches_carry_the_frames_as_a_uint8_tensor_a_batch_adapter_addresses(batch):
-    """The collated frames are one uint8 [B, 6, H, W, 3] tensor; a BatchAdapter reads it as (B*6, 3, H, W)
-    images whose edits land in the batch."""
+def test_batches_carry_uint8_frames_that_become_the_float_images_defenses_edit_and_the_loss_reads(batch,
+                                                                                                   tiny_vlm_dir):
+    """The collated frames are one uint8 [B, 6, H, W, 3] tensor; after the transfer to the device the step's batch
+    holds them as float (B*6, 3, H, W) images in [0, 1], which a BatchAdapter addresses: an edit to them is what
+    the model sees (the loss changes), and the uint8 batch gives the loss of its frames."""
     assert batch["frames"].dtype == torch.uint8 and tuple(batch["frames"].shape) == (2, 6, 32, 48, 3)
     assert batch["questions"] == [QA[0][0], QA[1][0]] and batch["answers"] == [QA[0][1], QA[1][1]]
-    images = BatchAdapter(images=frames_as_images).images(batch)
-    assert tuple(images.shape) == (12, 3, 32, 48)
-    assert torch.equal(images[7, :, 5, 9], batch["frames"][1, 1, 5, 9])
-    images[7, :, 5, 9] = 0
-    assert batch["frames"][1, 1, 5, 9].tolist() == [0, 0, 0]
+    module = VLMFineTuner(str(tiny_vlm_dir("qwen2_vl")), lora=LORA)
+    moved = module.on_after_batch_transfer({**batch}, 0)
+    assert "frames" not in moved
+    images = BatchAdapter(images="images").images(moved)
+    assert images.dtype == torch.float32 and tuple(images.shape) == (12, 3, 32, 48)
+    assert torch.equal(images[7, :, 5, 9] * 255, batch["frames"][1, 1, 5, 9].float())
+    assert torch.equal(clip_images(batch["frames"]), images)
+    with torch.no_grad():
+        from_frames = module.batch_loss(batch)
+        from_images = module.batch_loss(moved)
+        assert torch.allclose(from_frames, from_images)
+        images[6:12] = 1.0 - images[6:12]  # the second clip's frames edited in place
+        edited = module.batch_loss(moved)
+    assert edited[0] == pytest.approx(float(from_images[0]), rel=1e-6)
+    assert abs(float(edited[1] - from_images[1])) > 1e-4
+
+
+def test_the_loss_reaches_the_pixels_through_the_processor(tiny_vlm_dir, batch):
+    """Training's float images go through the processor's own torch operations: the loss has a gradient at every
+    frame, equal to a finite difference, and the uint8 path (evaluation's) gives the same loss."""
+    module = VLMFineTuner(str(tiny_vlm_dir("qwen2_vl")), lora=LORA)
+    module.model.double()
+    hf = module.vlm()
+    images = clip_images(batch["frames"]).double().requires_grad_(True)
+    clips = images.unflatten(0, (2, 6))
+
+    def loss(pixels):
+        encoded = hf.encode(pixels, batch["questions"], batch["answers"])
+        return hf.loss_from_embeds(encoded, hf.embed(encoded)).sum()
+
+    value = loss(clips)
+    (grad,) = torch.autograd.grad(value, images)
+    assert (grad.flatten(1).abs().sum(1) > 0).all()  # every frame of both clips
+    with torch.no_grad():
+        frames = [list(clip) for clip in batch["frames"].numpy()]
+        uint8 = hf.encode(frames, batch["questions"], batch["answers"])
+        assert float(hf.loss_from_embeds(uint8, hf.embed(uint8)).sum()) == pytest.approx(float(value), rel=2e-3)
+        direction = torch.zeros_like(images)
+        direction[3, 1, 10:20, 20:30] = 1.0
+        direction *= (images > 0.01) & (images < 0.99)  # the step stays inside [0, 1]
+        eps = 1e-3
+        estimate = (loss((images + eps * direction).unflatten(0, (2, 6)))
+                    - loss((images - eps * direction).unflatten(0, (2, 6)))) / (2 * eps)
+    assert float((grad * direction).sum()) == pytest.approx(float(estimate), rel=1e-4)
 
 
 def test_clip_qa_dataset_pairs_each_chosen_clip_with_its_qa():
