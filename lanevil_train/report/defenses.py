@@ -123,10 +123,20 @@ def gain_pivot(gain_rows: list[dict], metric: str = "Accuracy") -> list[dict]:
     return list(out.values())
 
 
+def headline_of(score_rows: list[dict], spec: RecordSpec):
+    """The headline score of a comparison: the first of the spec's scores that the defense rows hold (a VLM's
+    judge score when it was judged, else its Language score)."""
+    names = {key.split("/")[1] for row in score_rows[:1] for key in row if key.count("/") == 1}
+    held = [score for score in spec.scores if score.name in names]
+    if not held:
+        raise ValueError(f"the defense scores hold none of the {spec.name!r} scores {[s.name for s in spec.scores]}")
+    return held[0]
+
+
 def best_defense(score_rows: list[dict], spec: RecordSpec) -> tuple[str, float]:
-    """The defense with the best average perturbed headline score of `spec` (reference included; NaN rows
+    """The defense with the best average perturbed headline score (headline_of; reference included; NaN rows
     ignored)."""
-    score = spec.headline
+    score = headline_of(score_rows, spec)
     ranked = [(row[f"{AVERAGE}/{score.name}"], row["defense"]) for row in score_rows
               if not math.isnan(row[f"{AVERAGE}/{score.name}"])]
     if not ranked:
@@ -136,27 +146,33 @@ def best_defense(score_rows: list[dict], spec: RecordSpec) -> tuple[str, float]:
     return name, value
 
 
-def gain_plot(gain_rows: list[dict], path: str | Path, metric: str = "Accuracy") -> Path:
-    """Grouped bars: x = category and average, one bar per defense, y = gain over the reference in points."""
+def gain_plot(gain_rows: list[dict], path: str | Path, metrics: str | list[str] = "Accuracy") -> Path:
+    """Grouped bars, one panel per score of `metrics`: x = category and average, one bar per defense, y = gain over
+    the reference in points (the paper's Fig. enhance)."""
     from lanevil_train.report.plots import save_figure  # sets the Agg backend
 
     import matplotlib.pyplot as plt
 
-    pivot = gain_pivot(gain_rows, metric)
+    metrics = [metrics] if isinstance(metrics, str) else list(metrics)
     groups = [g for g in dict.fromkeys(r["category"] for r in gain_rows) if g != ORIGINAL]
-    n = max(len(pivot), 1)
+    defenses = list(dict.fromkeys(r["defense"] for r in gain_rows))
+    n = max(len(defenses), 1)
     width = 0.8 / n
-    fig, ax = plt.subplots(figsize=(1.6 + 1.3 * max(len(groups), 1), 3.8))
-    for i, row in enumerate(pivot):
-        xs = [j - 0.4 + width * (i + 0.5) for j in range(len(groups))]
-        ax.bar(xs, [row.get(g, math.nan) for g in groups], width, label=row["defense"])
-    ax.axhline(0.0, color="black", linewidth=0.8)
-    ax.set_xticks(range(len(groups)), [g.replace("_", "\n") for g in groups], fontsize=8)
-    ax.set_ylabel(f"{metric} gain over none (points)")
-    ax.set_title(f"Defense gain in perturbed {metric} over no defense")
-    ax.grid(axis="y", alpha=0.3)
-    if pivot:
-        ax.legend(fontsize=7, ncol=min(n, 4))
+    fig, axes = plt.subplots(len(metrics), 1, figsize=(1.6 + 1.3 * max(len(groups), 1), 3.8 * len(metrics)),
+                             squeeze=False)
+    for ax, metric in zip(axes[:, 0], metrics):
+        for i, row in enumerate(gain_pivot(gain_rows, metric)):
+            xs = [j - 0.4 + width * (i + 0.5) for j in range(len(groups))]
+            ax.bar(xs, [row.get(g, math.nan) for g in groups], width, label=row["defense"], color=f"C{i}")
+        ax.axhline(0.0, color="black", linewidth=0.8)
+        ax.set_xticks(range(len(groups)), [g.replace("_", "\n") for g in groups], fontsize=8)
+        ax.set_ylabel(f"{metric} gain over none (points)")
+        ax.set_title(f"Perturbed {metric}: gain over no defense", fontsize=10)
+        ax.grid(axis="y", alpha=0.3)
+    if defenses:
+        handles, labels = axes[0, 0].get_legend_handles_labels()
+        fig.legend(handles, labels, fontsize=8, ncol=min(n, 4), loc="upper center", bbox_to_anchor=(0.5, 0.0))
+    fig.tight_layout()
     return save_figure(fig, path)
 
 
@@ -164,7 +180,8 @@ def write_defense_report(score_rows: list[dict], gain_rows: list[dict], out_dir:
                          runs: dict[str, str] | None = None) -> dict[str, Path]:
     """defense_scores.{md,csv,json}, defense_gain.{md,csv,json}, defense_gain.png and compare.md in out_dir.
 
-    `spec` is the records' spec (its headline picks the best defense and the plot); `runs` (defense -> run
+    `spec` is the records' spec (the headline score it holds picks the best defense; the plot has a panel per
+    score, the headline first); `runs` (defense -> run
     directory) is listed in compare.md when given.
     """
     out_dir = Path(out_dir)
@@ -172,10 +189,11 @@ def write_defense_report(score_rows: list[dict], gain_rows: list[dict], out_dir:
     for name, rows in (("defense_scores", score_rows), ("defense_gain", gain_rows)):
         for fmt, p in write_table(rows, out_dir, name).items():
             paths[f"{name}_{fmt}"] = p
-    headline = spec.headline.name
-    paths["plot"] = gain_plot(gain_rows, out_dir / "defense_gain.png", headline)
-    best, value = best_defense(score_rows, spec)
+    headline = headline_of(score_rows, spec).name
     names = _score_names(score_rows[0]) if score_rows else []
+    paths["plot"] = gain_plot(gain_rows, out_dir / "defense_gain.png", [headline] + [n for n in names
+                                                                                    if n != headline])
+    best, value = best_defense(score_rows, spec)
     lower = [s.name for s in spec.scores if not s.higher_is_better and s.name in names]
     unit = spec.unit
     parts = ["# Defense comparison", "",

@@ -3,6 +3,12 @@ over `none` (paper Fig. enhance). Each run is kept in <out>/runs/<defense>/, so 
 
 Each run's config is composed as if the user had typed `task=train defense=<d>` with all their other
 command-line overrides; task=compare's own suite keys are copied into it.
+
+For a VLM (model=vlm/<backend>, Fig. enhance c-d) every defense that changes weights (none, pgd, mixup, aam, aam++)
+fine-tunes the model with the same budget; a textual defense (pat++, pat, self_reminder, and the PAT++ of mida) is
+then tuned for the model that the listed defense with the same visual part fine-tuned (`none` for pat++, aam++ for
+mida), so its gain is the prompt's own. A textual defense whose visual part no listed defense has (mida without
+aam++) fine-tunes in its own run first.
 """
 
 from __future__ import annotations
@@ -15,33 +21,28 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from lanevil_train.data.formats.atomic import atomic_write_text
 from lanevil_train.report.defenses import (REFERENCE, best_defense, defense_gain, defense_scores, gain_pivot,
-                                           write_defense_report)
+                                           headline_of, write_defense_report)
 from lanevil_train.report.specs import spec_for
 from lanevil_train.report.tables import print_table
-from lanevil_train.tasks.builders import build_defense, build_model, model_config, output_dir
-from lanevil_train.tasks.config_check import check_config, interpolated_from
-from lanevil_train.tasks.scoring import RESULTS, read_records
+from lanevil_train.tasks.builders import build_defense, build_model, is_vlm, model_config, output_dir
+from lanevil_train.tasks.config_check import check_config, interpolated_from, known_defenses
+from lanevil_train.tasks.scoring import read_records
 
 log = logging.getLogger(__name__)
 
-DONE = "done.json"  # written in runs/<d>/robustness/ once the run's robustness results are complete
+DONE = "done.json"  # written beside a run's suite results (robustness/ of a detector, test/ of a VLM) once complete
+RESULT_FILES = ("robustness/per_image.jsonl", "per_image.jsonl", "test/per_answer.jsonl", "per_answer.jsonl")
 SUITE_KEYS = ("suite", "cases", "illusions", "severities", "repeats", "test_after_fit", "init_from")
-
-
-def available_defenses() -> list[str]:
-    """The defense configs shipped in conf/defense/ (file stems)."""
-    import lanevil_train.conf
-
-    return sorted(p.stem for p in (Path(lanevil_train.conf.__file__).parent / "defense").glob("*.yaml"))
 
 
 def check_defenses(defenses: list[str]) -> list[str]:
     """Validate task.defenses: known names, no repeats, `none` among them, something to compare it with."""
-    known = available_defenses()
+    known = known_defenses()
     defenses = [str(d) for d in defenses]
     bad = [d for d in defenses if d not in known]
     if bad:
-        raise ValueError(f"task.defenses: unknown defense(s) {bad}; expected names of conf/defense/*.yaml: {known}")
+        raise ValueError(f"task.defenses: unknown defense(s) {bad}; expected names of defense configs "
+                         f"(conf/defense/*.yaml, or a hydra.searchpath folder's defense/): {known}")
     repeated = sorted({d for d in defenses if defenses.count(d) > 1})
     if repeated:
         raise ValueError(f"task.defenses: {repeated} listed more than once")
@@ -73,9 +74,11 @@ def run_overrides(user: list[str]) -> list[str]:
     return keep
 
 
-def compose_run(cfg: DictConfig, defense: str, overrides: list[str], run_dir: Path) -> DictConfig:
+def compose_run(cfg: DictConfig, defense: str, overrides: list[str], run_dir: Path,
+                source: Path | None = None) -> DictConfig:
     """The config of `task=train defense=<defense>` plus `overrides`, with compare's suite keys and run_dir;
-    checked (config_check), so a bad value raises ConfigError naming its key."""
+    checked (config_check), so a bad value raises ConfigError naming its key. `source`: a VLM run whose fine-tuned
+    model this run's textual defense is tuned for (its visual part is then done)."""
     from hydra import compose
 
     run_cfg = compose(config_name="config", overrides=[*overrides, "task=train", f"defense={defense}"])
@@ -87,7 +90,39 @@ def compose_run(cfg: DictConfig, defense: str, overrides: list[str], run_dir: Pa
         last = run_dir / "checkpoints" / "last.ckpt"
         run_cfg.ckpt_path = str(last) if last.is_file() else None
     check_config(run_cfg, where=f"the config of the defense={defense} run")
+    if source is not None:
+        from lanevil_train.tasks.vlm_train import MODEL_FOLDER, trained_model
+
+        model = trained_model(run_cfg, source / MODEL_FOLDER)
+        with open_dict(run_cfg):
+            run_cfg.defense.callback, run_cfg.defense.mixer = None, None
+            run_cfg.model.path, run_cfg.model.adapter = model["path"], model["adapter"]
+            run_cfg.model.merge_adapter = model["adapter"] is not None  # tuned on the merged weights: faster
     return run_cfg
+
+
+def visual_part(run_cfg: DictConfig) -> str:
+    """What a defense does to the frames while a VLM fine-tunes (its callback and mixer), as comparable text."""
+    parts = {key: OmegaConf.to_container(run_cfg.defense[key], resolve=True) if run_cfg.defense.get(key) is not None
+             else None for key in ("callback", "mixer")}
+    return json.dumps(parts, sort_keys=True)
+
+
+def vlm_sources(configs: dict[str, DictConfig]) -> dict[str, str | None]:
+    """For each defense of a VLM compare, the listed defense whose fine-tuned model its textual part is tuned for:
+    the first one without a textual part that does the same to the frames; None for a defense that fine-tunes
+    itself."""
+    from lanevil_train.tasks.vlm_defense import is_prompt_defense
+
+    plain = [d for d, run_cfg in configs.items() if not is_prompt_defense(run_cfg)]
+    return {d: (next((p for p in plain if visual_part(configs[p]) == visual_part(run_cfg)), None)
+                if is_prompt_defense(run_cfg) else None) for d, run_cfg in configs.items()}
+
+
+def results_of(run: Path) -> Path | None:
+    """A run's suite results: robustness/per_image.jsonl of a detector's train run, test/per_answer.jsonl of a
+    VLM's, or the per_image.jsonl / per_answer.jsonl of an evaluate run; None when it has none."""
+    return next((run / name for name in RESULT_FILES if (run / name).is_file()), None)
 
 
 def check_defense_model(run_cfg: DictConfig, built: dict, models: dict | None = None) -> None:
@@ -118,16 +153,23 @@ def check_defense_model(run_cfg: DictConfig, built: dict, models: dict | None = 
                          f"{error}. Nothing was trained") from None
 
 
-def run_defense(cfg: DictConfig, defense: str, overrides: list[str], run_dir: Path) -> None:
-    """Train and score one defense into run_dir, unless a finished result is there (then nothing is done)."""
-    from lanevil_train.tasks.train import run_label, train
+def done_marker(run_dir: Path, vlm: bool) -> Path:
+    """Where a compare marks a run finished: beside its suite results."""
+    return run_dir / ("test" if vlm else "robustness") / DONE
 
-    done = run_dir / "robustness" / DONE
+
+def run_defense(cfg: DictConfig, defense: str, overrides: list[str], run_dir: Path,
+                source: Path | None = None) -> None:
+    """Train and score one defense into run_dir, unless a finished result is there (then nothing is done)."""
+    from lanevil_train.tasks.train import train
+
+    done = done_marker(run_dir, is_vlm(cfg))
     if done.is_file():
         log.info("compare: defense=%s already done (%s), skipped", defense, done)
         return
-    run_cfg = compose_run(cfg, defense, overrides, run_dir)
+    run_cfg = compose_run(cfg, defense, overrides, run_dir, source)
     state = f"resuming from {run_cfg.ckpt_path}" if run_cfg.ckpt_path else "training"
+    state += f" (for the model of {source})" if source is not None else ""
     log.info("compare: defense=%s %s in %s", defense, state, run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     OmegaConf.save(run_cfg, run_dir / "config.yaml")
@@ -135,8 +177,9 @@ def run_defense(cfg: DictConfig, defense: str, overrides: list[str], run_dir: Pa
     _finish_wandb()
     if not _is_rank_zero():
         return
-    atomic_write_text(done, json.dumps({"defense": defense, "label": run_label(run_cfg),  # a kill leaves no torn marker
-                                        "perturbed_accuracy": result}, indent=2) + "\n")
+    label = read_records(results_of(run_dir), keep_lanes=False)[0]["model"]
+    atomic_write_text(done, json.dumps({"defense": defense, "label": label,  # a kill leaves no torn marker
+                                        "perturbed_score": result}, indent=2) + "\n")
 
 
 def _is_rank_zero() -> bool:
@@ -168,33 +211,26 @@ def _defense_of(run: Path, records: list[dict]) -> str:
     return labels[0].split("+", 1)[1] if "+" in labels[0] else REFERENCE
 
 
-def _results_of(run: Path) -> Path | None:
-    """A run's suite results: robustness/per_image.jsonl of a train run, else per_image.jsonl of an evaluate run."""
-    for results in (run / "robustness" / RESULTS, run / RESULTS):
-        if results.is_file():
-            return results
-    return None
-
-
 def _run_dirs(path: Path) -> tuple[list[tuple[Path, Path]], list[Path]]:
     """(run directory, results file) for a run, an evaluate output, or a directory of runs one level down; and
     the subdirectories skipped for having no results (a run that failed or is still training)."""
     if not path.is_dir():
         raise FileNotFoundError(f"task.runs: {path} is not a directory; expected a run directory or a directory "
                                 f"of runs")
-    own = _results_of(path)
+    own = results_of(path)
     if own is not None:
         return [(path, own)], []
     found, skipped = [], []
     for sub in path.iterdir():
         if sub.is_dir():
-            results = _results_of(sub)
+            results = results_of(sub)
             if results is None:
                 skipped.append(sub)
             else:
                 found.append((sub, results))
     if not found:
-        raise FileNotFoundError(f"task.runs: no robustness/per_image.jsonl in {path} or its subdirectories")
+        raise FileNotFoundError(f"task.runs: no robustness/per_image.jsonl (or a VLM's test/per_answer.jsonl) in "
+                                f"{path} or its subdirectories")
     key = lambda t: (0, int(t[0].name), "") if t[0].name.isdigit() else (1, 0, t[0].name)  # noqa: E731
     return sorted(found, key=key), sorted(skipped)
 
@@ -243,25 +279,36 @@ def compare(cfg: DictConfig, overrides: list[str] | None = None) -> float | None
         if overrides is None:
             from hydra.core.hydra_config import HydraConfig
 
-            overrides = list(HydraConfig.get().overrides.task)
+            searchpath = [o for o in HydraConfig.get().overrides.hydra if o.startswith("hydra.searchpath")]
+            overrides = [*searchpath, *HydraConfig.get().overrides.task]  # the user's own configs found too
         common = run_overrides(overrides)
         runs = {d: str(out / "runs" / d) for d in defenses}
-        models: dict[str, object] = {}
-        for defense in defenses:  # every run's config and defense arguments are checked before the first one trains
-            run_cfg = compose_run(cfg, defense, common, Path(runs[defense]))
-            check_defense_model(run_cfg, build_defense(run_cfg), models)
-        for i, defense in enumerate(defenses, 1):
-            log.info("compare: [%d/%d] defense=%s", i, len(defenses), defense)
-            run_defense(cfg, defense, common, Path(runs[defense]))
+        # every run's config and defense arguments are checked before the first one trains
+        configs = {d: compose_run(cfg, d, common, Path(runs[d])) for d in defenses}
+        if is_vlm(cfg):
+            from lanevil_train.tasks.vlm_train import check_vlm_run
+
+            for run_cfg in configs.values():
+                check_vlm_run(run_cfg)
+            sources = vlm_sources(configs)
+        else:
+            models: dict[str, object] = {}
+            for run_cfg in configs.values():
+                check_defense_model(run_cfg, build_defense(run_cfg), models)
+            sources = dict.fromkeys(defenses)
+        order = sorted(defenses, key=lambda d: sources[d] is not None)  # the fine-tuned models before their prompts
+        for i, defense in enumerate(order, 1):
+            log.info("compare: [%d/%d] defense=%s", i, len(order), defense)
+            source = sources[defense]
+            run_defense(cfg, defense, common, Path(runs[defense]), None if source is None else Path(runs[source]))
         if not _is_rank_zero():
             return None
-        records = {d: read_records(Path(runs[d]) / "robustness" / RESULTS, keep_lanes=False)
-                   for d in defenses}
+        records = {d: read_records(results_of(Path(runs[d])), keep_lanes=False) for d in defenses}
     scores = defense_scores(records)  # validates: `none` is there, every defense on the same items
     spec = spec_for(records[REFERENCE])
     gains = defense_gain(scores)
     write_defense_report(scores, gains, out, spec, runs)
-    headline = spec.headline.name
+    headline = headline_of(scores, spec).name
     print_table(gain_pivot(gains, headline),
                 title=f"{headline} gain over {REFERENCE} (points) — {out / 'compare.md'}")
     name, value = best_defense(scores, spec)

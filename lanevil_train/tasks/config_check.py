@@ -30,6 +30,7 @@ from lanevil_train.models.backbones import STAGE_STRIDES
 from lanevil_train.models.detector import SCHEDULERS
 from lanevil_train.progress import MODES
 from lanevil_train.tasks.vlm_defense import HARDNESS, PROMPT_DEFENSES
+from lanevil_train.tasks.vlm_train import TRAINING_KEYS
 from lanevil_train.vlm.pat import HARD_TARGETS
 
 # Keys of a `_target_` node that Hydra reads itself (not passed to the target).
@@ -37,11 +38,12 @@ HYDRA_KEYS = {"_target_", "_recursive_", "_convert_", "_partial_", "_args_"}
 # Arguments the code passes to a target itself: a config value for them would be ignored.
 SUPPLIED = {"model.head": ("in_channels", "feature_stride", "image_size")}
 # Keys of a target node that the code reads itself (not arguments of its target): a VLM's training settings.
-READ_BY_CODE = {"model": ("lora", "fine_tune", "embedded")}
+READ_BY_CODE = {"model": TRAINING_KEYS}
 DEFENSE_KEYS = ("name", "transforms", "mixer", "callback")
 # The keys of a textual defense of VLMs (defense=pat++: tasks/vlm_defense.py), beside DEFENSE_KEYS.
 PROMPT_DEFENSE_KEYS = ("prompt", "alpha", "hard_target", "hardness", "pool_clips", "examples", "steps",
-                       "prefix_length", "top_k", "num_candidates", "chunk", "prefix_path", "before", "after")
+                       "prefix_length", "suffix_length", "top_k", "num_candidates", "chunk", "soft", "soft_lr",
+                       "prefix_path", "before", "after")
 SPLITS = ("train", "val", "test")
 
 
@@ -232,25 +234,38 @@ def defense_keys() -> Rule:
                 f"{', '.join(PROMPT_DEFENSE_KEYS)})", test)
 
 
-def defense_names() -> Rule:
-    """task.defenses of task=compare: names of conf/defense/*.yaml, each once, `none` and at least one other."""
+def known_defenses() -> list[str]:
+    """The defense configs a run can compose: conf/defense/*.yaml, and those a hydra.searchpath folder adds (when
+    Hydra is running)."""
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.core.hydra_config import HydraConfig
+
     import lanevil_train.conf
 
-    known = sorted(p.stem for p in (Path(lanevil_train.conf.__file__).parent / "defense").glob("*.yaml"))
+    if GlobalHydra.instance().is_initialized():
+        overrides = [*HydraConfig.get().overrides.hydra, *HydraConfig.get().overrides.task] \
+            if HydraConfig.initialized() else []
+        return sorted(GlobalHydra.instance().config_loader().get_group_options("defense", config_name="config",
+                                                                               overrides=overrides))
+    return sorted(p.stem for p in (Path(lanevil_train.conf.__file__).parent / "defense").glob("*.yaml"))
 
+
+def defense_names() -> Rule:
+    """task.defenses of task=compare: names of defense configs, each once, `none` and at least one other (the
+    configs are looked up when the rule runs, so a hydra.searchpath folder's count)."""
     def test(v):
         if not isinstance(v, list) or not all(isinstance(x, str) for x in v):
             return ""
+        known = known_defenses()
         unknown = [x for x in v if x not in known]
         if unknown:
-            return f"unknown: {', '.join(unknown)}"
+            return f"unknown: {', '.join(unknown)}; known: {', '.join(known)}"
         if len(set(v)) < len(v):
             return "a name is listed twice"
         if "none" not in v:
             return "'none' is missing: it is the reference every gain is measured against"
         return None if len(v) >= 2 else "nothing to compare 'none' with"
-    return Rule(f"a list of defense names from {', '.join(known)}, each once, with none and at least one other",
-                test)
+    return Rule("a list of defense config names, each once, with none and at least one other", test)
 
 
 def http_url() -> Rule:
@@ -404,8 +419,10 @@ RULES: dict[str, Rule] = {
     "defense.alpha": number(0, 1),
     "defense.hard_target": one_of(*HARD_TARGETS),
     "defense.hardness": one_of(*HARDNESS),
-    **{f"defense.{key}": integer(1) for key in ("pool_clips", "examples", "steps", "prefix_length", "top_k",
-                                                "num_candidates", "chunk")},
+    **{f"defense.{key}": integer(1) for key in ("pool_clips", "examples", "steps", "prefix_length", "suffix_length",
+                                                "top_k", "num_candidates", "chunk")},
+    "defense.soft": boolean(),
+    "defense.soft_lr": number(0, low_open=True),
     "defense.prefix_path": null_or(existing_file("prefix.json file")),
     # task (each task has some of these)
     "task.name": text(),
@@ -546,14 +563,15 @@ def check_vlm_task(cfg: DictConfig) -> list[str]:
                              "that is a VLM clip suite: evaluate it with model=vlm/<backend>")]
         return []
     task = _get(cfg, "task.name")
-    if task not in ("train", "evaluate", "report"):
+    if task not in ("train", "evaluate", "report", "compare"):
         return [f"task: task={task} with a VLM (model={_get(cfg, 'model._target_')}) is not available; VLMs are "
-                f"trained with task=train, evaluated with task=evaluate and reported with task=report"]
-    if task == "train" and _get(cfg, "model.base_url") is not _ABSENT:
+                f"trained with task=train, evaluated with task=evaluate, compared with task=compare and reported "
+                f"with task=report"]
+    if task in ("train", "compare") and _get(cfg, "model.base_url") is not _ABSENT:
         return [f"task: task=train with model={_get(cfg, 'model._target_')}: a model behind a server cannot be "
                 f"trained here; fine-tune a local one (model=vlm/hf model.path=DIR, or model=vlm/embedded)"]
     embedded = _get(cfg, "model.embedded") not in (None, _ABSENT)
-    if task == "train" and _get(cfg, "data.name") != "clips":
+    if task in ("train", "compare") and _get(cfg, "data.name") != "clips":
         hint = ("for model=vlm/embedded: data=clips data.size=[64,112], its frame size; or experiment=vlm_quickstart"
                 if embedded else "")
         return [_problem("data", "clips (a VLM trains on the clip suite's QA)", _get(cfg, "data.name"), hint)]

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 
 import pytest
+from omegaconf import OmegaConf
 
 from lanevil_train.results_log import ResultsLog
 from lanevil_train.vlm.tiny import build_tiny_vlm
@@ -76,9 +77,9 @@ def compose(overrides: list[str]):
         GlobalHydra.instance().clear()
 
 
-def test_textual_defense_misuse_is_refused_naming_the_key_before_any_work(tiny_model, tmp_path):
+def test_defense_misuse_is_refused_naming_the_key_before_any_work(tiny_model, tmp_path):
     from lanevil_train.tasks.vlm_evaluate import evaluate_vlm
-    from lanevil_train.tasks.vlm_train import train_vlm
+    from lanevil_train.tasks.vlm_train import check_lanes_for_defense, train_vlm
 
     common = ["model=vlm/hf", f"model.path={tiny_model}", *TINY_CLIPS, f"output_dir={tmp_path / 'run'}"]
     with pytest.raises(ValueError, match="defense.prefix_path: task=evaluate defense=pat\\+\\+ applies a tuned prefix"):
@@ -88,9 +89,49 @@ def test_textual_defense_misuse_is_refused_naming_the_key_before_any_work(tiny_m
         train_vlm(compose(["task=train", "model=vlm/embedded", *TINY_CLIPS, "defense=pat++"]))
     with pytest.raises(ValueError, match="defense.hardness: judge needs a judge .* got judge=none"):
         train_vlm(compose(["task=train", *common, "defense=pat++", "defense.hardness=judge"]))
-    with pytest.raises(ValueError, match="defense=aam\\+\\+: VLM fine-tuning applies no visual defense yet"):
-        train_vlm(compose(["task=train", *common, "defense=aam++"]))
+    with pytest.raises(ValueError, match="defense=cutout: its image transforms act on a lane detector's samples"):
+        train_vlm(compose(["task=train", *common, "defense=cutout"]))
+    with pytest.raises(ValueError, match="defense=copypaste: .*CopyPaste moves lanes with their labels"):
+        train_vlm(compose(["task=train", *common, "defense=copypaste"]))
+    with pytest.raises(ValueError, match="defense=aam\\+\\+: model.attention_layer: auto knows the vision output of "
+                                         "qwen2_vl, .* not 'gemma3'"):
+        bad = tmp_path / "gemma"
+        bad.mkdir()
+        (bad / "config.json").write_text('{"model_type": "gemma3"}')
+        train_vlm(compose(["task=train", *common, f"model.path={bad}", "defense=aam++"]))
     assert not (tmp_path / "run").exists()  # refused before any output
+    with pytest.raises(ValueError, match="defense=aam: AAM compares each frame's attention with its lanes, which "
+                                         "object does not keep"):
+        check_lanes_for_defense(compose(["task=train", *common, "defense=aam"]), object())
+
+
+# every VLM defense config, one step (a fine-tuning step, or a tuning step of its prompt), and what it leaves
+VLM_DEFENSES = {"none": "model", "pgd": "model", "mixup": "model", "aam": "model", "aam++": "model",
+                "mida": "model+prefix", "pat++": "prefix", "pat": "prefix", "self_reminder": ""}
+
+
+@pytest.mark.parametrize("defense", list(VLM_DEFENSES))
+def test_every_vlm_defense_config_runs_a_step(defense, tiny_model, tmp_path):
+    from lanevil_train.tasks.vlm_train import train_vlm
+
+    run = tmp_path / "run"
+    tiny_prompt = ["defense.steps=1", "defense.prefix_length=2", "defense.top_k=4", "defense.num_candidates=3",
+                   "defense.examples=1", "defense.pool_clips=3", "defense.chunk=4"]
+    overrides = ["task=train", "model=vlm/hf", f"model.path={tiny_model}", "model.lora.r=2", *TINY_CLIPS,
+                 "trainer.max_steps=1", "task.test_after_fit=false", f"defense={defense}", f"output_dir={run}",
+                 *(tiny_prompt if "prefix" in VLM_DEFENSES[defense] else []),
+                 *(["defense.suffix_length=2"] if defense == "pat" else []), "callbacks=none"]
+    assert train_vlm(compose(overrides)) is None
+    leaves = VLM_DEFENSES[defense]
+    assert (run / "model" / "adapter_config.json").is_file() == ("model" in leaves)
+    if "prefix" in leaves:
+        record = json.loads((run / "prefix.json").read_text())
+        assert record["step"] == 1 and len(record["ids"]) == 2
+        assert ("attack" in record) == (defense == "pat")
+        if defense == "mida":  # PAT++ tuned for the model the AAM++ fine-tuning left
+            assert record["facts"]["model"]["adapter"] == str(run / "model")
+    else:
+        assert not (run / "prefix.json").exists()
 
 
 def test_self_reminder_trains_nothing_and_tests_the_reminded_model(tiny_model, tmp_path):
@@ -101,3 +142,49 @@ def test_self_reminder_trains_nothing_and_tests_the_reminded_model(tiny_model, t
     assert len(tested) == ANSWERS and {r["model"] for r in tested} == {"tiny-qwen2-vl+self_reminder"}
     assert not (run / "checkpoints").exists() and not (run / "model").exists()
     assert "## Defense: Self-Reminder" in (run / "test" / "report.md").read_text()
+
+
+def test_a_vlm_compare_tunes_textual_defenses_for_the_none_runs_model_reports_and_skips_finished_runs(tiny_model,
+                                                                                                    tmp_path):
+    """task=compare for a VLM: none and mixup fine-tune the same model; self_reminder is applied to the model the
+    none run fine-tuned; the gain tables (judge score and Language per category) and the plot are written; a rerun
+    trains nothing."""
+    from hydra import initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+
+    from lanevil_train.tasks.compare import compare
+
+    out = tmp_path / "compare"
+    clips = [a for a in TINY_CLIPS if a != "judge=none"] + ["judge=minilm"]
+    overrides = ["model=vlm/hf", f"model.path={tiny_model}", "model.max_new_tokens=4", "model.lora.r=2", *clips,
+                 "trainer.max_steps=2", "callbacks=[model_checkpoint]"]
+    cfg = compose(["task=compare", "task.defenses=[none,self_reminder,mixup]", f"task.out_dir={out}", *overrides])
+    GlobalHydra.instance().clear()
+    with initialize_config_module(config_module="lanevil_train.conf", version_base="1.3"):
+        compare(cfg, overrides=overrides)
+        runs = out / "runs"
+        reminder = OmegaConf.load(runs / "self_reminder" / "config.yaml")
+        assert reminder.model.adapter == str(runs / "none" / "model") and reminder.model.merge_adapter is True
+        assert not (runs / "self_reminder" / "model").exists()
+        for defense in ("none", "mixup"):
+            assert (runs / defense / "model" / "adapter_config.json").is_file()
+        labels = {d: {r["model"] for r in ResultsLog(runs / d / "test" / "per_answer.jsonl").records()}
+                  for d in ("none", "self_reminder", "mixup")}
+        assert labels == {"none": {"tiny-qwen2-vl"}, "self_reminder": {"tiny-qwen2-vl+self_reminder"},
+                          "mixup": {"tiny-qwen2-vl+mixup"}}
+        gains = json.loads((out / "defense_gain.json").read_text())
+        assert [(g["defense"], g["category"]) for g in gains] == [
+            (d, c) for d in ("self_reminder", "mixup") for c in ("road_damage", "average", "original")]
+        scores = {r["defense"]: r for r in json.loads((out / "defense_scores.json").read_text())}
+        for gain in gains:
+            for metric in ("MiniLM_score", "Language"):
+                expected = scores[gain["defense"]][f"{gain['category']}/{metric}"] - \
+                    scores["none"][f"{gain['category']}/{metric}"]
+                assert gain[f"{metric}/gain"] == pytest.approx(expected)
+        report = (out / "compare.md").read_text()
+        assert "## MiniLM_score gain over none" in report and "## Language gain over none" in report
+        assert (out / "defense_gain.png").stat().st_size > 5000
+        before = {p: p.stat().st_mtime_ns for p in runs.rglob("*") if p.is_file()}
+        compare(cfg, overrides=overrides)  # every run finished: nothing is trained, tuned or scored again
+        assert {p: p.stat().st_mtime_ns for p in runs.rglob("*") if p.is_file()} == before
+    GlobalHydra.instance().clear()
