@@ -288,8 +288,12 @@ def compare(cfg: DictConfig, overrides: list[str] | None = None) -> float | None
         if is_vlm(cfg):
             from lanevil_train.tasks.vlm_train import check_vlm_run
 
-            for run_cfg in configs.values():
-                check_vlm_run(run_cfg)
+            for defense, run_cfg in configs.items():
+                try:
+                    check_vlm_run(run_cfg)
+                except ValueError as error:
+                    raise ValueError(f"task.defenses: the defense={defense} run cannot fine-tune or defend this VLM: "
+                                     f"{error}. Nothing was trained") from None
             sources = vlm_sources(configs)
         else:
             models: dict[str, object] = {}

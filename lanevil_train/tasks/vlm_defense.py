@@ -108,7 +108,8 @@ def prefixed(vlm, record: dict, name: str):
     """The VLM with a tuned prefix.json `record` before every question (its token ids, or its soft vectors)."""
     from lanevil_train.vlm.pat import PrefixedVLM
 
-    return PrefixedVLM(vlm, record["ids"], name=name, embeddings=record.get("embeddings"))
+    method = "PAT" if record.get("facts", {}).get("method") == "pat" else "PAT++"
+    return PrefixedVLM(vlm, record["ids"], name=name, embeddings=record.get("embeddings"), method=method)
 
 
 def describe_defense(vlm) -> str | None:
@@ -117,12 +118,12 @@ def describe_defense(vlm) -> str | None:
     from lanevil_train.vlm.reminder import RemindedVLM
 
     if isinstance(vlm, PrefixedVLM) and vlm.embeddings is not None:
-        return (f"## Defense: PAT++ soft prefix\n\nBefore every question, {len(vlm.prefix_ids)} tuned vectors of width "
-                f"{vlm.embeddings.shape[1]} in place of the tokens {vlm.prefix_ids}\n")
+        return (f"## Defense: {vlm.method} soft prefix\n\nBefore every question, {len(vlm.prefix_ids)} tuned vectors "
+                f"of width {vlm.embeddings.shape[1]} in place of the tokens {vlm.prefix_ids}\n")
     if isinstance(vlm, PrefixedVLM):
         text = vlm.vlm.processor.tokenizer.decode(vlm.prefix_ids)
-        return (f"## Defense: {'PAT' if vlm.name.endswith('+pat') else 'PAT++'} prefix\n\nBefore every question, "
-                f"{len(vlm.prefix_ids)} tokens: `` {text} ``\n\nToken ids: {vlm.prefix_ids}\n")
+        return (f"## Defense: {vlm.method} prefix\n\nBefore every question, {len(vlm.prefix_ids)} tokens: "
+                f"`` {text} ``\n\nToken ids: {vlm.prefix_ids}\n")
     if isinstance(vlm, RemindedVLM):
         return (f"## Defense: Self-Reminder\n\nEvery question between\n\n> {vlm.before}\n\nand\n\n"
                 f"> {vlm.after}\n")

@@ -63,9 +63,11 @@ class PrefixedVLM(VLM):
     defense.soft) goes in as its placeholder ids, whose input embeddings a hook on the embedding layer replaces by
     the tuned vectors whenever the whole spliced prompt is embedded (the prompt pass of generation, a loss), so
     positions, masks and M-RoPE indices are those of any prompt. The name is the model's unless given; the identity
-    gains the prefix, so results with and without it never mix."""
+    gains the prefix, so results with and without it never mix; `method` names the defense that tuned it in
+    reports."""
 
-    def __init__(self, vlm: HFVLM, prefix_ids: Sequence[int], name: str | None = None, embeddings=None):
+    def __init__(self, vlm: HFVLM, prefix_ids: Sequence[int], name: str | None = None, embeddings=None,
+                 method: str = "PAT++"):
         if not isinstance(vlm, HFVLM):
             raise ValueError(f"defense prefix: {type(vlm).__name__} gives no token ids to splice a prefix into; "
                              f"PAT++ needs a local model (model=vlm/hf or model=vlm/embedded)")
@@ -74,7 +76,7 @@ class PrefixedVLM(VLM):
         if not self.prefix_ids or max(self.prefix_ids) >= vocabulary or min(self.prefix_ids) < 0:
             raise ValueError(f"defense prefix: expected token ids in [0, {vocabulary}), got {self.prefix_ids}")
         self.embeddings = None if embeddings is None else _check_embeddings(embeddings, vlm, len(self.prefix_ids))
-        self.name, self.batch_size = name or vlm.name, vlm.batch_size
+        self.name, self.batch_size, self.method = name or vlm.name, vlm.batch_size, method
         self._rows: tuple[list[int], int] | None = None  # (prefix starts, spliced length) of the batch in flight
 
     def answer(self, clips: Sequence[Frames], questions: Sequence[str]) -> list[str]:

@@ -210,8 +210,8 @@ class VLMFineTuner(pl.LightningModule):
         per_sample = self.batch_loss(batch)
         loss = per_sample.mean()
         self.log("train/loss", loss, prog_bar=True, batch_size=len(batch["questions"]))
-        frames = len(batch["images"]) // len(per_sample) if "images" in batch else 1
-        return {"loss": loss, "per_sample_loss": per_sample.detach().repeat_interleave(frames)}
+        frames = len(batch["images"]) if "images" in batch else batch["frames"].shape[:2].numel()
+        return {"loss": loss, "per_sample_loss": per_sample.detach().repeat_interleave(frames // len(per_sample))}
 
     def validation_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
         loss = self.batch_loss(batch).mean()

@@ -218,3 +218,17 @@ def test_the_pat_alpha_sweep_is_the_papers_grid_and_every_point_a_valid_pat_plus
         point = compose_root(["hparams_search=pat_alpha", "model=vlm/hf", "model.path=/models/some-vlm",
                               "data=clips", f"defense.alpha={value}"])
         assert prompt_settings(point.defense)["alpha"] == value
+
+
+def test_the_pat_prefix_length_sweep_gives_valid_pat_plus_plus_points():
+    from lanevil_train.tasks.vlm_defense import prompt_settings
+
+    cfg = compose_root(["hparams_search=pat_prefix_length", "model=vlm/hf", "model.path=/models/some-vlm",
+                        "data=clips"])
+    assert cfg.hydra.mode == RunMode.MULTIRUN and cfg.defense.name == "pat++"
+    grid = sweep_values("defense.prefix_length", dict(cfg.hydra.sweeper.params)["defense.prefix_length"])
+    assert grid == [5, 10, 20, 40]
+    for value in grid:
+        point = compose_root(["hparams_search=pat_prefix_length", "model=vlm/hf", "model.path=/models/some-vlm",
+                              "data=clips", f"defense.prefix_length={value}"])
+        assert prompt_settings(point.defense)["prefix_length"] == value

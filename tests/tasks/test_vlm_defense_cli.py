@@ -188,3 +188,14 @@ def test_a_vlm_compare_tunes_textual_defenses_for_the_none_runs_model_reports_an
         compare(cfg, overrides=overrides)  # every run finished: nothing is trained, tuned or scored again
         assert {p: p.stat().st_mtime_ns for p in runs.rglob("*") if p.is_file()} == before
     GlobalHydra.instance().clear()
+
+
+def test_each_textual_defense_is_tuned_for_the_model_of_the_defense_with_its_visual_part(tiny_model):
+    from lanevil_train.tasks.compare import vlm_sources
+
+    common = ["task=train", "model=vlm/hf", f"model.path={tiny_model}", *TINY_CLIPS]
+    configs = {d: compose([*common, f"defense={d}"]) for d in ("none", "pat++", "mida", "aam++", "pgd", "pat")}
+    assert vlm_sources(configs) == {"none": None, "pat++": "none", "mida": "aam++", "aam++": None, "pgd": None,
+                                    "pat": "none"}
+    del configs["aam++"]  # nothing listed does what mida does to the frames: it fine-tunes in its own run
+    assert vlm_sources(configs)["mida"] is None
