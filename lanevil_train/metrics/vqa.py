@@ -150,6 +150,26 @@ def bleu(corpus: Corpus, n: int = NGRAM_ORDER) -> list[float]:
     return scores
 
 
+def bleu_per_item(corpus: Corpus, n: int = NGRAM_ORDER) -> np.ndarray:
+    """Sentence BLEU-1..n of each answer [items, n], as the per-answer list pycocoevalcap's BleuScorer returns
+    beside the corpus score (each answer's own counts, closest reference length and brevity penalty)."""
+    g = corpus.ngrams.n_grams
+    hs, hg, hc, ho = corpus.entries(hypotheses=True)
+    rs, rg, rc, _ = corpus.entries(hypotheses=False)
+    ref_keys, inverse = np.unique(corpus.ref_item[rs] * g + rg, return_inverse=True)
+    ref_max = np.zeros(len(ref_keys), dtype=np.int64)
+    np.maximum.at(ref_max, inverse.reshape(-1), rc)
+    clipped = np.minimum(hc, _lookup(hs * g + hg, ref_keys, ref_max))
+    correct = np.bincount(hs * n + ho, weights=clipped, minlength=corpus.size * n).reshape(-1, n)
+    lengths = corpus.hyp_lengths.astype(np.float64)
+    guess = np.maximum(lengths[:, None] - np.arange(n)[None, :], 0)
+    tiny, small = 1e-15, 1e-9
+    scores = np.cumprod((correct + tiny) / (guess + small), axis=1) ** (1.0 / np.arange(1, n + 1))
+    ratio = (lengths + tiny) / (_closest_ref_lengths(corpus) + small)
+    penalty = np.where(ratio < 1, np.exp(1 - 1 / np.maximum(ratio, tiny)), 1.0)
+    return scores * penalty[:, None]
+
+
 def _closest_ref_lengths(corpus: Corpus) -> np.ndarray:
     """Per item the reference length closest to the answer's (the shorter on a tie), as pycocoevalcap picks."""
     distance = np.abs(corpus.ref_lengths - corpus.hyp_lengths[corpus.ref_item])
@@ -172,6 +192,11 @@ def _lcs_length(masks: dict[str, int], width: int, other: list[str]) -> int:
 
 def rouge_l(corpus: Corpus, beta: float = ROUGE_BETA) -> float:
     """Mean ROUGE-L F-measure over items as pycocoevalcap's Rouge (best precision and recall over references)."""
+    return float(np.mean(rouge_l_per_item(corpus, beta)))
+
+
+def rouge_l_per_item(corpus: Corpus, beta: float = ROUGE_BETA) -> np.ndarray:
+    """Each answer's ROUGE-L F-measure [items]."""
     scores = np.zeros(corpus.size)
     for item, (hyp, refs) in enumerate(zip(corpus.hypotheses, corpus.references)):
         tokens = hyp.split(" ")
@@ -186,17 +211,22 @@ def rouge_l(corpus: Corpus, beta: float = ROUGE_BETA) -> float:
             best_rec = max(best_rec, lcs / float(len(ref_tokens)))
         if best_prec != 0 and best_rec != 0:
             scores[item] = ((1 + beta ** 2) * best_prec * best_rec) / float(best_rec + beta ** 2 * best_prec)
-    return float(np.mean(scores))
+    return scores
 
 
 def cider_d(corpus: Corpus, sigma: float = CIDER_SIGMA, n: int = NGRAM_ORDER) -> float:
     """CIDEr-D as pycocoevalcap's Cider (document frequencies from these references, x10)."""
+    return float(np.mean(cider_d_per_item(corpus, sigma, n)))
+
+
+def cider_d_per_item(corpus: Corpus, sigma: float = CIDER_SIGMA, n: int = NGRAM_ORDER) -> np.ndarray:
+    """Each answer's CIDEr-D [items], the document frequencies from the whole corpus's references."""
     g = corpus.ngrams.n_grams
     hs, hg, hc, ho = corpus.entries(hypotheses=True)
     rs, rg, rc, ro = corpus.entries(hypotheses=False)
     item_grams = _sorted_unique(corpus.ref_item[rs] * g + rg)  # each n-gram once per item: document frequency
     if len(item_grams) == 0:
-        return 0.0  # no reference n-gram at all (pycocoevalcap fails here: max() of no frequencies)
+        return np.zeros(corpus.size)  # no reference n-gram at all (pycocoevalcap fails here: max() of no frequencies)
     df = np.bincount(item_grams % g, minlength=g).astype(np.float64)
     weight = np.log(float(corpus.size)) - np.log(np.maximum(1.0, df))
     h_vec, r_vec = hc * weight[hg], rc * weight[rg]
@@ -215,8 +245,7 @@ def cider_d(corpus: Corpus, sigma: float = CIDER_SIGMA, n: int = NGRAM_ORDER) ->
     val = val * (np.e ** (-(delta ** 2) / (2 * sigma ** 2)))[:, None]
     per_item = np.zeros((corpus.size, n))
     np.add.at(per_item, corpus.ref_item, val)
-    scores = per_item.mean(axis=1) / corpus.refs_per_item * 10.0
-    return float(np.mean(scores))
+    return per_item.mean(axis=1) / corpus.refs_per_item * 10.0
 
 
 class MeteorRun:
@@ -359,6 +388,23 @@ def language_scores(predictions: Mapping[str, str], references: Mapping[str, str
     scores["SPICE"] = None
     scores["Language"] = language_score(scores)
     return {**scores, "n": len(answers), "tokenizer": backend, "notes": notes}
+
+
+def language_per_answer(predictions: Mapping[str, str], references: Mapping[str, str | Sequence[str]],
+                        tokenized: bool = False) -> dict[str, float]:
+    """Each answer's Language score (0..1 scale): DriveLM's weights on its sentence BLEU-1..4, its ROUGE-L and its
+    CIDEr-D, the document frequencies from all the answers' references; what ranks single answers (PAT++'s
+    defense.hardness=language), where the corpus score ranks groups."""
+    answers, refs = _check_inputs(predictions, references, ("predictions", "references"))
+    if not tokenized:
+        tokens = ptb_tokenize(answers + [r for group in refs for r in group])
+        answers, flat = tokens[: len(answers)], iter(tokens[len(answers):])
+        refs = [[next(flat) for _ in group] for group in refs]
+    corpus = Corpus(answers, refs)
+    parts = {f"BLEU_{k}": column for k, column in enumerate(bleu_per_item(corpus).T, 1)}
+    parts.update(ROUGE_L=rouge_l_per_item(corpus), CIDEr=cider_d_per_item(corpus))
+    scores = language_score(parts)
+    return {key: float(score) for key, score in zip(predictions, scores)}
 
 
 def accuracy(predictions: Mapping[str, str], references: Mapping[str, str | Sequence[str]]) -> float:

@@ -14,7 +14,8 @@ task=train with defense=self_reminder only tests the reminded model. task=train 
   2. asks the model `defense.pool_clips` clip variants' questions, spread over the train split (seeds never
      in the test split). Each answer is scored by `defense.hardness`:
      - accuracy: yes/no and choice questions, right or wrong;
-     - judge: every question, with the configured judge's score.
+     - judge: every question, with the configured judge's score;
+     - language: every question, with the answer's own Language score (metrics.vqa.language_per_answer).
      Answers below the mean make hard examples, the rest benign ones, as AAM++ picks them. `defense.examples`
      of each are drawn and written to examples.json, and a resumed run reuses them;
   3. tunes the prefix (vlm/pat.py) into prefix.json, resuming from it;
@@ -33,7 +34,7 @@ from omegaconf import DictConfig, OmegaConf
 from lanevil_train.data.formats.atomic import atomic_write_text
 
 PROMPT_DEFENSES = ("pat++", "pat", "self_reminder")
-HARDNESS = ("accuracy", "judge")  # how PAT++ finds hard examples (choose_examples)
+HARDNESS = ("accuracy", "judge", "language")  # how PAT++ finds hard examples (choose_examples)
 TUNED = ("pat++", "pat")  # the prompt defenses whose prefix is tuned into prefix.json
 EXAMPLES_FILE = "examples.json"
 
@@ -304,6 +305,12 @@ def choose_examples(vlm, train_set, settings: dict, judge, path: Path, choosing:
                          f"by defense.hardness={settings['hardness']}")
     if closed:
         scores = [float(bool(answer_is_correct(qa, text))) for (_, qa), text in zip(pool, answers)]
+    elif settings["hardness"] == "language":  # each answer's own Language score against its reference
+        from lanevil_train.metrics.vqa import language_per_answer
+
+        per_answer = language_per_answer({str(i): text for i, text in enumerate(answers)},
+                                         {str(i): qa["answer"] for i, (_, qa) in enumerate(pool)})
+        scores = [per_answer[str(i)] for i in range(len(pool))]
     else:
         judged = judge.score([qa["question"] for _, qa in pool], [qa["answer"] for _, qa in pool], answers)
         kept = [i for i, s in enumerate(judged) if s is not None]

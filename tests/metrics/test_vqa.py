@@ -10,10 +10,13 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from lanevil_train.metrics import ptb, vqa
-from lanevil_train.metrics.vqa import Corpus, accuracy, bleu, cider_d, language_score, language_scores, rouge_l
+from lanevil_train.metrics.vqa import (Corpus, accuracy, bleu, bleu_per_item, cider_d, cider_d_per_item,
+                                       language_per_answer, language_score, language_scores, rouge_l,
+                                       rouge_l_per_item)
 
 REPO = Path(__file__).resolve().parents[2]
 JAVA = ptb.java_executable()
@@ -103,6 +106,37 @@ def test_scores_equal_pycocoevalcap_random() -> None:
         if not any(r for group in refs for r in group):
             continue  # pycocoevalcap's CIDEr fails when no reference has a word (ours: 0)
         _assert_close(_ours(hyps, refs), _coco(hyps, refs))
+
+
+def _coco_per_item(hyps: list[str], refs: list[list[str]]) -> np.ndarray:
+    """pycocoevalcap's per-answer BLEU-1..4, ROUGE-L and CIDEr [items, 6] (the lists beside its corpus scores)."""
+    from pycocoevalcap.bleu.bleu import Bleu
+    from pycocoevalcap.cider.cider import Cider
+    from pycocoevalcap.rouge.rouge import Rouge
+
+    gts = {i: list(r) for i, r in enumerate(refs)}
+    res = {i: [h] for i, h in enumerate(hyps)}
+    columns = [np.asarray(c) for c in Bleu(4).compute_score(gts, res, verbose=0)[1]]
+    columns += [np.asarray(Rouge().compute_score(gts, res)[1]), np.asarray(Cider().compute_score(gts, res)[1])]
+    return np.stack(columns, axis=1)
+
+
+def test_per_answer_scores_equal_pycocoevalcaps_and_make_each_answers_language_score() -> None:
+    for seed in range(40):
+        hyps, refs = _random_corpus(seed)
+        if not any(r for group in refs for r in group):
+            continue
+        corpus = Corpus(hyps, refs)
+        ours = np.column_stack([bleu_per_item(corpus), rouge_l_per_item(corpus), cider_d_per_item(corpus)])
+        np.testing.assert_allclose(ours, _coco_per_item(hyps, refs), rtol=1e-9, atol=1e-15)
+        keys = [f"q{i}" for i in range(len(hyps))]
+        per_answer = language_per_answer(dict(zip(keys, hyps)), dict(zip(keys, refs)), tokenized=True)
+        expected = ours[:, :4].sum(axis=1) / 12 + ours[:, 4] / 3 + ours[:, 5] / 30
+        np.testing.assert_allclose([per_answer[k] for k in keys], expected, rtol=1e-12)
+    # a right answer ranks above a wrong one
+    scores = language_per_answer({"a": "the road has three lanes", "b": "it is raining"},
+                                 {"a": "the road has three lanes", "b": "the road has two lanes"}, tokenized=True)
+    assert scores["a"] > 0.5 > scores["b"]
 
 
 def test_known_values() -> None:

@@ -199,3 +199,32 @@ def test_each_textual_defense_is_tuned_for_the_model_of_the_defense_with_its_vis
                                     "pat": "none"}
     del configs["aam++"]  # nothing listed does what mida does to the frames: it fine-tunes in its own run
     assert vlm_sources(configs)["mida"] is None
+
+
+def test_pat_plus_plus_finds_hard_examples_by_each_answers_language_score(tiny_model, tmp_path, monkeypatch):
+    from lanevil_train.metrics import vqa
+    from lanevil_train.tasks.vlm_train import train_vlm
+
+    seen = {}
+
+    def scored(predictions, references, tokenized=False):  # the real scores, recorded
+        seen.update(real(predictions, references, tokenized))
+        seen["pairs"] = [(predictions[k], references[k]) for k in predictions]
+        return {k: seen[k] for k in predictions}
+
+    real = vqa.language_per_answer
+    monkeypatch.setattr(vqa, "language_per_answer", scored)
+    run = tmp_path / "run"
+    train_vlm(compose(["task=train", "model=vlm/hf", f"model.path={tiny_model}", "model.max_new_tokens=4",
+                       *TINY_CLIPS, "task.test_after_fit=false", "defense=pat++", "defense.hardness=language",
+                       "defense.steps=1", "defense.prefix_length=2", "defense.top_k=4", "defense.num_candidates=3",
+                       "defense.examples=2", "defense.pool_clips=3", "defense.chunk=4", f"output_dir={run}"]))
+    chosen = json.loads((run / "examples.json").read_text())
+    examples = chosen["examples"]
+    assert chosen["choosing"]["hardness"] == "language" and sorted(e["hard"] for e in examples) == [False] * 2 + [True] * 2
+    values = [v for k, v in seen.items() if k != "pairs"]
+    assert len(values) == chosen["pool"] == len(seen["pairs"]) and chosen["mean_score"] == pytest.approx(
+        sum(values) / len(values))
+    for e in examples:  # every pool question scored (open ones too), each example's score its answer's
+        assert e["hard"] == (e["score"] < chosen["mean_score"]) and e["score"] in values
+        assert any(answer == e["answer"] for answer, _ in seen["pairs"])
