@@ -119,13 +119,12 @@ def probe_cells(processor, frames_as: str, frame_size: tuple[int, int], tokens: 
     out_h, out_w = max(1, round(height / step_y)), max(1, round(width / step_x))
     index = np.full((out_h, out_w), -1, dtype=np.int64)
     for i in range(out_h):
-        for j in range(out_w):
+        for j in range(out_w):  # the cell takes the nearest token whose box (widened by half a step) holds its centre
             y, x = (i + 0.5) * height / out_h - 0.5, (j + 0.5) * width / out_w - 0.5
-            near = [(abs(cx - x) + abs(cy - y), k) for k, (b, centre) in enumerate(zip(boxes, centres))
-                    if b is not None and b[0] - step_x / 2 <= x <= b[1] + step_x / 2
-                    and b[2] - step_y / 2 <= y <= b[3] + step_y / 2 for cx, cy in [centre]]
-            if near:
-                index[i, j] = min(near)[1]
+            inside = [k for k, b in enumerate(boxes) if b is not None and b[0] - step_x / 2 <= x <= b[1] + step_x / 2
+                      and b[2] - step_y / 2 <= y <= b[3] + step_y / 2]
+            if inside:
+                index[i, j] = min(inside, key=lambda k: abs(centres[k][0] - x) + abs(centres[k][1] - y))
     return index
 
 

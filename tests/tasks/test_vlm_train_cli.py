@@ -10,7 +10,7 @@ import pytest
 
 from lanevil_train.results_log import ResultsLog
 from lanevil_train.vlm.tiny import build_tiny_vlm
-from tests.tasks.cli_helpers import run_cli
+from tests.tasks.cli_helpers import run_cli, run_in_process
 
 TINY_CLIPS = ["data=clips", "data.size=[32,48]", "data.train.num_cases=2", "data.val.num_cases=1",
               "data.batch_size=2", "data.illusions=[road_repair]", "data.severities=[3]", "trainer=cpu",
@@ -37,10 +37,11 @@ def test_lora_fine_tuning_saves_an_adapter_tests_it_and_evaluates_it_again(tiny_
     tested = ResultsLog(run / "test" / "per_answer.jsonl").records()
     assert len(tested) == ANSWERS and json.loads((run / "test" / "main.json").read_text())
     # the same model from its adapter folder and from the checkpoint answers the same questions the same way
-    for name, source in (("adapter", [f"model.adapter={adapter}"]), ("ckpt", [f"ckpt_path={run / 'checkpoints' / 'last.ckpt'}"])):
+    for name, source, run_task in (("adapter", [f"model.adapter={adapter}"], run_cli),
+                                   ("ckpt", [f"ckpt_path={run / 'checkpoints' / 'last.ckpt'}"], run_in_process)):
         out = tmp_path / name
-        run_cli(["task=evaluate", "model=vlm/hf", f"model.path={tiny_model}", "model.max_new_tokens=4",
-                 "task.suite=synthetic", f"task.out_dir={out}", *source, *TINY_CLIPS], tmp_path / f"eval-{name}")
+        run_task(["task=evaluate", "model=vlm/hf", f"model.path={tiny_model}", "model.max_new_tokens=4",
+                  "task.suite=synthetic", f"task.out_dir={out}", *source, *TINY_CLIPS], tmp_path / f"eval-{name}")
         answers = {r["key"]: r["answer"] for r in ResultsLog(out / "per_answer.jsonl").records()}
         assert answers == {r["key"]: r["answer"] for r in tested}
 
