@@ -4,9 +4,10 @@ that `task=compare` wrote, one per seed; and each run's wall time from its resul
 
     python benchmarks/vlm_defense_seeds.py /work/bench/cmp_s0 /work/bench/cmp_s1 /work/bench/cmp_s2
 
-The compares must share their defenses and suite (they differ by `seed=` only). A mean gain whose interval
-mean +- 2 std / sqrt(n) holds 0 is marked "~" (not told apart from zero by these seeds; a paired bootstrap over
-test cases is issue 17's).
+The compares must share their suite (they differ by `seed=` only); a defense that some of them lack (a compare
+stopped early, or run over fewer defenses) is summarised over the seeds that hold it, with their number shown.
+A mean gain whose interval mean +- 2 std / sqrt(n) holds 0 is marked "~" (not told apart from zero by these
+seeds; a paired bootstrap over test cases is issue 17's).
 """
 
 from __future__ import annotations
@@ -25,20 +26,17 @@ def gains_by_seed(compares: list[Path]) -> dict[tuple[str, str, str], list[float
             for key, value in row.items():
                 if key.endswith("/gain"):
                     table.setdefault((row["defense"], row["category"], key[:-5]), []).append(float(value))
-    counts = {len(v) for v in table.values()}
-    if counts != {len(compares)}:
-        raise ValueError(f"the compares hold different defenses or scores ({sorted(counts)} values per cell for "
-                         f"{len(compares)} compares); compare runs that differ by seed only")
     return table
 
 
-def summary(values: list[float]) -> str:
-    """mean +- sample std, marked ~ when mean +- 2 std/sqrt(n) holds zero."""
+def summary(values: list[float], seeds: int) -> str:
+    """mean +- sample std, marked ~ when mean +- 2 std/sqrt(n) holds zero, and (n=k) when only k of the seeds
+    hold the value."""
     n = len(values)
     mean = sum(values) / n
     std = math.sqrt(sum((v - mean) ** 2 for v in values) / (n - 1)) if n > 1 else float("nan")
     unclear = n < 2 or abs(mean) <= max(2 * std / math.sqrt(n), 0.005)  # 0.005: below the shown precision
-    return f"{mean:+.2f} ± {std:.2f}{' ~' if unclear else ''}"
+    return f"{mean:+.2f} ± {std:.2f}{' ~' if unclear else ''}{f' (n={n})' if n < seeds else ''}"
 
 
 def run_minutes(run: Path) -> float:
@@ -59,12 +57,13 @@ def main() -> None:
         print("| defense | " + " | ".join(categories) + " |")
         print("|---" * (len(categories) + 1) + "|")
         for defense in dict.fromkeys(d for d, _, _ in table):
-            cells = [summary(table[(defense, c, score)]) if (defense, c, score) in table else "" for c in categories]
+            cells = [summary(table[(defense, c, score)], len(args.compares)) if (defense, c, score) in table else "" for c in categories]
             print(f"| {defense} | " + " | ".join(cells) + " |")
     print("\n### Run wall time (minutes, per seed)\n")
     runs = sorted({p.name for compare in args.compares for p in (compare / "runs").iterdir()})
     for name in runs:
-        print(f"- {name}: " + ", ".join(f"{run_minutes(c / 'runs' / name):.1f}" for c in args.compares))
+        print(f"- {name}: " + ", ".join(f"{run_minutes(c / 'runs' / name):.1f}" for c in args.compares
+                                        if (c / "runs" / name).is_dir()))
 
 
 if __name__ == "__main__":

@@ -15,11 +15,11 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-import torch.nn.functional as F  # noqa: E402
 from hydra import compose, initialize_config_module  # noqa: E402
 from matplotlib.patches import Rectangle  # noqa: E402
 
-from lanevil_train.callbacks.regions import HAA, LAA, extract_regions, grad_cam  # noqa: E402
+from aam_step import observed_step  # noqa: E402  (docs/, beside this script)
+from lanevil_train.callbacks.regions import HAA, LAA, extract_regions  # noqa: E402
 from lanevil_train.data.transforms import IMAGENET_MEAN, IMAGENET_STD  # noqa: E402
 from lanevil_train.tasks.builders import build_datamodule, build_defense, build_model, model_config  # noqa: E402
 
@@ -47,19 +47,7 @@ def main() -> None:
     batches = iter(build_datamodule(cfg, ("train",), model).train_dataloader())
     batch = next(batches)
 
-    # one training step by hand: the hooks keep the activation and the gradient of its backward
-    aam.on_fit_start(None, model)
-    model.train()
-    aam._capture = True
-    out = model.training_step(batch, 0)
-    out["loss"].backward()
-    aam._capture = False
-    scores, harder = aam.per_sample_scores(out)
-    hard = aam.harvest(aam._activation, aam._gradient, scores, harder, batch)
-    for kind, patch in hard:
-        aam.bank.add(kind, patch)
-    cams = grad_cam(aam._activation, aam._gradient)
-    cams = F.interpolate(cams[:, None], size=batch["images"].shape[-2:], mode="bilinear")[:, 0].numpy()
+    scores, harder, hard, cams = observed_step(aam, model, batch, batch["images"])
     masks = aam.adapter_masks(batch)
     hard_idx = [i for i in range(len(scores)) if (scores[i] > scores.mean() if harder else scores[i] < scores.mean())]
 

@@ -18,12 +18,12 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-import torch.nn.functional as F  # noqa: E402
 from matplotlib.patches import Rectangle  # noqa: E402
 from torch.utils.data import DataLoader  # noqa: E402
 
 from lanevil_train.callbacks import AttentionAreaMixing, BatchAdapter  # noqa: E402
-from lanevil_train.callbacks.regions import HAA, LAA, extract_regions, grad_cam  # noqa: E402
+from aam_step import observed_step  # noqa: E402  (docs/, beside this script)
+from lanevil_train.callbacks.regions import HAA, LAA, extract_regions  # noqa: E402
 from lanevil_train.vlm.clip_set import SyntheticClipSuite  # noqa: E402
 from lanevil_train.vlm.qa_data import ClipQADataset, collate_clip_qa  # noqa: E402
 from lanevil_train.vlm.training import VLMFineTuner  # noqa: E402
@@ -51,20 +51,8 @@ def main() -> None:
                              generator=torch.Generator().manual_seed(args.seed)))
     batch = module.on_after_batch_transfer(next(loader), 0)
 
-    # one training step by hand: the hooks keep the vision layer's tokens and the gradient of its backward
-    aam.on_fit_start(None, module)
-    module.train()
-    aam._capture = True
-    out = module.training_step(batch, 0)
-    out["loss"].backward()
-    aam._capture = False
-    scores, harder = aam.per_sample_scores(out)
-    found = aam.harvest(aam._activation, aam._gradient, scores, harder, batch)
-    for kind, patch in found:
-        aam.bank.add(kind, patch)
     images = batch["images"]
-    cams = grad_cam(aam._activation, aam._gradient)
-    cams = F.interpolate(cams[:, None], size=images.shape[-2:], mode="bilinear")[:, 0].numpy()
+    scores, _, found, cams = observed_step(aam, module, batch, images)
     masks = aam.adapter_masks(batch)
     clip_loss = scores[::6]
     hard_clips = [int(c) for c in np.argsort(-clip_loss) if clip_loss[c] > clip_loss.mean()][:args.clips]
