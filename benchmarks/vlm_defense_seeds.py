@@ -2,7 +2,8 @@
 values) per illusion category and on average, for every score the compares hold, from the defense_gain.json files
 that `task=compare` wrote, one per seed; and each run's wall time from its results files.
 
-    python benchmarks/vlm_defense_seeds.py /work/bench/cmp_s0 /work/bench/cmp_s1 /work/bench/cmp_s2
+    python benchmarks/vlm_defense_seeds.py /work/bench/cmp_s0 /work/bench/cmp_s1 /work/bench/cmp_s2 \
+        [--plot docs/vlm_defense_seeds.png]
 
 The compares must share their suite (they differ by `seed=` only); a defense that some of them lack (a compare
 stopped early, or run over fewer defenses) is summarised over the seeds that hold it, with their number shown.
@@ -45,9 +46,39 @@ def run_minutes(run: Path) -> float:
     return (max(times) - min(times)) / 60 if times else float("nan")
 
 
+def plot_average_gains(table: dict[tuple[str, str, str], list[float]], scores: list[str], path: Path) -> None:
+    """One panel per score: each defense's average gain over none, the bar its mean over the seeds, the whisker
+    its std, the dots the seeds themselves."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    defenses = list(dict.fromkeys(d for d, c, _ in table if c == "average"))
+    fig, axes = plt.subplots(1, len(scores), figsize=(1.2 + 0.75 * len(defenses) * len(scores), 3.6), squeeze=False)
+    for ax, score in zip(axes[0], scores):
+        for i, defense in enumerate(defenses):
+            values = table.get((defense, "average", score), [])
+            if not values:
+                continue
+            mean = sum(values) / len(values)
+            std = math.sqrt(sum((v - mean) ** 2 for v in values) / (len(values) - 1)) if len(values) > 1 else 0.0
+            ax.bar(i, mean, 0.7, yerr=std, capsize=3, color=f"C{i}", alpha=0.8)
+            ax.scatter([i] * len(values), values, s=10, color="black", zorder=3)
+        ax.axhline(0.0, color="black", linewidth=0.8)
+        ax.set_xticks(range(len(defenses)), defenses, rotation=45, ha="right", fontsize=8)
+        ax.set_ylabel("gain over none (points)")
+        ax.set_title(f"average perturbed {score}", fontsize=10)
+        ax.grid(axis="y", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    print(f"\nwrote {path}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("compares", nargs="+", type=Path, help="task=compare output folders, one per seed")
+    parser.add_argument("--plot", type=Path, help="draw the average gains (mean, std, seeds) per score here")
     args = parser.parse_args()
     table = gains_by_seed(args.compares)
     scores = list(dict.fromkeys(score for _, _, score in table))
@@ -57,13 +88,16 @@ def main() -> None:
         print("| defense | " + " | ".join(categories) + " |")
         print("|---" * (len(categories) + 1) + "|")
         for defense in dict.fromkeys(d for d, _, _ in table):
-            cells = [summary(table[(defense, c, score)], len(args.compares)) if (defense, c, score) in table else "" for c in categories]
+            cells = [summary(table[(defense, c, score)], len(args.compares)) if (defense, c, score) in table else ""
+                     for c in categories]
             print(f"| {defense} | " + " | ".join(cells) + " |")
     print("\n### Run wall time (minutes, per seed)\n")
     runs = sorted({p.name for compare in args.compares for p in (compare / "runs").iterdir()})
     for name in runs:
         print(f"- {name}: " + ", ".join(f"{run_minutes(c / 'runs' / name):.1f}" for c in args.compares
                                         if (c / "runs" / name).is_dir()))
+    if args.plot:
+        plot_average_gains(table, scores, args.plot)
 
 
 if __name__ == "__main__":
