@@ -1,4 +1,5 @@
-"""apply_illusion speed at 1280x720 on one core (median per illusion), and task=build throughput.
+"""apply_illusion speed at 1280x720 on one core (median per illusion), recovering the ground plane from a
+photo's lanes (context_from_lanes, target under 5 ms), and task=build throughput.
 
 Usage: OMP_NUM_THREADS=1 python benchmarks/bench_illusions.py [--scenes N] [--build-images 1000 --workers 2]
 """
@@ -15,6 +16,8 @@ import numpy as np
 
 from lanevil_train.data.illusion_set import Plan, build_illusion_set, synthetic_cases
 from lanevil_train.illusions import ILLUSIONS, context_from_scene
+from lanevil_train.illusions.recover import context_from_lanes
+from lanevil_train.lanes import TUSIMPLE_H_SAMPLES, lanes_to_rows, rows_to_lane
 from lanevil_train.sim import build_scene, render_scene, sample_scene_params
 
 
@@ -34,6 +37,22 @@ def per_illusion(scenes: int) -> dict[str, float]:
                 times.append(time.perf_counter() - t0)
         out[name] = 1e3 * statistics.median(times)
     return out
+
+
+def recover_ms(scenes: int, repeats: int = 20) -> float:
+    """Median ms of context_from_lanes on the TuSimple rows (10-px rows, integer x) of `scenes` 1280x720
+    scenes' lanes, as a user's photo gives them."""
+    times = []
+    for seed in range(scenes):
+        scene = build_scene(seed, sample_scene_params(seed), 1280, 720)
+        rows = np.round(lanes_to_rows(scene.lanes()[0], TUSIMPLE_H_SAMPLES))
+        rows[(rows < 0) | (rows >= 1280)] = -2.0
+        lanes = [rows_to_lane(r, TUSIMPLE_H_SAMPLES) for r in rows]
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            context_from_lanes(lanes, (720, 1280))
+            times.append(time.perf_counter() - t0)
+    return 1e3 * statistics.median(times)
 
 
 def build_rate(images: int, workers: int) -> tuple[float, int]:
@@ -58,6 +77,7 @@ def main() -> None:
     print(f"apply_illusion at 1280x720, one core, median over {args.scenes} scenes x 5 severities (ms):")
     for name, ms in times.items():
         print(f"  {name:24s} {ms:7.1f}")
+    print(f"context_from_lanes (ground plane from TuSimple rows), median: {recover_ms(args.scenes):.2f} ms")
     if args.build_images:
         seconds, images = build_rate(args.build_images, args.workers)
         print(f"task=build: {images} images in {seconds:.1f} s with {args.workers} workers "
