@@ -55,7 +55,7 @@ def plot_average_gains(table: dict[tuple[str, str, str], list[float]], scores: l
     import matplotlib.pyplot as plt
 
     defenses = list(dict.fromkeys(d for d, c, _ in table if c == "average"))
-    fig, axes = plt.subplots(1, len(scores), figsize=(1.2 + 0.75 * len(defenses) * len(scores), 3.6), squeeze=False)
+    fig, axes = plt.subplots(1, len(scores), figsize=(1.5 + 0.4 * len(defenses) * len(scores), 3.6), squeeze=False)
     for ax, score in zip(axes[0], scores):
         for i, defense in enumerate(defenses):
             values = table.get((defense, "average", score), [])
