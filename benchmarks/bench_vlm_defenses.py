@@ -36,28 +36,24 @@ def _batches(size: tuple[int, int], count: int, batch: int = 16) -> list[list[di
 
 
 def time_visual(model: str, method: str, steps: int) -> dict:
-    """Seconds per fine-tuning step (the first, warm-up step left out) with the method's callback or mixer."""
+    """Seconds per fine-tuning step (the first, warm-up step left out) with the callback or mixer that
+    `defense=<method>` builds for a VLM (tasks/vlm_train.visual_defense, from the method's config)."""
     import pytorch_lightning as pl
     import torch
+    from hydra import compose, initialize_config_module
     from torch.utils.data import DataLoader
 
-    from lanevil_train.callbacks import AttentionAreaMixing, BatchAdapter, PGDAdversarialTraining
-    from lanevil_train.data.mixers import MixUp
+    from lanevil_train.tasks.vlm_train import visual_defense
     from lanevil_train.vlm.qa_data import MixingClipCollate, collate_clip_qa
     from lanevil_train.vlm.training import VLMFineTuner
 
     torch.manual_seed(0)
     module = VLMFineTuner(model, lora=None, lr=3e-4, frames_as="video")
-    callbacks, collate = [], collate_clip_qa
-    if method == "mixup":
-        collate = MixingClipCollate(MixUp(alpha=0.2, p=0.5, seed=0))
-    elif method == "pgd":
-        callbacks.append(PGDAdversarialTraining(mean=(0.0, 0.0, 0.0), std=(1.0, 1.0, 1.0),
-                                                adapter=BatchAdapter(images="images")))
-    elif method in ("aam", "aam++"):
-        callbacks.append(AttentionAreaMixing(layer=module.attention_layer(), mode=method,
-                                             feature_map=module.vision_maps,
-                                             adapter=BatchAdapter(images="images", lanes="lanes")))
+    with initialize_config_module(config_module="lanevil_train.conf", version_base="1.3"):
+        cfg = compose(config_name="config", overrides=["model=vlm/hf", f"model.path={model}", f"defense={method}"])
+    callback, mixer = visual_defense(cfg, module)
+    callbacks = [callback] if callback is not None else []
+    collate = MixingClipCollate(mixer) if mixer is not None else collate_clip_qa
     items = [item for batch in _batches((64, 112), steps + 1) for item in batch]
     loader = DataLoader(items, batch_size=16, shuffle=False, collate_fn=collate)
     stamps = []

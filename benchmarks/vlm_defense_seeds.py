@@ -30,12 +30,18 @@ def gains_by_seed(compares: list[Path]) -> dict[tuple[str, str, str], list[float
     return table
 
 
+def mean_std(values: list[float]) -> tuple[float, float]:
+    """The mean and the sample std (NaN for one value)."""
+    n = len(values)
+    mean = sum(values) / n
+    return mean, math.sqrt(sum((v - mean) ** 2 for v in values) / (n - 1)) if n > 1 else float("nan")
+
+
 def summary(values: list[float], seeds: int) -> str:
     """mean +- sample std, marked ~ when mean +- 2 std/sqrt(n) holds zero, and (n=k) when only k of the seeds
     hold the value."""
     n = len(values)
-    mean = sum(values) / n
-    std = math.sqrt(sum((v - mean) ** 2 for v in values) / (n - 1)) if n > 1 else float("nan")
+    mean, std = mean_std(values)
     unclear = n < 2 or abs(mean) <= max(2 * std / math.sqrt(n), 0.005)  # 0.005: below the shown precision
     return f"{mean:+.2f} ± {std:.2f}{' ~' if unclear else ''}{f' (n={n})' if n < seeds else ''}"
 
@@ -61,9 +67,8 @@ def plot_average_gains(table: dict[tuple[str, str, str], list[float]], scores: l
             values = table.get((defense, "average", score), [])
             if not values:
                 continue
-            mean = sum(values) / len(values)
-            std = math.sqrt(sum((v - mean) ** 2 for v in values) / (len(values) - 1)) if len(values) > 1 else 0.0
-            ax.bar(i, mean, 0.7, yerr=std, capsize=3, color=f"C{i}", alpha=0.8)
+            mean, std = mean_std(values)
+            ax.bar(i, mean, 0.7, yerr=0.0 if math.isnan(std) else std, capsize=3, color=f"C{i}", alpha=0.8)
             ax.scatter([i] * len(values), values, s=10, color="black", zorder=3)
         ax.axhline(0.0, color="black", linewidth=0.8)
         ax.set_xticks(range(len(defenses)), defenses, rotation=45, ha="right", fontsize=8)
