@@ -36,8 +36,8 @@ class ProcessedDataset(Dataset):
 def collate_lanes(items: list[dict]) -> dict:
     """Stack images and encoded targets; keep lanes and meta as per-sample lists (they vary in size).
 
-    batch = {"images": (B,3,H,W) float, "targets": (B, ...) float (if encoded),
-             "lanes": [[lane, ...], ...] in original pixels, "meta": [dict, ...]}
+    batch = {"images": (B,3,H,W) float, "targets": {key: (B, ...) tensor} (if encoded: each key of the head's
+             encode output stacked), "lanes": [[lane, ...], ...] in original pixels, "meta": [dict, ...]}
     """
     batch = {
         "images": torch.from_numpy(np.stack([it["image"] for it in items])),
@@ -46,7 +46,8 @@ def collate_lanes(items: list[dict]) -> dict:
         "meta": [it["meta"] for it in items],
     }
     if "target" in items[0]:
-        batch["targets"] = torch.from_numpy(np.stack([it["target"] for it in items]).astype(np.float32))
+        batch["targets"] = {key: torch.from_numpy(np.stack([it["target"][key] for it in items]))
+                            for key in items[0]["target"]}
     return batch
 
 
@@ -64,7 +65,7 @@ class MixingCollate:
     def __call__(self, items: list[dict]) -> dict:
         items = self.mixer(items)
         if self.encode is not None:
-            items = [{**it, "target": self.encode(it["input_lanes"])} for it in items]
+            items = [{**it, "target": self.encode(it["input_lanes"], it["meta"])} for it in items]
         return collate_lanes(items)
 
 

@@ -139,7 +139,8 @@ def crop_top_rows(image: np.ndarray, lanes: list[np.ndarray], rows: int) -> tupl
 class LaneSampleProcessor:
     """Turn a sample into network inputs: crop, transform, normalise, and encode targets with `encode`.
 
-    `encode` is the detector family's own target encoder (lanes in input pixels -> fixed-shape array),
+    `encode` is the detector family's own target encoder (lanes in input pixels, meta -> a dict of fixed-shape
+    arrays),
     passed in by the task so data/ never imports models/. `crop_top` is the fraction of the image
     height cut from the top before anything else (as CLRNet's and UFLD's cut_height).
     """
@@ -162,5 +163,5 @@ class LaneSampleProcessor:
             "meta": sample["meta"],
         }
         if self.encode is not None:
-            item["target"] = self.encode(lanes)
+            item["target"] = self.encode(lanes, sample["meta"])
         return item

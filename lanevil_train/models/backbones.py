@@ -1,6 +1,10 @@
 """Backbone factory: timm ``features_only`` networks that return a list of feature maps.
 
-The returned module is timm's own, with ``.channels`` and ``.strides`` (from feature_info) added.
+Any timm model with a features-only form works by name (the ResNets and VGG-16 are tested). The returned
+module is timm's own, with ``.channels`` and ``.strides`` (from feature_info) added. ``output_stride``
+(8 or 16) dilates the last stages instead of striding them, as SCNN does with VGG-16 and DeepLab with
+ResNets: timm's own dilation for the models that have it, our own for VGG (pool4 / pool5 removed,
+the later 3x3 convolutions dilated, as DeepLab-LargeFOV and SCNN's VGG-16).
 
 Only ``pretrained=True`` may touch the network (timm's hub download); the default is random
 init, and ``checkpoint=path`` loads a local state dict (timm / torchvision / our own layout).
@@ -9,6 +13,7 @@ init, and ``checkpoint=path`` loads a local state dict (timm / torchvision / our
 from __future__ import annotations
 
 import re
+from functools import lru_cache
 from pathlib import Path
 from typing import Sequence
 
@@ -18,13 +23,9 @@ from torch import nn
 
 from lanevil_train.checkpoints import load_checkpoint_file
 
-# The stride of each feature stage timm's features_only backbones return (index = an out_indices entry);
-# tests check it against timm. Config checks read it to validate out_indices and the input size.
-_RESNET_STRIDES = (2, 4, 8, 16, 32)
-STAGE_STRIDES: dict[str, tuple[int, ...]] = {"resnet18": _RESNET_STRIDES, "resnet34": _RESNET_STRIDES,
-                                             "resnet50": _RESNET_STRIDES, "resnet101": _RESNET_STRIDES,
-                                             "vgg16": (1, 2, 4, 8, 16, 32)}
-SUPPORTED_BACKBONES: tuple[str, ...] = tuple(STAGE_STRIDES)
+# The backbones the tests build (any timm name with a features-only form works too).
+TESTED_BACKBONES: tuple[str, ...] = ("resnet18", "resnet34", "resnet50", "resnet101", "vgg16")
+OUTPUT_STRIDES = (8, 16, 32)
 
 # Prefixes that wrappers put in front of backbone keys (DataParallel, Lightning, our detector).
 _WRAPPER_PREFIXES = ("module.", "model.", "backbone.", "encoder.", "body.", "net.")
@@ -32,30 +33,95 @@ _WRAPPER_PREFIXES = ("module.", "model.", "backbone.", "encoder.", "body.", "net
 _HEAD_KEY = re.compile(r"^(fc|head|classifier|pre_logits|last_linear)\.")
 
 
+def check_backbone_name(name: str) -> None:
+    """A ValueError naming `name` unless timm has a model of that name."""
+    if not isinstance(name, str) or not timm.is_model(name):
+        close = timm.list_models(f"*{name}*")[:8] if isinstance(name, str) else []
+        hint = f"; close names: {', '.join(close)}" if close else ""
+        raise ValueError(f"unknown backbone {name!r}: not a timm model name (tested: {', '.join(TESTED_BACKBONES)})"
+                         f"{hint}")
+
+
+@lru_cache(maxsize=None)
+def stage_strides(name: str, output_stride: int | None = None) -> tuple[int, ...]:
+    """The stride of each stage timm's features-only `name` returns (index = an out_indices entry), with
+    `output_stride` applied; built on the meta device (shapes only, no memory, no weights)."""
+    check_backbone_name(name)
+    _check_output_stride(output_stride)
+    with torch.device("meta"):
+        if name.startswith("vgg"):
+            strides = timm.create_model(name, features_only=True).feature_info.reduction()
+            return tuple(min(s, output_stride or s) for s in strides)
+        kwargs = {"output_stride": output_stride} if output_stride else {}
+        return tuple(timm.create_model(name, features_only=True, **kwargs).feature_info.reduction())
+
+
+def indices_for_strides(name: str, strides: Sequence[int], output_stride: int | None = None) -> tuple[int, ...]:
+    """The out_indices giving feature maps at `strides` (the deepest stage of each stride: with dilation several
+    stages share one), e.g. (2, 3, 4) for a ResNet and strides (8, 16, 32); a ValueError when one has none."""
+    have = stage_strides(name, output_stride)
+    out = []
+    for stride in strides:
+        found = [i for i, s in enumerate(have) if s == stride]
+        if not found:
+            raise ValueError(f"model.feature_strides: backbone {name} (output_stride={output_stride}) has no stage of "
+                             f"stride {stride}; its stages have strides {list(have)}")
+        out.append(found[-1])
+    return tuple(out)
+
+
+def _check_output_stride(output_stride) -> None:
+    if output_stride is not None and output_stride not in OUTPUT_STRIDES:
+        raise ValueError(f"output_stride={output_stride!r}: expected null or one of {', '.join(map(str, OUTPUT_STRIDES))}")
+
+
 def build_backbone(
     name: str,
     pretrained: bool = False,
     checkpoint: str | None = None,
-    out_indices: Sequence[int] = (4,),
+    out_indices: Sequence[int] | None = (4,),
+    output_stride: int | None = None,
 ) -> nn.Module:
     """Build a timm features-only backbone; weights random, hub (``pretrained``) or a local file.
 
     ``out_indices`` are timm's: (4,) is layer4 (stride 32) for ResNets and conv5_3 (stride 16)
-    for vgg16 (whose index 5 is the stride-32 max-pool).
+    for vgg16 (whose index 5 is the stride-32 max-pool); None means every stage.
     """
-    if name not in SUPPORTED_BACKBONES:
-        raise ValueError(f"unknown backbone {name!r}; supported: {', '.join(SUPPORTED_BACKBONES)}")
+    check_backbone_name(name)
+    _check_output_stride(output_stride)
     if pretrained and checkpoint is not None:
         raise ValueError("build_backbone: give either pretrained=True or checkpoint=..., not both")
-    net = timm.create_model(name, pretrained=pretrained, features_only=True, out_indices=tuple(out_indices))
-    # the timm module itself (so hooks address e.g. "backbone.layer4"), plus our two attributes
+    kwargs = {} if out_indices is None else {"out_indices": tuple(out_indices)}
+    if output_stride and not name.startswith("vgg"):
+        kwargs["output_stride"] = output_stride
+    net = timm.create_model(name, pretrained=pretrained, features_only=True, **kwargs)
+    # the timm module itself (so hooks address e.g. "backbone.layer4"), plus our attributes
     backbone = net
     backbone.backbone_name = name
     backbone.channels = list(net.feature_info.channels())
     backbone.strides = list(net.feature_info.reduction())
+    if output_stride and name.startswith("vgg"):
+        _dilate_vgg(backbone, output_stride)
     if checkpoint is not None:
         load_backbone_checkpoint(backbone, checkpoint)
     return backbone
+
+
+def _dilate_vgg(net: nn.Module, output_stride: int) -> None:
+    """Remove the max-pools that would take the stride past `output_stride` and dilate every 3x3 convolution
+    after them by the stride they skip (DeepLab-LargeFOV, SCNN's VGG-16): the weights keep their shapes, so
+    ImageNet checkpoints still load."""
+    stride, dilation = 1, 1
+    for name, module in net.named_children():
+        if isinstance(module, nn.MaxPool2d):
+            if stride * 2 > output_stride:
+                setattr(net, name, nn.Identity())
+                dilation *= 2
+            else:
+                stride *= 2
+        elif isinstance(module, nn.Conv2d) and module.kernel_size == (3, 3) and dilation > 1:
+            module.dilation, module.padding = (dilation, dilation), (dilation, dilation)
+    net.strides = [min(s, output_stride) for s in net.strides]
 
 
 def _read_state_dict(path: Path) -> dict[str, torch.Tensor]:

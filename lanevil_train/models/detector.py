@@ -1,8 +1,8 @@
-"""LaneDetector: the one LightningModule for every detector family (backbone + family head).
+"""LaneDetector: the one LightningModule for every detector family (backbone + optional neck + family head).
 
-forward(images) -> raw head outputs (no NMS, exportable); head.loss(raw, targets) -> losses;
-head.decode(raw) -> lanes in input pixels, scaled here to each image's original size and scored
-by the same TuSimple metric for every family.
+forward(images) -> raw head outputs (no NMS, exportable); head.loss(raw, targets) -> losses, every part
+logged; head.decode(raw) -> lanes in input pixels, scaled here to each image's original size and scored
+by the same TuSimple metric for every family. The head contract is models/head.py's LaneHead.
 """
 
 from __future__ import annotations
@@ -14,28 +14,40 @@ from torch import nn
 
 from lanevil_train.lanes import default_h_samples, scale_lanes
 from lanevil_train.metrics import TuSimpleMetric, tusimple_lane_scores
+from lanevil_train.models.head import check_decode_options, targets_to
+from lanevil_train.models.schedules import cosine, scaled_lr
 
 TUSIMPLE_WIDTH = 1280  # the TuSimple 20 px threshold is for images this wide
+# What the head's loss returns besides its named parts (which are logged one by one).
+_LOSS_KEYS = ("loss", "per_sample")
 
 
-# The learning-rate schedules LaneDetector knows (model.scheduler).
-SCHEDULERS = ("cosine", "none")
+def adam(params, lr: float = 3e-4, weight_decay: float = 0.0) -> torch.optim.Optimizer:
+    return torch.optim.Adam(params, lr=lr, weight_decay=weight_decay)
 
 
 class LaneDetector(pl.LightningModule):
-    """A lane detector = backbone (list of feature maps) + head (forward/loss/decode/encode)."""
+    """A lane detector = backbone (list of feature maps) + optional neck + head (forward/loss/decode/encode).
 
-    def __init__(self, backbone: nn.Module, head: nn.Module, lr: float = 3e-4, weight_decay: float = 0.0,
-                 scheduler: str = "cosine", decode: dict | None = None, crop_top: float = 0.0):
+    `optimizer` is a callable params -> optimizer (a `_partial_` config, e.g. torch.optim.AdamW with its lr),
+    `scheduler` one (optimizer, total_steps) -> LR scheduler stepped every optimizer step, or None for a
+    constant rate. The optimizer's rate is the one at `reference_batch_size`, scaled to the run's global batch by
+    `lr_scaling` (models/schedules.py).
+    """
+
+    def __init__(self, backbone: nn.Module, head: nn.Module, neck: nn.Module | None = None, optimizer=None,
+                 scheduler=cosine, reference_batch_size: int | None = None, lr_scaling: str = "none",
+                 decode: dict | None = None, crop_top: float = 0.0):
         super().__init__()
-        if scheduler not in SCHEDULERS:
-            raise ValueError(f"scheduler={scheduler!r}: expected one of {', '.join(SCHEDULERS)}")
         self.backbone = backbone
+        self.neck = neck
         self.head = head
-        self.lr = lr
-        self.weight_decay = weight_decay
-        self.scheduler = scheduler
+        self.optimizer_factory = optimizer or adam
+        self.scheduler_factory = scheduler
+        self.reference_batch_size = reference_batch_size
+        self.lr_scaling = lr_scaling
         self.decode_kwargs = dict(decode or {})
+        check_decode_options(head, self.decode_kwargs, "model.decode")
         self.crop_top = crop_top  # fraction of the original height cut before resizing (data.crop_top)
         self.val_metric = TuSimpleMetric()
         self.test_metric = TuSimpleMetric()
@@ -50,8 +62,13 @@ class LaneDetector(pl.LightningModule):
         if self.build_config is not None:
             checkpoint["lanevil_model"] = self.build_config
 
+    def features(self, images: torch.Tensor) -> list[torch.Tensor]:
+        """The feature maps the head reads: the backbone's, through the neck if there is one."""
+        features = self.backbone(images)
+        return features if self.neck is None else self.neck(features)
+
     def forward(self, images: torch.Tensor) -> dict[str, torch.Tensor]:
-        return self.head(self.backbone(images))
+        return self.head(self.features(images))
 
     def predict_lanes(self, images: torch.Tensor, original_sizes: list[tuple[int, int]]) -> list[list[np.ndarray]]:
         """Decoded lanes per image, in each image's original pixels (original_sizes: (H, W) each)."""
@@ -67,15 +84,15 @@ class LaneDetector(pl.LightningModule):
     def batch_loss(self, batch: dict) -> dict[str, torch.Tensor]:
         """The head's losses on a batch (total, parts and the per-sample vector), and the raw outputs."""
         raw = self(batch["images"])
-        return {**self.head.loss(raw, batch["targets"]), "raw": raw}
+        return {**self.head.loss(raw, targets_to(batch["targets"], batch["images"].device)), "raw": raw}
 
     def training_step(self, batch: dict, batch_idx: int) -> dict[str, torch.Tensor]:
         losses = self.batch_loss(batch)
         batch_size = len(batch["images"])
         self.log("train/loss", losses["loss"], prog_bar=True, batch_size=batch_size)
-        for key in ("cls_loss", "reg_loss"):
-            if key in losses:
-                self.log(f"train/{key}", losses[key], batch_size=batch_size)
+        for key, value in losses.items():
+            if key not in _LOSS_KEYS and isinstance(value, torch.Tensor) and value.ndim == 0:
+                self.log(f"train/{key}", value, batch_size=batch_size)
         out = {"loss": losses["loss"], "per_sample_loss": losses["per_sample"].detach()}
         if self.score_train_batches:
             out["per_sample_accuracy"] = self.train_accuracy(losses["raw"], batch)
@@ -119,12 +136,24 @@ class LaneDetector(pl.LightningModule):
             self.log(f"{stage}/{key}", value, sync_dist=False, rank_zero_only=False)
         metric.reset()
 
+    def global_batch_size(self) -> int:
+        """Images per optimizer step over all devices: the loader's batch x devices x gradient accumulation."""
+        trainer = self.trainer
+        loader_batch = getattr(trainer.datamodule, "batch_size", None) if trainer.datamodule is not None else None
+        if loader_batch is None:
+            raise ValueError("LaneDetector: the global batch size needs the datamodule's batch_size (data.batch_size)")
+        return int(loader_batch) * trainer.world_size * trainer.accumulate_grad_batches
+
     def configure_optimizers(self):
-        optimizer = torch.optim.Adam(self.parameters(), lr=self.lr, weight_decay=self.weight_decay)
-        if self.scheduler == "none":
+        optimizer = self.optimizer_factory(self.parameters())
+        if self.lr_scaling != "none" and self.reference_batch_size:
+            batch = self.global_batch_size()
+            for group in optimizer.param_groups:
+                group["lr"] = scaled_lr(group["lr"], batch, self.reference_batch_size, self.lr_scaling)
+        if self.scheduler_factory is None:
             return optimizer
         total = max(int(self.trainer.estimated_stepping_batches), 1)
-        schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=total)
+        schedule = self.scheduler_factory(optimizer, total)
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": schedule, "interval": "step"}}
 
 

@@ -18,6 +18,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from lanevil_train.lanes import as_lane
+from lanevil_train.models.head import LaneHead
 from lanevil_train.models.laneatt_anchors import (
     TARGET_META,
     anchor_cut_indices,
@@ -29,13 +30,15 @@ from lanevil_train.models.losses import anchor_target_distances, focal_loss
 from lanevil_train.models.nms import lane_ends, lane_nms
 
 
-class LaneATTHead(nn.Module):
-    """LaneATT: anchor feature pooling, anchor attention, classification and regression."""
+class LaneATTHead(LaneHead):
+    """LaneATT: anchor feature pooling, anchor attention, classification and regression.
+
+    It reads the last of the feature maps it is given (the stride-32 stage in its paper)."""
 
     def __init__(
         self,
-        in_channels: int,
-        feature_stride: int,
+        in_channels: list[int],
+        in_strides: list[int],
         image_size: tuple[int, int],
         n_offsets: int = 72,
         anchor_feat_channels: int = 64,
@@ -51,11 +54,11 @@ class LaneATTHead(nn.Module):
         focal_alpha: float = 0.25,
         focal_gamma: float = 2.0,
     ) -> None:
-        super().__init__()
-        h, w = int(image_size[0]), int(image_size[1])
+        super().__init__(in_channels, in_strides, image_size)
+        h, w = self.image_size
+        feature_stride = self.in_strides[-1]
         if neg_threshold < pos_threshold:
             raise ValueError(f"LaneATTHead: neg_threshold {neg_threshold} must be >= pos_threshold {pos_threshold}")
-        self.image_size = (h, w)
         self.n_offsets = n_offsets
         self.max_lanes = max_lanes
         self.feature_stride = feature_stride
@@ -88,7 +91,7 @@ class LaneATTHead(nn.Module):
         self.row_ys = row_ys(h, n_offsets)
 
         feat_dim = anchor_feat_channels * hf
-        self.conv1 = nn.Conv2d(in_channels, anchor_feat_channels, kernel_size=1)
+        self.conv1 = nn.Conv2d(self.in_channels[-1], anchor_feat_channels, kernel_size=1)
         self.attention_layer = nn.Linear(feat_dim, self.n_anchors - 1)
         self.cls_layer = nn.Linear(2 * feat_dim, 2)
         self.reg_layer = nn.Linear(2 * feat_dim, n_offsets + 1)
@@ -118,9 +121,9 @@ class LaneATTHead(nn.Module):
         return {"cls_logits": self.cls_layer(joint), "length": reg[..., 0], "xs": self.anchor_xs + reg[..., 1:]}
 
     # ------------------------------------------------------------------ targets
-    def encode(self, lanes: list[np.ndarray]) -> np.ndarray:
-        """GT lanes (input pixels) -> float32 (max_lanes, 3 + n_offsets): [valid, start, length, xs]."""
-        return encode_lanes(lanes, self.image_size, self.n_offsets, self.max_lanes)
+    def encode(self, lanes: list[np.ndarray], meta: dict | None = None) -> dict[str, np.ndarray]:
+        """GT lanes (input pixels) -> {"lanes": float32 (max_lanes, 3 + n_offsets)}: [valid, start, length, xs]."""
+        return {"lanes": encode_lanes(lanes, self.image_size, self.n_offsets, self.max_lanes)}
 
     def match(self, targets: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Anchor assignment: positives (B, A), negatives (B, A), index of the matched target (B, A)."""
@@ -131,9 +134,9 @@ class LaneATTHead(nn.Module):
         best, idx = dist.min(dim=-1)
         return best < self.pos_threshold, best > self.neg_threshold, idx
 
-    def loss(self, raw: dict, targets: torch.Tensor) -> dict[str, torch.Tensor]:
+    def loss(self, raw: dict, targets: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """Focal classification + smooth-L1 regression of positives, per image as the official."""
-        targets = targets.to(raw["xs"].device).float()
+        targets = targets["lanes"].to(raw["xs"].device).float()
         if targets.ndim != 3 or targets.shape[-1] != TARGET_META + self.n_offsets:
             raise ValueError(
                 f"LaneATTHead.loss: targets must be (B, max_lanes, {TARGET_META + self.n_offsets}), "

@@ -14,6 +14,7 @@ from lanevil_train.checkpoints import AtomicCheckpointIO
 from lanevil_train.data.datamodule import LaneDataModule
 from lanevil_train.data.datasets import EmptySplitError
 from lanevil_train.errors import prefixed
+from lanevil_train.models.backbones import indices_for_strides
 from lanevil_train.models.detector import LaneDetector
 
 # The parts of a config that define the network; stored in every checkpoint so that
@@ -65,17 +66,49 @@ def build_split(cfg: DictConfig, split: str):
 
 
 def build_model(spec: dict) -> LaneDetector:
-    """A LaneDetector from a model_config() dict."""
-    backbone = instantiate_at(spec["backbone"], "backbone")
+    """A LaneDetector from a model_config() dict: the backbone stages the family reads (model.feature_strides,
+    unless backbone.out_indices names them), dilated by model.output_stride; the neck, if any; the head built
+    from the channels and strides of the maps it gets; the optimizer and schedule of the family's config."""
     model = spec["model"]
-    head = instantiate_at(model["head"], "model.head", in_channels=backbone.channels[-1],
-                          feature_stride=backbone.strides[-1], image_size=tuple(spec["input_size"]))
-    opt = model.get("optimizer", {})
-    detector = LaneDetector(backbone, head, lr=opt.get("lr", 3e-4), weight_decay=opt.get("weight_decay", 0.0),
-                            scheduler=model.get("scheduler", "cosine"), decode=model.get("decode"),
+    backbone_node = dict(spec["backbone"])
+    output_stride = backbone_node.get("output_stride") or model.get("output_stride")
+    if backbone_node.get("out_indices") is None:
+        strides = model.get("feature_strides") or [32]
+        try:
+            backbone_node["out_indices"] = list(indices_for_strides(backbone_node.get("name"), strides, output_stride))
+        except ValueError as error:
+            raise ValueError(f"backbone={backbone_node.get('name')}: {error}") from None
+    backbone_node["output_stride"] = output_stride
+    backbone = instantiate_at(backbone_node, "backbone")
+    channels, strides = backbone.channels, backbone.strides
+    neck = None
+    if model.get("neck") is not None:
+        neck = instantiate_at(model["neck"], "model.neck", in_channels=channels, in_strides=strides)
+        channels, strides = neck.channels, neck.strides
+    head = instantiate_at(model["head"], "model.head", in_channels=list(channels), in_strides=list(strides),
+                          image_size=tuple(spec["input_size"]))
+    optimizer, scheduler = _optimizer_and_schedule(model)
+    detector = LaneDetector(backbone, head, neck=neck, optimizer=optimizer, scheduler=scheduler,
+                            reference_batch_size=model.get("reference_batch_size"),
+                            lr_scaling=model.get("lr_scaling", "none"), decode=model.get("decode"),
                             crop_top=spec.get("crop_top", 0.0))
     detector.build_config = spec
     return detector
+
+
+def _optimizer_and_schedule(model: dict):
+    """model.optimizer and model.scheduler as callables (their `_partial_` targets). Checkpoints written before
+    these were targets hold {lr, weight_decay} (Adam) and "cosine" / "none"; they load as they trained."""
+    optimizer = model.get("optimizer") or {}
+    if "_target_" not in optimizer:
+        optimizer = {"_target_": "lanevil_train.models.detector.adam", "_partial_": True, **optimizer}
+    scheduler = model.get("scheduler", "cosine")
+    if scheduler == "cosine":
+        scheduler = {"_target_": "lanevil_train.models.schedules.cosine", "_partial_": True}
+    elif scheduler == "none":
+        scheduler = None
+    return (instantiate_at(optimizer, "model.optimizer"),
+            None if scheduler is None else instantiate_at(scheduler, "model.scheduler"))
 
 
 def build_defense(cfg: DictConfig) -> dict:

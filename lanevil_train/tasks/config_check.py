@@ -26,8 +26,8 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
 
 from lanevil_train.illusions import ILLUSIONS, SEVERITIES
-from lanevil_train.models.backbones import STAGE_STRIDES
-from lanevil_train.models.detector import SCHEDULERS
+from lanevil_train.models.backbones import OUTPUT_STRIDES, indices_for_strides, stage_strides
+from lanevil_train.models.schedules import LR_SCALINGS
 from lanevil_train.progress import MODES
 from lanevil_train.tasks.vlm_defense import HARDNESS, PROMPT_DEFENSES
 from lanevil_train.tasks.vlm_train import TRAINING_KEYS
@@ -36,7 +36,7 @@ from lanevil_train.vlm.pat import HARD_TARGETS
 # Keys of a `_target_` node that Hydra reads itself (not passed to the target).
 HYDRA_KEYS = {"_target_", "_recursive_", "_convert_", "_partial_", "_args_"}
 # Arguments the code passes to a target itself: a config value for them would be ignored.
-SUPPLIED = {"model.head": ("in_channels", "feature_stride", "image_size")}
+SUPPLIED = {"model.head": ("in_channels", "in_strides", "image_size"), "model.neck": ("in_channels", "in_strides")}
 # Keys of a target node that the code reads itself (not arguments of its target): a VLM's training settings.
 READ_BY_CODE = {"model": TRAINING_KEYS}
 DEFENSE_KEYS = ("name", "transforms", "mixer", "callback")
@@ -273,6 +273,20 @@ def http_url() -> Rule:
                 lambda v: _ok(isinstance(v, str) and re.match(r"^https?://[^\s/]+", v) is not None))
 
 
+def integer_in(choices) -> Rule:
+    return Rule(f"one of {', '.join(map(str, choices))}",
+                lambda v: _ok(isinstance(v, int) and not isinstance(v, bool) and v in choices))
+
+
+def timm_model_name() -> Rule:
+    def test(value):
+        import timm
+
+        return _ok(isinstance(value, str) and timm.is_model(value))
+
+    return Rule("a timm model name (resnet18, resnet34, resnet50, resnet101, vgg16, ...)", test)
+
+
 def target_node() -> Rule:
     return Rule("a mapping with a _target_ (the dotted name of a class or function)",
                 lambda v: _ok(isinstance(v, dict) and isinstance(v.get("_target_"), str)))
@@ -345,9 +359,15 @@ RULES: dict[str, Rule] = {
     "model.head.cls_loss_weight": number(0),
     "model.head.focal_alpha": number(0, 1),
     "model.head.focal_gamma": number(0),
+    "model.neck": null_or(target_node()),
+    "model.feature_strides": int_list(1),
+    "model.output_stride": null_or(integer_in(OUTPUT_STRIDES)),
+    "model.optimizer": target_node(),
     "model.optimizer.lr": number(0, low_open=True),
     "model.optimizer.weight_decay": number(0),
-    "model.scheduler": one_of(*SCHEDULERS),
+    "model.scheduler": null_or(target_node()),
+    "model.reference_batch_size": null_or(integer(1)),
+    "model.lr_scaling": one_of(*LR_SCALINGS),
     "model.decode.conf_threshold": number(0, 1),
     "model.decode.nms_threshold": number(0),
     "model.decode.nms_topk": null_or(integer(1)),
@@ -403,10 +423,11 @@ RULES: dict[str, Rule] = {
     "judge.batch_size": integer(1),
     # backbone
     "backbone": target_node(),
-    "backbone.name": one_of(*STAGE_STRIDES),
+    "backbone.name": timm_model_name(),
     "backbone.pretrained": boolean(),
     "backbone.checkpoint": null_or(existing_file("state dict file")),
-    "backbone.out_indices": int_list(),  # which stages each backbone has: check_feature_map
+    "backbone.out_indices": null_or(int_list()),
+    "backbone.output_stride": null_or(integer_in(OUTPUT_STRIDES)),  # which stages each backbone has: check_feature_map
     # defense (its parameters: the constructors)
     "defense": defense_keys(),
     "defense.name": text(),
@@ -512,22 +533,32 @@ def _apply(cfg: DictConfig, key: str, rule: Rule) -> str | None:
 # ---------------------------------------------------------------------------------------------- cross-key checks
 
 def check_feature_map(cfg: DictConfig) -> list[str]:
-    """backbone.out_indices must be stages the backbone has; data.input_size at least the stride of the last
-    one: the LaneATT head pools its anchors from that feature map (features[-1], ceil(H / stride) rows), which
-    needs at least one row and one column (any size >= the stride works; a multiple of it is not needed)."""
-    name, indices, size = (_get(cfg, k) for k in ("backbone.name", "backbone.out_indices", "data.input_size"))
-    if name not in STAGE_STRIDES or RULES["backbone.out_indices"].test(indices) is not None:
+    """backbone.out_indices (or the stages of the family's model.feature_strides) must be stages the backbone has;
+    data.input_size at least the largest stride the head reads, so each map has a row and a column (any size >=
+    the stride works; a multiple of it is not needed)."""
+    keys = ("backbone.name", "backbone.out_indices", "data.input_size", "model.feature_strides", "model.output_stride")
+    name, indices, size, wanted, output_stride = (_get(cfg, k) for k in keys)
+    if name is _ABSENT or any(RULES[k].test(v) is not None for k, v in zip(keys, (name, indices, size, wanted, output_stride))
+           if v is not _ABSENT):
         return []
-    strides = STAGE_STRIDES[name]
+    output_stride = _get(cfg, "backbone.output_stride") or (None if output_stride is _ABSENT else output_stride)
+    if output_stride is _ABSENT or RULES["backbone.output_stride"].test(output_stride) is not None:
+        return []
+    strides = stage_strides(name, output_stride)
     n = len(strides)
-    if not all(-n <= i < n for i in indices):
+    if indices in (None, _ABSENT):
+        try:
+            indices = indices_for_strides(name, wanted if wanted is not _ABSENT else [32], output_stride)
+        except ValueError as error:
+            return [f"{error} (set backbone.out_indices to choose the stages)"]
+    elif not all(-n <= i < n for i in indices):
         return [_problem("backbone.out_indices", f"stage indices of {name} from 0 to {n - 1} (strides "
                          f"{', '.join(map(str, strides))})", indices)]
-    stride = strides[indices[-1]]
+    stride = max(strides[i] for i in indices)
     if RULES["data.input_size"].test(size) is None and min(size) < stride:
-        return [f"{_problem('data.input_size', f'[height, width], both >= {stride}', size)}: the LaneATT head "
-                f"reads the stride-{stride} feature map of {name} (backbone.out_indices[-1]={indices[-1]}), which "
-                f"must have at least one row and one column"]
+        return [f"{_problem('data.input_size', f'[height, width], both >= {stride}', size)}: the head reads the "
+                f"stride-{stride} feature map of {name} (backbone.out_indices {list(indices)}), which must have at "
+                f"least one row and one column"]
     return []
 
 
@@ -629,7 +660,7 @@ CROSS_CHECKS = (check_feature_map, check_backbone_weights, check_cases, check_ch
 # ---------------------------------------------------------------------------------------------- _target_ nodes
 
 # Where config nodes with a `_target_` are: single nodes, lists of them, and mappings of named ones.
-TARGET_NODES = ("model", "model.head", "backbone", "defense.mixer", "defense.callback", "logger", "judge",
+TARGET_NODES = ("model", "model.head", "model.neck", "model.optimizer", "model.scheduler", "backbone", "defense.mixer", "defense.callback", "logger", "judge",
                 *(f"data.{split}" for split in SPLITS))
 TARGET_LISTS = ("data.train_transforms", "defense.transforms")
 TARGET_MAPS = ("callbacks",)

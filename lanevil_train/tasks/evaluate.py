@@ -15,6 +15,7 @@ from lanevil_train.checkpoints import fit_weights, read_lightning_checkpoint
 from lanevil_train.data.suites import IllusionSetDataset, SyntheticIllusionSuite
 from lanevil_train.errors import prefixed
 from lanevil_train.models.detector import LaneDetector
+from lanevil_train.models.head import check_decode_options
 from lanevil_train.report.specs import LANE_SPEC
 from lanevil_train.tasks.builders import (build_logger, build_model, build_split, is_vlm, model_config,
                                           output_dir)
@@ -32,8 +33,10 @@ def load_checkpoint(cfg: DictConfig) -> LaneDetector:
     model = build_model(spec)
     fit_weights(model, checkpoint["state_dict"], f"ckpt_path={cfg.ckpt_path}")
     # decoding is post-processing, not the network: task.decode.* overrides what the checkpoint used
-    overrides = OmegaConf.to_container(cfg.task.decode, resolve=True)
-    model.decode_kwargs.update({key: value for key, value in overrides.items() if value is not None})
+    overrides = {key: value for key, value in OmegaConf.to_container(cfg.task.decode, resolve=True).items()
+                 if value is not None}
+    check_decode_options(model.head, overrides, "task.decode")
+    model.decode_kwargs.update(overrides)
     return model
 
 

@@ -27,8 +27,8 @@ class _Head:
     def __init__(self, max_lanes: int = 6):
         self.max_lanes = max_lanes
 
-    def encode(self, lanes):
-        return encode_lanes(lanes, INPUT, N_OFFSETS, self.max_lanes)
+    def encode(self, lanes, meta=None):
+        return {"lanes": encode_lanes(lanes, INPUT, N_OFFSETS, self.max_lanes)}
 
 
 def _culane_lanes() -> tuple[list[np.ndarray], list[np.ndarray]]:
@@ -67,14 +67,14 @@ def test_out_of_image_points_go_through_the_processor(augment):
     for seed in range(4 if augment else 1):
         np.random.seed(seed)
         item = processor(_sample(lanes))
-        assert item["target"].shape == (6, 3 + N_OFFSETS)
+        assert item["target"]["lanes"].shape == (6, 3 + N_OFFSETS)
         assert item["lanes"] is not None and len(item["lanes"]) == 3  # the labels as given, for scoring
     if augment:
         return
     # eval semantics: the lane is cut where it leaves the image; for these straight lanes that encodes the
     # same as the lane without its out-of-image points (the encoder extends a lane down along its line)
     reference = processor(_sample(without))
-    assert np.allclose(item["target"], reference["target"], atol=1e-2)
+    assert np.allclose(item["target"]["lanes"], reference["target"]["lanes"], atol=1e-2)
     # and the geometry after the resize is the cut lane, scaled
     expected = scale_lanes([clip_lane_to_image(lane, H, W) for lane in lanes], INPUT[1] / W, INPUT[0] / H)
     expected.sort(key=lambda lane: lane[0, 0])
@@ -96,7 +96,7 @@ def test_culane_lanes_outside_the_image_train_and_evaluate(tmp_path):
     dm = LaneDataModule(data, data, None, input_size=INPUT, batch_size=1, encode=_Head().encode)
     for loader in (dm.train_dataloader(), dm.val_dataloader()):
         batch = next(iter(loader))
-        assert batch["targets"].shape == (1, 6, 3 + N_OFFSETS)
+        assert batch["targets"]["lanes"].shape == (1, 6, 3 + N_OFFSETS)
         assert batch["meta"][0]["source"] == f"{tmp_path / 'list.txt'}:1"
 
 
@@ -147,7 +147,7 @@ def test_errors_while_processing_name_the_sample(tmp_path):
     label = _ten_lanes(tmp_path)
     data = TuSimpleDataset(tmp_path, "label.json")
     # an encoder with no visible max_lanes: the pre-flight check cannot run, the sample's error names it
-    encode = lambda lanes: encode_lanes(lanes, INPUT, N_OFFSETS, 6)  # noqa: E731
+    encode = lambda lanes, meta: {"lanes": encode_lanes(lanes, INPUT, N_OFFSETS, 6)}  # noqa: E731
     processed = ProcessedDataset(data, LaneSampleProcessor(INPUT, False, encode))
     with pytest.raises(ValueError) as info:
         processed[0]

@@ -166,8 +166,8 @@ def _samples(n: int) -> list[dict]:
     return out
 
 
-def _count(lanes: list[np.ndarray]) -> np.ndarray:
-    return np.array([len(lanes), sum(lane[0, 0] for lane in lanes)], np.float32)
+def _count(lanes: list[np.ndarray], meta: dict | None = None) -> dict[str, np.ndarray]:
+    return {"count": np.array([len(lanes), sum(lane[0, 0] for lane in lanes)], np.float32)}
 
 
 def test_datamodule_mixer_encodes_mixed_lanes_and_leaves_eval_alone():
@@ -179,14 +179,14 @@ def test_datamodule_mixer_encodes_mixed_lanes_and_leaves_eval_alone():
     batch = next(iter(dm.train_dataloader()))
     counts = [len(lanes) for lanes in batch["input_lanes"]]
     assert counts == [2, 2, 2, 2]
-    for target, lanes in zip(batch["targets"], batch["input_lanes"]):
-        np.testing.assert_allclose(target.numpy(), _count(lanes))
+    for target, lanes in zip(batch["targets"]["count"], batch["input_lanes"]):
+        np.testing.assert_allclose(target.numpy(), _count(lanes)["count"])
     assert [len(lanes) for lanes in batch["lanes"]] == [1, 1, 1, 1]  # scoring GT untouched
     for split in ("val", "test"):
         loader = dm.val_dataloader() if split == "val" else dm.test_dataloader()
         plain = next(iter(loader))
         assert [len(lanes) for lanes in plain["input_lanes"]] == [1, 1, 1, 1]
-        np.testing.assert_allclose(plain["targets"][:, 0].numpy(), 1.0)
+        np.testing.assert_allclose(plain["targets"]["count"][:, 0].numpy(), 1.0)
         expected = collate_lanes([dm.eval_processor(s) for s in data])
         assert torch.equal(plain["images"], expected["images"])
     no_mix = LaneDataModule(data, None, None, input_size=(H, W), batch_size=4, augment=False, encode=_count)
@@ -213,4 +213,4 @@ def test_datamodule_mixer_runs_in_a_worker():
             if np.allclose(image, lam * own + (1 - lam) * other, atol=1e-5):
                 explained.append(lam)
         assert len(explained) == 1 and 0.5 <= explained[0] < 1.0  # one partner, folded lambda
-    np.testing.assert_allclose(batch["targets"][:, 0].numpy(), 1.0)
+    np.testing.assert_allclose(batch["targets"]["count"][:, 0].numpy(), 1.0)

@@ -63,9 +63,10 @@ def test_eval_processor_only_resizes_and_keeps_original_ground_truth():
     sample = _painted_sample()
     seen = []
 
-    def encode(lanes):
+    def encode(lanes, meta):
         seen.append(lanes)
-        return np.zeros((4, 3), np.float32)
+        assert meta is sample["meta"]
+        return {"rows": np.zeros((4, 3), np.float32), "count": np.array(len(lanes))}
 
     item = LaneSampleProcessor((90, 160), augment=False, encode=encode)(sample)
     assert item["image"].shape == (3, 90, 160) and item["image"].dtype == np.float32
@@ -74,7 +75,8 @@ def test_eval_processor_only_resizes_and_keeps_original_ground_truth():
         np.testing.assert_allclose(small, big * 0.5, atol=0.51)  # resize by exactly one half
     batch = collate_lanes([item, item])
     assert tuple(batch["images"].shape) == (2, 3, 90, 160)
-    assert tuple(batch["targets"].shape) == (2, 4, 3)
+    assert tuple(batch["targets"]["rows"].shape) == (2, 4, 3)  # each key stacked on its own
+    assert batch["targets"]["count"].tolist() == [3, 3]
     assert len(batch["lanes"]) == 2 and batch["meta"][1]["case_id"] == "x"
 
 
@@ -88,7 +90,7 @@ class _EchoHead(torch.nn.Module):
     def forward(self, features):
         return {}
 
-    def decode(self, raw, **kwargs):
+    def decode(self, raw):
         return [self.lanes]
 
 

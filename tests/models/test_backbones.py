@@ -2,10 +2,10 @@ import pytest
 import timm
 import torch
 
-from lanevil_train.models.backbones import SUPPORTED_BACKBONES, build_backbone
+from lanevil_train.models.backbones import TESTED_BACKBONES, build_backbone, indices_for_strides, stage_strides
 
 
-@pytest.mark.parametrize("name", SUPPORTED_BACKBONES)
+@pytest.mark.parametrize("name", TESTED_BACKBONES)
 def test_every_backbone_builds_offline_and_reports_its_maps(name):
     torch.manual_seed(0)
     net = build_backbone(name).eval()
@@ -20,9 +20,40 @@ def test_every_backbone_builds_offline_and_reports_its_maps(name):
     assert net.channels == [512 if name in ("resnet18", "resnet34", "vgg16") else 2048]
 
 
-def test_unknown_backbone_lists_supported_names():
-    with pytest.raises(ValueError, match="resnet18.*vgg16"):
+def test_unknown_backbone_names_close_timm_models():
+    with pytest.raises(ValueError, match="'resnet19': not a timm model name"):
         build_backbone("resnet19")
+    with pytest.raises(ValueError, match="close names: .*resnet101"):
+        build_backbone("resnet10")
+
+
+def test_any_timm_backbone_by_name():
+    net = build_backbone("mobilenetv3_small_050", out_indices=None).eval()
+    with torch.no_grad():
+        maps = net(torch.zeros(1, 3, 64, 64))
+    assert [m.shape[-1] for m in maps] == [64 // s for s in net.strides]
+
+
+@pytest.mark.parametrize("name", ["resnet18", "resnet50", "vgg16"])
+def test_output_stride_dilates_instead_of_striding(name):
+    torch.manual_seed(0)
+    plain = build_backbone(name, out_indices=None).eval()
+    dilated = build_backbone(name, out_indices=None, output_stride=8).eval()
+    assert dilated.strides == [min(s, 8) for s in plain.strides]
+    assert list(stage_strides(name, 8)) == dilated.strides
+    with torch.no_grad():
+        maps = dilated(torch.zeros(1, 3, 64, 96))
+    assert [m.shape[-2:] for m in maps][-1] == (8, 12)  # the deepest map at stride 8
+    # the same weights: an ImageNet checkpoint of the plain network loads into the dilated one
+    assert {k: v.shape for k, v in plain.state_dict().items()} == {k: v.shape for k, v in dilated.state_dict().items()}
+
+
+def test_feature_strides_pick_the_stages():
+    assert indices_for_strides("resnet18", [8, 16, 32]) == (2, 3, 4)
+    assert indices_for_strides("vgg16", [16]) == (4,)
+    assert indices_for_strides("resnet34", [8], output_stride=8) == (4,)  # the deepest of the stride-8 stages
+    with pytest.raises(ValueError, match="no stage of stride 64"):
+        indices_for_strides("resnet18", [64])
 
 
 def test_checkpoint_round_trip_and_wrapped_formats(tmp_path):

@@ -36,12 +36,12 @@ def _perfect_raw(head: LaneATTHead, targets: np.ndarray) -> dict[str, torch.Tens
 @pytest.mark.parametrize("image_size,stride", [((360, 640), 32), ((96, 160), 16), ((64, 160), 32)])
 def test_encode_decode_round_trip_tusimple_accuracy(image_size, stride):
     rng = np.random.default_rng(7)
-    head = LaneATTHead(in_channels=8, feature_stride=stride, image_size=image_size, max_lanes=6)
+    head = LaneATTHead(in_channels=8, in_strides=stride, image_size=image_size, max_lanes=6)
     gts, targets = [], []
     for i in range(8):
         gt = synthetic_lanes(rng, image_size, n_lanes=int(rng.integers(2, 6)), curved=bool(i % 2))
         gts.append(gt)
-        targets.append(head.encode(gt))
+        targets.append(head.encode(gt)["lanes"])
     targets = np.stack(targets)
     assert targets.shape == (8, 6, TARGET_META + 72) and targets.dtype == np.float32
     decoded = head.decode(_perfect_raw(head, targets), conf_threshold=0.5)
@@ -78,9 +78,9 @@ def test_encode_lane_values():
 
 
 def test_encode_rejects_too_many_lanes():
-    head = LaneATTHead(in_channels=8, feature_stride=32, image_size=(64, 160), max_lanes=2)
+    head = LaneATTHead(in_channels=8, in_strides=32, image_size=(64, 160), max_lanes=2)
     lanes = [np.array([[x, 63.0], [x, 20.0]]) for x in (20.0, 60.0, 100.0)]
     with pytest.raises(ValueError, match="max_lanes=2"):
         head.encode(lanes)
-    empty = head.encode([])
+    empty = head.encode([])["lanes"]
     assert empty.shape == (2, TARGET_META + 72) and np.all(empty[:, 0] == 0)

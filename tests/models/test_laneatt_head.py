@@ -73,7 +73,7 @@ def test_focal_loss_hand_computed():
 
 def _batch(head, rng, n, image_size):
     lanes = [synthetic_lanes(rng, image_size, n_lanes=3, curved=bool(i % 2)) for i in range(n)]
-    return lanes, torch.from_numpy(np.stack([head.encode(ln) for ln in lanes]))
+    return lanes, torch.from_numpy(np.stack([head.encode(ln)["lanes"] for ln in lanes]))
 
 
 def test_loss_parts_are_consistent():
@@ -85,7 +85,7 @@ def test_loss_parts_are_consistent():
     _, targets = _batch(head, rng, 3, image_size)
     targets[2, :, 0] = 0  # an image without lanes: classification loss only
     raw = head(bb(torch.randn(3, 3, *image_size)))
-    out = head.loss(raw, targets)
+    out = head.loss(raw, {"lanes": targets})
     assert out["per_sample"].shape == (3,)
     torch.testing.assert_close(out["loss"], out["per_sample"].mean())
     torch.testing.assert_close(out["loss"], 10 * out["cls_loss"] + out["reg_loss"])
@@ -110,7 +110,7 @@ def test_a_few_adam_steps_reduce_the_loss():
     opt = torch.optim.Adam(params, lr=1e-3)
     losses = []
     for _ in range(30):
-        out = head.loss(head(bb(images)), targets)
+        out = head.loss(head(bb(images)), {"lanes": targets})
         opt.zero_grad()
         out["loss"].backward()
         opt.step()

@@ -13,7 +13,7 @@ from hydra import compose, initialize_config_module
 from hydra.core.global_hydra import GlobalHydra
 
 import lanevil_train.conf
-from lanevil_train.models.backbones import STAGE_STRIDES
+from lanevil_train.models.backbones import TESTED_BACKBONES, stage_strides
 from lanevil_train.tasks.config_check import ConfigError, check_config
 from tests.tasks.cli_helpers import REPO, TINY
 
@@ -134,8 +134,8 @@ BAD = [
     (["data.input_size=[112.5,320]"],
      "data.input_size: expected [height, width], two integers >= 16, got [112.5, 320]"),
     (["data.input_size=[24,320]"],
-     "data.input_size: expected [height, width], both >= 32, got [24, 320]: the LaneATT head reads the stride-32 "
-     "feature map of resnet18 (backbone.out_indices[-1]=4), which must have at least one row and one column"),
+     "data.input_size: expected [height, width], both >= 32, got [24, 320]: the head reads the stride-32 "
+     "feature map of resnet18 (backbone.out_indices [4]), which must have at least one row and one column"),
     (["data.batch_size=-1"], "data.batch_size: expected an integer >= 1, got -1"),
     (["data.batch_size=2.5"], "data.batch_size: expected an integer >= 1, got 2.5"),
     (["data.num_workers=-1"], "data.num_workers: expected an integer >= 0, got -1"),
@@ -176,7 +176,19 @@ BAD = [
     (["model.optimizer.lr=0"], "model.optimizer.lr: expected a number > 0, got 0"),
     (["model.optimizer.lr=1e-3x"], "model.optimizer.lr: expected a number > 0, got '1e-3x'"),
     (["model.optimizer.weight_decay=-0.1"], "model.optimizer.weight_decay: expected a number >= 0, got -0.1"),
-    (["model.scheduler=step"], "model.scheduler: expected one of cosine, none, got 'step'"),
+    (["model.scheduler=step"],
+     "model.scheduler: expected null or a mapping with a _target_ (the dotted name of a class or function), got 'step'"),
+    (["model.scheduler._target_=torch.optim.NoSuchSchedule"],
+     "model.scheduler._target_: cannot import 'torch.optim.NoSuchSchedule'"),
+    (["+model.optimizer.momentum=0.9"],
+     "model.optimizer.momentum: not a parameter of torch.optim.Adam; it accepts params, lr"),
+    (["model.lr_scaling=quadratic"], "model.lr_scaling: expected one of linear, sqrt, none, got 'quadratic'"),
+    (["model.reference_batch_size=0"], "model.reference_batch_size: expected null or an integer >= 1, got 0"),
+    (["model.output_stride=4"], "model.output_stride: expected null or one of 8, 16, 32, got 4"),
+    (["model.feature_strides=[64]"],
+     "model.feature_strides: backbone resnet18 (output_stride=None) has no stage of stride 64; its stages have "
+     "strides [2, 4, 8, 16, 32] (set backbone.out_indices to choose the stages)"),
+    (["+model.neck.in_strides=[8]"], "model.neck: expected null or a mapping with a _target_"),
     (["model.decode.conf_threshold=1.5"], "model.decode.conf_threshold: expected a number in [0, 1], got 1.5"),
     (["model.decode.nms_threshold=-1"], "model.decode.nms_threshold: expected a number >= 0, got -1"),
     (["model.decode.nms_topk=0"], "model.decode.nms_topk: expected null or an integer >= 1, got 0"),
@@ -220,18 +232,18 @@ BAD = [
      "judge.base_url: is not set (??? in the config); set it to an http(s) URL, e.g. http://127.0.0.1:8000/v1: "
      "judge.base_url=..."),
     # backbone
-    (["backbone.name=resnet9"],
-     "backbone.name: expected one of resnet18, resnet34, resnet50, resnet101, vgg16, got 'resnet9'"),
+    (["backbone.name=resnet9"], "backbone.name: expected a timm model name (resnet18, resnet34, resnet50, resnet101, "
+     "vgg16, ...), got 'resnet9'"),
     (["backbone.pretrained=yes"], "backbone.pretrained: expected true or false, got 'yes'"),
     (["backbone.checkpoint=/no/such/weights.pth"],
      "backbone.checkpoint: expected null or the path of an existing state dict file, got '/no/such/weights.pth' "
      "(no such file)"),
     (["backbone.out_indices=[5]"],
      "backbone.out_indices: expected stage indices of resnet18 from 0 to 4 (strides 2, 4, 8, 16, 32), got [5]"),
-    (["backbone.out_indices=[]"], "backbone.out_indices: expected a non-empty list of integers, got []"),
+    (["backbone.out_indices=[]"], "backbone.out_indices: expected null or a non-empty list of integers, got []"),
     (["backbone=vgg16", "backbone.out_indices=[5]", "data.input_size=[24,320]"],
-     "data.input_size: expected [height, width], both >= 32, got [24, 320]: the LaneATT head reads the stride-32 "
-     "feature map of vgg16 (backbone.out_indices[-1]=5)"),
+     "data.input_size: expected [height, width], both >= 32, got [24, 320]: the head reads the stride-32 "
+     "feature map of vgg16 (backbone.out_indices [5])"),
     # defense
     (["+defense.callbacks=[]"],
      "defense: expected a mapping with the keys name, transforms, mixer, callback (and, in a textual defense"),
@@ -364,14 +376,13 @@ def test_every_problem_is_reported_at_once_one_per_line():
     assert isinstance(caught.value, ValueError)
 
 
-def test_stage_strides_are_timms():
-    import timm
-    import torch
+def test_stage_strides_are_the_built_networks():
+    from lanevil_train.models.backbones import build_backbone
 
-    with torch.device("meta"):  # the network's shapes only: no memory, no weights
-        for name, strides in STAGE_STRIDES.items():
-            net = timm.create_model(name, features_only=True, out_indices=tuple(range(len(strides))))
-            assert tuple(net.feature_info.reduction()) == strides, name
+    for name in TESTED_BACKBONES:
+        expected = (1, 2, 4, 8, 16, 32) if name == "vgg16" else (2, 4, 8, 16, 32)
+        assert stage_strides(name) == expected, name
+        assert tuple(build_backbone(name, out_indices=None).strides) == expected, name
 
 
 # ------------------------------------------------------------------------------------------- where it runs
