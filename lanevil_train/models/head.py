@@ -78,4 +78,5 @@ def targets_to(targets, device) -> dict[str, torch.Tensor]:
 
 
 def _as_list(value) -> list:
-    return list(value) if isinstance(value, (list, tuple)) else [value]
+    """One value or a sequence of them (a list, a tuple, or the ListConfig Hydra passes) as a list."""
+    return [value] if isinstance(value, (int, float, str)) else list(value)

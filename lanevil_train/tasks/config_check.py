@@ -464,6 +464,10 @@ RULES: dict[str, Rule] = {
     "task.baseline": null_or(text()),
     "task.runs": string_list(),
     "task.defenses": defense_names(),
+    "task.onnx": null_or(existing_file("ONNX model written by task=export")),
+    "task.out": null_or(text()),
+    "task.opset": integer(9),
+    "task.tolerance": number(0, low_open=True),
     "task.decode.conf_threshold": null_or(number(0, 1)),
     "task.decode.nms_threshold": null_or(number(0)),
     "task.decode.nms_topk": null_or(integer(1)),
@@ -640,9 +644,10 @@ def check_checkpoint_given(cfg: DictConfig) -> list[str]:
     task = _get(cfg, "task.name")
     if _is_vlm(cfg):
         return []  # a VLM backend loads its own weights (model.path, model.base_url)
-    if task in ("evaluate", "cross_domain") and _get(cfg, "ckpt_path") is None:
-        return [f"ckpt_path: task={task} scores a checkpoint; expected the path of a Lightning checkpoint file, "
-                f"got null"]
+    if task in ("evaluate", "cross_domain") and _get(cfg, "ckpt_path") is None \
+            and _get(cfg, "task.onnx") in (None, _ABSENT):
+        return [f"ckpt_path: task={task} scores a checkpoint; expected the path of a Lightning checkpoint file "
+                f"(or task.onnx=model.onnx), got null"]
     return []
 
 

@@ -25,13 +25,19 @@ from lanevil_train.tasks.streaming import stream_evaluate
 
 
 def load_checkpoint(cfg: DictConfig) -> LaneDetector:
-    """The checkpoint's network with its weights; decoding overridable with task.decode.*."""
-    if cfg.ckpt_path is None:
-        raise ValueError("task=evaluate needs ckpt_path=/path/to/checkpoint.ckpt")
-    checkpoint = read_lightning_checkpoint(cfg.ckpt_path, "ckpt_path")
-    spec = checkpoint.get("lanevil_model") or model_config(cfg)
-    model = build_model(spec)
-    fit_weights(model, checkpoint["state_dict"], f"ckpt_path={cfg.ckpt_path}")
+    """The checkpoint's network with its weights, or the ONNX model of task.onnx (run by onnxruntime, decoded by
+    the family's head as the checkpoint would be); decoding overridable with task.decode.*."""
+    if cfg.task.get("onnx"):
+        from lanevil_train.tasks.export import OnnxLaneDetector
+
+        model = OnnxLaneDetector(cfg.task.onnx)
+    else:
+        if cfg.ckpt_path is None:
+            raise ValueError("task=evaluate needs ckpt_path=/path/to/checkpoint.ckpt (or task.onnx=model.onnx)")
+        checkpoint = read_lightning_checkpoint(cfg.ckpt_path, "ckpt_path")
+        spec = checkpoint.get("lanevil_model") or model_config(cfg)
+        model = build_model(spec)
+        fit_weights(model, checkpoint["state_dict"], f"ckpt_path={cfg.ckpt_path}")
     # decoding is post-processing, not the network: task.decode.* overrides what the checkpoint used
     overrides = {key: value for key, value in OmegaConf.to_container(cfg.task.decode, resolve=True).items()
                  if value is not None}

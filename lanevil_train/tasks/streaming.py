@@ -55,12 +55,15 @@ def stream_evaluate(model: LaneDetector, dataset: Dataset, out_path: str | Path,
 
 def run_identity(model: LaneDetector, label: dict) -> dict:
     """What makes two evaluations the same: the label, the network's weights (a hash), input geometry, decoding."""
-    digest = hashlib.sha256()
-    for name, tensor in sorted(model.state_dict().items()):
-        digest.update(name.encode())
-        digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
+    weights = getattr(model, "weights_sha256", None)  # an ONNX model's: its file's hash (tasks/export.py)
+    if weights is None:
+        digest = hashlib.sha256()
+        for name, tensor in sorted(model.state_dict().items()):
+            digest.update(name.encode())
+            digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
+        weights = digest.hexdigest()
     spec = model.build_config or {}
-    return {**{k: str(v) for k, v in label.items()}, "weights_sha256": digest.hexdigest(),
+    return {**{k: str(v) for k, v in label.items()}, "weights_sha256": weights,
             "input_size": list(spec.get("input_size", [])), "crop_top": spec.get("crop_top", 0.0),
             "decode": {k: v for k, v in sorted(model.decode_kwargs.items())}}
 
