@@ -1,0 +1,67 @@
+"""UFLD's losses on the group classification logits (B, num_cells + 1, num_rows, num_lanes), each per image (B,).
+
+The last class (index num_cells) is "no lane". The paper's total is L_cls + alpha * (L_sim + lambda * L_shp) +
+beta * L_seg; the weights are the head's.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from lanevil_train.models.losses import focal_loss
+
+
+def classification_loss(logits: torch.Tensor, labels: torch.Tensor, gamma: float = 2.0) -> torch.Tensor:
+    """Softmax focal loss over the num_cells + 1 classes of every (row, lane), averaged per image.
+
+    The paper writes cross-entropy; the official code uses this focal loss (gamma 2, no alpha); gamma 0 is
+    cross-entropy. logits (B, C+1, R, L), labels (B, R, L) class indices -> (B,).
+    """
+    per = focal_loss(logits.permute(0, 2, 3, 1), labels, alpha=1.0, gamma=gamma)  # (B, R, L)
+    return per.flatten(1).mean(dim=1)
+
+
+def similarity_loss(logits: torch.Tensor) -> torch.Tensor:
+    """The paper's similarity loss: the L1 distance between the classification distributions (softmax over the
+    num_cells + 1 classes) of neighbouring row anchors, averaged over lanes and row pairs of each image.
+
+    The paper sums ||P_j - P_{j+1}||_1 over all lanes and rows; the official code applies smooth L1 to the raw
+    logits instead. We take the distributions, so each term lies in [0, 2] whatever the logits' scale.
+    """
+    prob = torch.softmax(logits.float(), dim=1)  # (B, C+1, R, L)
+    diff = (prob[:, :, :-1] - prob[:, :, 1:]).abs().sum(dim=1)  # (B, R-1, L)
+    return diff.flatten(1).mean(dim=1)
+
+
+def expected_locations(logits: torch.Tensor) -> torch.Tensor:
+    """The expected cell index (B, R, L): softmax over the num_cells cells (the "no lane" class left out), then
+    sum_k k * prob_k (the paper's Loc, in cell units; cell k's centre is at k + 0.5 cells)."""
+    prob = torch.softmax(logits[:, :-1].float(), dim=1)
+    index = torch.arange(prob.shape[1], device=prob.device, dtype=prob.dtype).view(1, -1, 1, 1)
+    return (prob * index).sum(dim=1)
+
+
+def shape_loss(logits: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
+    """The paper's shape loss: |(Loc_j - Loc_{j+1}) - (Loc_{j+1} - Loc_{j+2})|, the second-order difference of
+    the expected locations over three consecutive row anchors, averaged per image.
+
+    Only triples whose three rows all hold the ground-truth lane count (labels != no lane): elsewhere the
+    expected location has no meaning. The paper's sum runs over every row, and the official code over the
+    upper half of the rows unmasked (with weight 0 in its configs). An image without such triples gives 0.
+    """
+    no_lane = logits.shape[1] - 1
+    loc = expected_locations(logits)  # (B, R, L)
+    second = (loc[:, :-2] - 2 * loc[:, 1:-1] + loc[:, 2:]).abs()  # (B, R-2, L)
+    present = labels != no_lane
+    valid = (present[:, :-2] & present[:, 1:-1] & present[:, 2:]).to(second.dtype)
+    return (second * valid).flatten(1).sum(dim=1) / valid.flatten(1).sum(dim=1).clamp(min=1)
+
+
+def segmentation_loss(seg_logits: torch.Tensor, seg_target: torch.Tensor) -> torch.Tensor:
+    """Cross-entropy of the aux segmentation (B, L+1, h, w) against the class-index map (B, h, w), per image.
+
+    The logits are resized (bilinear) to the target's size when they differ (backbones that floor odd sizes)."""
+    if seg_logits.shape[-2:] != seg_target.shape[-2:]:
+        seg_logits = F.interpolate(seg_logits, size=seg_target.shape[-2:], mode="bilinear", align_corners=False)
+    return F.cross_entropy(seg_logits.float(), seg_target.long(), reduction="none").flatten(1).mean(dim=1)
