@@ -21,11 +21,11 @@ from lanevil_train.models.laneatt import LaneATTHead
 QUICKSTART = {"size": (112, 320), "out_indices": (3,), "lateral_n": 16, "bottom_n": 40}
 
 
-def _targets(head: LaneATTHead, batch: int, size: tuple[int, int]) -> torch.Tensor:
+def _targets(head: LaneATTHead, batch: int, size: tuple[int, int]) -> dict[str, torch.Tensor]:
     """Three straight lanes per image, converging upward (enough for matching to find positives)."""
     h, w = size
     lanes = [np.array([[x, h - 1.0], [w / 2 + (x - w / 2) * 0.15, 0.45 * h]]) for x in (0.15 * w, 0.5 * w, 0.85 * w)]
-    return torch.from_numpy(np.stack([head.encode(lanes)] * batch))
+    return {"lanes": torch.from_numpy(np.stack([head.encode(lanes)["lanes"]] * batch))}
 
 
 def _median_time(fn, repeats: int, warmup: int = 2) -> float:

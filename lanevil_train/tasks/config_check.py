@@ -359,6 +359,42 @@ RULES: dict[str, Rule] = {
     "model.head.cls_loss_weight": number(0),
     "model.head.focal_alpha": number(0, 1),
     "model.head.focal_gamma": number(0),
+    # UFLD, CLRNet and SCNN heads (the constructors check the rest)
+    "model.head.num_cells": integer(2),
+    "model.head.num_rows": null_or(integer(3)),
+    "model.head.pool_channels": integer(1),
+    "model.head.hidden_dim": integer(1),
+    "model.head.use_aux": boolean(),
+    "model.head.aux_channels": integer(1),
+    "model.head.aux_line_width": integer(1),
+    "model.head.slot_assignment": one_of("ego", "packed"),
+    "model.head.extend_to_bottom": boolean(),
+    "model.head.sim_loss_weight": number(0),
+    "model.head.shape_loss_weight": number(0),
+    "model.head.aux_loss_weight": number(0),
+    "model.head.num_points": integer(2),
+    "model.head.num_priors": integer(1),
+    "model.head.refine_layers": integer(1),
+    "model.head.sample_points": integer(2),
+    "model.head.fc_hidden_dim": integer(1),
+    "model.head.num_fc": integer(1),
+    "model.head.iou_radius": number(0, low_open=True),
+    "model.head.xyt_loss_weight": number(0),
+    "model.head.iou_loss_weight": number(0),
+    "model.head.hidden_channels": integer(1),
+    "model.head.dilation": integer(1),
+    "model.head.mp_channels": integer(1),
+    "model.head.mp_kernel": integer(1),
+    "model.head.dropout": number(0, 1),
+    "model.head.exist_hidden": integer(1),
+    "model.head.background_weight": number(0),
+    "model.head.exist_loss_weight": number(0),
+    "model.head.lane_width": number(0, low_open=True),
+    "model.decode.min_points": integer(1),
+    "model.decode.extend_ends": boolean(),
+    "model.decode.exist_threshold": number(0, 1),
+    "model.decode.prob_threshold": number(0, 1),
+    "model.decode.row_step": integer(1),
     "model.neck": null_or(target_node()),
     "model.feature_strides": int_list(1),
     "model.output_stride": null_or(integer_in(OUTPUT_STRIDES)),
@@ -566,6 +602,22 @@ def check_feature_map(cfg: DictConfig) -> list[str]:
     return []
 
 
+def check_decode_options(cfg: DictConfig) -> list[str]:
+    """model.decode may set only the decoding options of the family's head (its decode keywords). task.decode is
+    checked against the checkpoint's family when it is loaded (tasks/evaluate.load_checkpoint): the command line's
+    model need not be the checkpoint's."""
+    if _is_vlm(cfg):
+        return []
+    target = _get(cfg, "model.head._target_")
+    try:
+        accepted = _locate(target).decode_options()
+    except Exception:  # a bad _target_ is reported by check_target
+        return []
+    node = _get(cfg, "model.decode")
+    return [f"model.decode.{name}: not a decoding option of {target.rsplit('.', 1)[-1]}; it takes {', '.join(accepted)}"
+            for name in (node if isinstance(node, dict) else {}) if name not in accepted]
+
+
 def check_backbone_weights(cfg: DictConfig) -> list[str]:
     if _get(cfg, "backbone.pretrained") is True and _get(cfg, "backbone.checkpoint") not in (None, _ABSENT):
         return ["backbone.checkpoint: give either backbone.pretrained=true (timm's download) or "
@@ -658,7 +710,7 @@ def check_training_ends(cfg: DictConfig) -> list[str]:
     return []
 
 
-CROSS_CHECKS = (check_feature_map, check_backbone_weights, check_cases, check_checkpoint_given, check_training_ends,
+CROSS_CHECKS = (check_feature_map, check_decode_options, check_backbone_weights, check_cases, check_checkpoint_given, check_training_ends,
                 check_vlm_task, check_split_seeds)
 
 

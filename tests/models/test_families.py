@@ -23,6 +23,9 @@ from tests.tasks.cli_helpers import TINY, run_in_process
 FAMILIES = sorted(p.stem for p in (Path(lanevil_train.conf.__file__).parent / "model").glob("*.yaml"))
 SIZE = (96, 256)
 BACKBONE = {"scnn": "vgg16"}  # the family's own backbone; resnet18 for the others
+# Narrower layers where the paper's are large for a CPU test (UFLD's 2048-wide FC over 101 cells x 56 rows x lanes
+# is 70 M weights; SCNN's 1024-channel fc6): the same code, a smaller width.
+NARROW = {"ufld": ["model.head.hidden_dim=128"], "scnn": ["model.head.hidden_channels=64"]}
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -35,7 +38,8 @@ def hydra_conf():
 
 def _model(family: str):
     cfg = compose(config_name="config", overrides=[f"model={family}", f"backbone={BACKBONE.get(family, 'resnet18')}",
-                                                   f"data.input_size=[{SIZE[0]},{SIZE[1]}]", "data.max_lanes=4"])
+                                                   f"data.input_size=[{SIZE[0]},{SIZE[1]}]", "data.max_lanes=4",
+                                                   *NARROW.get(family, [])])
     torch.manual_seed(0)
     return build_model(model_config(cfg)), cfg
 
@@ -98,7 +102,7 @@ def test_tracing_and_onnx_export_give_pytorch_outputs(family, tmp_path):
     images = torch.randn(2, 3, *SIZE, generator=torch.Generator().manual_seed(3))
     with torch.no_grad():
         expected = model(images)
-        traced = torch.jit.trace(_Network(model), images, strict=False)
+        traced = torch.jit.trace(_Network(model), images, strict=False, check_trace=False)  # compared below
         got = traced(images)
     for name, value in expected.items():
         torch.testing.assert_close(got[name], value, rtol=1e-4, atol=1e-4)
@@ -132,4 +136,5 @@ def test_aam_attention_layer_resolves(family):
 @pytest.mark.parametrize("family", FAMILIES)
 def test_one_aam_plus_plus_training_step_through_the_cli(family, tmp_path):
     run_in_process([*TINY, f"model={family}", f"backbone={BACKBONE.get(family, 'resnet18')}", "defense=aam++",
+                    *NARROW.get(family, []),
                     "data.input_size=[64,192]", "trainer.fast_dev_run=true", "logger=none"], tmp_path / "run")

@@ -1,0 +1,120 @@
+"""Every detector family at its paper's input size: parameters, forward latency and peak memory (CPU), and
+batch-1 / batch-32 throughput on a GPU when one is there, next to the published FPS of the original code.
+
+Usage: python benchmarks/bench_families.py [--families laneatt,ufld,clrnet,scnn] [--device cpu|cuda]
+                                           [--batches 1,32] [--repeats 10] [--threads 2] [--json out.jsonl]
+
+Each family is built by build_model from its conf/model config, with ResNet-18 (SCNN: VGG-16, as its paper), in
+a process of its own so that peak memory (ru_maxrss on CPU, max_memory_allocated on a GPU) is its own. Timed is
+LaneDetector.forward (the network: what the ONNX export holds); "decode" adds the family's Python decoding
+(NMS, lane assembly) of a batch-1 output, on the host.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import statistics
+import subprocess
+import sys
+import time
+
+import torch
+
+# (input size of the paper's CULane / TuSimple setting, backbone, published FPS and where it was measured)
+FAMILIES = {
+    "laneatt": ((360, 640), "resnet18", "250 (LaneATT paper, RTX 2080 Ti)"),
+    "ufld": ((288, 800), "resnet18", "306 (UFLD paper, GTX 1080 Ti)"),
+    "clrnet": ((320, 800), "resnet18", "206 (CLRNet paper, NVIDIA 1080 Ti)"),
+    "scnn": ((288, 800), "vgg16", "7.5 (SCNN in the UFLD paper's comparison, GTX 1080 Ti)"),
+}
+
+
+def build(family: str):
+    from hydra import compose, initialize_config_module
+
+    from lanevil_train.tasks.builders import build_model, model_config
+
+    size, backbone, _ = FAMILIES[family]
+    with initialize_config_module(config_module="lanevil_train.conf", version_base="1.3"):
+        cfg = compose(config_name="config", overrides=[f"model={family}", f"backbone={backbone}",
+                                                       f"data.input_size=[{size[0]},{size[1]}]", "data.max_lanes=4"])
+    torch.manual_seed(0)
+    return build_model(model_config(cfg)).eval()
+
+
+def _time(fn, repeats: int, sync) -> float:
+    for _ in range(3):
+        fn()
+    sync()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        sync()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def measure(family: str, device: str, batches: list[int], repeats: int) -> dict:
+    size, backbone, published = FAMILIES[family]
+    model = build(family).to(device)
+    sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
+    row = {"family": family, "backbone": backbone, "input": f"{size[0]}x{size[1]}", "device": device,
+           "params_M": round(sum(p.numel() for p in model.parameters()) / 1e6, 2), "published_fps": published}
+    if device == "cuda":
+        row["gpu"] = torch.cuda.get_device_name()
+        torch.backends.cudnn.benchmark = True
+    with torch.inference_mode():
+        for batch in batches:
+            images = torch.randn(batch, 3, *size, device=device)
+            seconds = _time(lambda: model(images), repeats, sync)
+            row[f"b{batch}_ms"] = round(seconds * 1e3, 2)
+            row[f"b{batch}_fps"] = round(batch / seconds, 1)
+        images = torch.randn(1, 3, *size, device=device)
+        row["b1_decode_ms"] = round(_time(lambda: model.head.decode(model(images), **model.decode_kwargs),
+                                          repeats, sync) * 1e3, 2)
+    if device == "cuda":
+        row["peak_gpu_MB"] = round(torch.cuda.max_memory_allocated() / 2**20)
+    row["peak_rss_MB"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+    return row
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--families", default=",".join(FAMILIES))
+    parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    parser.add_argument("--batches", default=None, help="default: 1 on cpu, 1,32 on cuda")
+    parser.add_argument("--repeats", type=int, default=10)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--json", default=None, help="append each family's row to this JSON-lines file")
+    parser.add_argument("--one", default=None, help=argparse.SUPPRESS)  # the per-family child process
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    batches = [int(b) for b in (args.batches or ("1,32" if args.device == "cuda" else "1")).split(",")]
+    if args.one:
+        print(json.dumps(measure(args.one, args.device, batches, args.repeats)))
+        return
+    rows = []
+    for family in args.families.split(","):
+        cmd = [sys.executable, __file__, "--one", family, "--device", args.device, "--batches",
+               ",".join(map(str, batches)), "--repeats", str(args.repeats), "--threads", str(args.threads)]
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        if proc.returncode != 0:
+            print(f"{family}: failed\n{proc.stderr[-3000:]}", file=sys.stderr)
+            continue
+        rows.append(json.loads(proc.stdout.strip().splitlines()[-1]))
+        print(json.dumps(rows[-1]), flush=True)
+        if args.json:
+            with open(args.json, "a", encoding="utf-8") as handle:
+                handle.write(json.dumps(rows[-1]) + "\n")
+    keys = ["family", "backbone", "input", "params_M", *[k for k in rows[0] if k[0] == "b" and k[1].isdigit()],
+            *(["peak_gpu_MB"] if args.device == "cuda" else []), "peak_rss_MB", "published_fps"] if rows else []
+    print("\n| " + " | ".join(keys) + " |\n|" + "---|" * len(keys))
+    for row in rows:
+        print("| " + " | ".join(str(row.get(k, "")) for k in keys) + " |")
+
+
+if __name__ == "__main__":
+    main()
