@@ -102,3 +102,29 @@ def lane_extent_problem(points: np.ndarray, height: int, width: int) -> str | No
             f"{bad[:, 1].max():.1f}; expected (x, y) pixels of this image: at least one point in x 0..{w}, y 0..{h} "
             f"and every point within x {-mx:g}..{w + mx:g}, y {-my:g}..{h + my:g}. Are the lanes for another image "
             f"size, or (y, x) pairs?")
+
+
+def row_proposal_to_lane(xs: np.ndarray, ys: np.ndarray, start: int, end: int, width: int) -> np.ndarray | None:
+    """x per row (pixels) from row `start` to `end` -> a lane (N, 2), y descending, or None (< 2 points).
+
+    As LaneATT's and CLRNet's official code, a prediction that starts above the bottom is extended down while
+    its x stays inside the image. Only points inside the image are kept, plus the exact border crossing where the lane leaves it
+    between two rows, so evaluation rows near the border stay covered."""
+    if end < start:
+        return None
+    inside = (xs >= 0) & (xs <= width - 1)
+    lo = start
+    while lo > 0 and inside[lo - 1]:
+        lo -= 1
+    pts = [(xs[k], ys[k]) for k in range(lo, end + 1) if inside[k]]
+    for k0 in range(max(lo - 1, 0), end):
+        k1 = k0 + 1
+        if inside[k0] != inside[k1]:
+            out_k = k1 if inside[k0] else k0
+            border = 0.0 if xs[out_k] < 0 else width - 1.0
+            t = (border - xs[k0]) / (xs[k1] - xs[k0])
+            if 0.0 < t < 1.0:
+                pts.append((border, ys[k0] + t * (ys[k1] - ys[k0])))
+    if len(pts) < 2:
+        return None
+    return as_lane(np.asarray(pts))

@@ -22,11 +22,11 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from lanevil_train.lanes import row_proposal_to_lane
 from lanevil_train.models.clrnet_codec import (
     TARGET_META,
     clrnet_nms,
     encode_lanes,
-    proposal_to_lane,
     start_rows,
 )
 from lanevil_train.models.clrnet_loss import clrnet_losses
@@ -222,7 +222,7 @@ class CLRNetHead(LaneHead):
             lanes = []
             for k, start, length in zip(keep.cpu().numpy(), starts, lengths):
                 end = min(int(start + length - 1), self.n_strips)
-                lane = proposal_to_lane(xs[i, k].cpu().numpy().astype(np.float64), self.row_ys, int(start), end, w)
+                lane = row_proposal_to_lane(xs[i, k].cpu().numpy().astype(np.float64), self.row_ys, int(start), end, w)
                 if lane is not None:
                     lanes.append(lane)
             lanes.sort(key=lambda ln: ln[0, 0])

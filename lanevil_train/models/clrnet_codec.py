@@ -15,13 +15,12 @@ import math
 import numpy as np
 import torch
 
-from lanevil_train.lanes import as_lane
 from lanevil_train.models.laneatt_anchors import UNDEFINED_X, encode_lane
 from lanevil_train.models.nms import lane_nms
 
 # target row layout: [valid, start_y (fraction of the height), start_x (px), theta (pi units), length (rows), x_0..]
 TARGET_META = 5
-__all__ = ["TARGET_META", "UNDEFINED_X", "clrnet_nms", "encode_lanes", "lane_theta", "proposal_to_lane"]
+__all__ = ["TARGET_META", "UNDEFINED_X", "clrnet_nms", "encode_lanes", "lane_theta"]
 
 
 def lane_theta(xs_inside: np.ndarray, strip: float) -> float:
@@ -71,29 +70,3 @@ def clrnet_nms(xs: torch.Tensor, start_y: torch.Tensor, length: torch.Tensor, sc
     is dropped when its mean |x| distance (pixels, xs (N, S)) to a kept one over the rows both cover is below
     `threshold`. start_y and length are the head's normalised values (fractions of n_strips rows)."""
     return lane_nms(xs, start_rows(start_y, n_strips), length * n_strips, scores, threshold, top_k)
-
-
-def proposal_to_lane(xs: np.ndarray, ys: np.ndarray, start: int, end: int, width: int) -> np.ndarray | None:
-    """x per row (pixels) from row `start` to `end` -> a lane (N, 2), y descending, or None (< 2 points).
-
-    As the official, a prediction that starts above the bottom is extended down while its x stays inside the
-    image. Only points inside the image are kept, plus the exact border crossing where the lane leaves it
-    between two rows, so evaluation rows near the border stay covered."""
-    if end < start:
-        return None
-    inside = (xs >= 0) & (xs <= width - 1)
-    lo = start
-    while lo > 0 and inside[lo - 1]:
-        lo -= 1
-    pts = [(xs[k], ys[k]) for k in range(lo, end + 1) if inside[k]]
-    for k0 in range(max(lo - 1, 0), end):
-        k1 = k0 + 1
-        if inside[k0] != inside[k1]:
-            out_k = k1 if inside[k0] else k0
-            border = 0.0 if xs[out_k] < 0 else width - 1.0
-            t = (border - xs[k0]) / (xs[k1] - xs[k0])
-            if 0.0 < t < 1.0:
-                pts.append((border, ys[k0] + t * (ys[k1] - ys[k0])))
-    if len(pts) < 2:
-        return None
-    return as_lane(np.asarray(pts))

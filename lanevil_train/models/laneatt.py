@@ -10,14 +10,13 @@ official input width) and scaled by W / reference_width, so the defaults fit any
 
 from __future__ import annotations
 
-import math
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from lanevil_train.lanes import as_lane
+from lanevil_train.lanes import row_proposal_to_lane
 from lanevil_train.models.head import LaneHead
 from lanevil_train.models.laneatt_anchors import (
     TARGET_META,
@@ -183,36 +182,10 @@ class LaneATTHead(LaneHead):
             ends = lane_ends(starts[keep], lengths[b, keep], self.n_offsets).cpu().numpy()
             lanes = []
             for k, end in zip(keep.cpu().numpy(), ends):
-                lane = self._proposal_to_lane(xs[b, k].cpu().numpy().astype(np.float64), int(starts[k]), int(end))
+                lane = row_proposal_to_lane(xs[b, k].cpu().numpy().astype(np.float64), self.row_ys, int(starts[k]),
+                                            int(end), self.image_size[1])
                 if lane is not None:
                     lanes.append(lane)
             lanes.sort(key=lambda ln: ln[0, 0])
             out.append(lanes)
         return out
-
-    def _proposal_to_lane(self, xs: np.ndarray, start: int, end: int) -> np.ndarray | None:
-        """Rows start..end (extended down while inside the image, as the official) -> lane points.
-
-        Only points inside the image are kept, plus the exact border crossing where the lane
-        leaves it between two rows, so evaluation rows near the border are still covered.
-        """
-        w = self.image_size[1]
-        if end < start:
-            return None
-        inside = (xs >= 0) & (xs <= w - 1)
-        lo = start
-        while lo > 0 and inside[lo - 1]:
-            lo -= 1
-        seg = np.arange(max(lo - 1, 0), end + 1)
-        ys = self.row_ys
-        pts = [(xs[k], ys[k]) for k in range(lo, end + 1) if inside[k]]
-        for k0, k1 in zip(seg[:-1], seg[1:]):
-            if inside[k0] != inside[k1]:
-                out_k = k1 if inside[k0] else k0
-                border = 0.0 if xs[out_k] < 0 else w - 1.0
-                t = (border - xs[k0]) / (xs[k1] - xs[k0])
-                if 0.0 < t < 1.0:
-                    pts.append((border, ys[k0] + t * (ys[k1] - ys[k0])))
-        if len(pts) < 2:
-            return None
-        return as_lane(np.asarray(pts))
