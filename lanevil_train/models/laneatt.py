@@ -10,7 +10,6 @@ official input width) and scaled by W / reference_width, so the defaults fit any
 
 from __future__ import annotations
 
-
 import numpy as np
 import torch
 import torch.nn.functional as F
