@@ -122,8 +122,16 @@ def test_wandb_logger_works_offline(tmp_path):
     assert any(offline_runs[0].rglob("*.wandb"))
 
 
-def test_multirun_sweep_writes_one_run_per_value(tmp_path):
+def test_multirun_sweep_writes_one_run_per_value_and_one_report(tmp_path):
     sweep = tmp_path / "sweep"
-    run_cli(["-m", "seed=0,1", *TINY, "trainer.fast_dev_run=true", f"hydra.sweep.dir={sweep}"], tmp_path / "unused")
+    run_cli(["-m", "model=laneatt,scnn", *TINY, "trainer.fast_dev_run=true", f"hydra.sweep.dir={sweep}"],
+            tmp_path / "unused")
     runs = sorted(p.name for p in sweep.iterdir() if p.is_dir() and (p / "test_scores.json").is_file())
-    assert runs == ["0", "1"]
+    assert runs == ["0", "1", "report"]
+    # the families side by side: one row per job's model, each with its own job's scores
+    report = {row["model"]: row for row in json.loads((sweep / "report" / "test_scores.json").read_text())}
+    assert sorted(report) == ["laneatt-resnet18", "scnn-resnet18"]
+    for job in ("0", "1"):
+        own = json.loads((sweep / job / "test_scores.json").read_text())[0]
+        assert {k: report[own["model"]][k] for k in ("Accuracy", "F1", "images")} == \
+               {k: own[k] for k in ("Accuracy", "F1", "images")}
