@@ -66,7 +66,7 @@ def shipped_options() -> list[tuple[str, str]]:
 
 def needs(group: str, option: str, files: Path) -> list[str]:
     """What an option needs from the user by design: a dataset root (???), a checkpoint to score."""
-    if group == "data" and option in ("tusimple", "culane"):
+    if (group == "data" and option in ("tusimple", "culane")) or (group == "experiment" and option.startswith("paper_")):
         return [f"data.root={files / 'dataset'}"]
     if group == "task" and option in ("evaluate", "cross_domain"):
         return [f"ckpt_path={files / 'model.ckpt'}"]
