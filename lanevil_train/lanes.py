@@ -108,8 +108,8 @@ def row_proposal_to_lane(xs: np.ndarray, ys: np.ndarray, start: int, end: int, w
     """x per row (pixels) from row `start` to `end` -> a lane (N, 2), y descending, or None (< 2 points).
 
     As LaneATT's and CLRNet's official code, a prediction that starts above the bottom is extended down while
-    its x stays inside the image. Only points inside the image are kept, plus the exact border crossing where the lane leaves it
-    between two rows, so evaluation rows near the border stay covered."""
+    its x stays inside the image. Only points inside the image are kept, plus the exact border crossing where
+    the lane leaves it between two rows, so evaluation rows near the border stay covered."""
     if end < start:
         return None
     inside = (xs >= 0) & (xs <= width - 1)

@@ -72,7 +72,8 @@ def indices_for_strides(name: str, strides: Sequence[int], output_stride: int | 
 
 def _check_output_stride(output_stride) -> None:
     if output_stride is not None and output_stride not in OUTPUT_STRIDES:
-        raise ValueError(f"output_stride={output_stride!r}: expected null or one of {', '.join(map(str, OUTPUT_STRIDES))}")
+        raise ValueError(f"output_stride={output_stride!r}: expected null or one of "
+                         f"{', '.join(map(str, OUTPUT_STRIDES))}")
 
 
 def build_backbone(

@@ -222,7 +222,8 @@ class CLRNetHead(LaneHead):
             lanes = []
             for k, start, length in zip(keep.cpu().numpy(), starts, lengths):
                 end = min(int(start + length - 1), self.n_strips)
-                lane = row_proposal_to_lane(xs[i, k].cpu().numpy().astype(np.float64), self.row_ys, int(start), end, w)
+                lane = row_proposal_to_lane(xs[i, k].cpu().numpy().astype(np.float64), self.row_ys, int(start),
+                                            end, w)
                 if lane is not None:
                     lanes.append(lane)
             lanes.sort(key=lambda ln: ln[0, 0])

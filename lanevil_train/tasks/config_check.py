@@ -577,9 +577,9 @@ def check_feature_map(cfg: DictConfig) -> list[str]:
     data.input_size at least the largest stride the head reads, so each map has a row and a column (any size >=
     the stride works; a multiple of it is not needed)."""
     keys = ("backbone.name", "backbone.out_indices", "data.input_size", "model.feature_strides", "model.output_stride")
-    name, indices, size, wanted, output_stride = (_get(cfg, k) for k in keys)
-    if name is _ABSENT or any(RULES[k].test(v) is not None for k, v in zip(keys, (name, indices, size, wanted, output_stride))
-           if v is not _ABSENT):
+    values = tuple(_get(cfg, k) for k in keys)
+    name, indices, size, wanted, output_stride = values
+    if name is _ABSENT or any(RULES[k].test(v) is not None for k, v in zip(keys, values) if v is not _ABSENT):
         return []
     output_stride = _get(cfg, "backbone.output_stride") or (None if output_stride is _ABSENT else output_stride)
     if output_stride is _ABSENT or RULES["backbone.output_stride"].test(output_stride) is not None:
