@@ -49,3 +49,22 @@ def tusimple_accuracy(pred: list[np.ndarray], gt: list[np.ndarray], image_size: 
             best = max(best, int(hit.sum()))
         correct += best
     return correct, total
+
+
+def assert_round_trip(decoded: list[list[np.ndarray]], gts: list[list[np.ndarray]], image_size: tuple[int, int],
+                      min_accuracy: float = 0.99) -> None:
+    """Decoded lanes reproduce the ground truth they were encoded from: one lane per GT lane, each with y strictly
+    descending and inside the image, left to right, and >= min_accuracy TuSimple point accuracy overall."""
+    h, w = image_size
+    correct = total = 0
+    for gt, pred in zip(gts, decoded, strict=True):
+        assert len(pred) == len(gt)
+        for lane in pred:
+            assert np.all(np.diff(lane[:, 1]) < 0)  # y strictly descending
+            assert lane[:, 0].min() >= 0 and lane[:, 0].max() <= w - 1
+            assert lane[:, 1].min() >= 0 and lane[:, 1].max() <= h - 1
+        assert [p[0, 0] for p in pred] == sorted(p[0, 0] for p in pred)  # left to right
+        c, n = tusimple_accuracy(pred, gt, image_size)
+        correct, total = correct + c, total + n
+    assert total > 100
+    assert correct / total >= min_accuracy

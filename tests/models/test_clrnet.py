@@ -28,7 +28,7 @@ from lanevil_train.models.clrnet_priors import (
 )
 from lanevil_train.models.necks import FPN
 
-from ._lanes_fixture import synthetic_lanes, tusimple_accuracy
+from ._lanes_fixture import assert_round_trip, synthetic_lanes
 
 SMALL = {"num_priors": 32, "sample_points": 12, "fc_hidden_dim": 16}  # a cheap head for CPU tests
 
@@ -69,18 +69,7 @@ def test_encode_decode_round_trip_tusimple_accuracy(image_size):
     targets = np.stack(targets)
     assert targets.shape == (8, 6, TARGET_META + 72) and targets.dtype == np.float32
     decoded = head.decode(_perfect_raw(head, targets), conf_threshold=0.5, nms_topk=6)
-    correct = total = 0
-    for gt, pred in zip(gts, decoded):
-        assert len(pred) == len(gt)
-        for lane in pred:
-            assert np.all(np.diff(lane[:, 1]) < 0)
-            assert lane[:, 0].min() >= 0 and lane[:, 0].max() <= image_size[1] - 1
-            assert lane[:, 1].min() >= 0 and lane[:, 1].max() <= image_size[0] - 1
-        assert [p[0, 0] for p in pred] == sorted(p[0, 0] for p in pred)
-        c, n = tusimple_accuracy(pred, gt, image_size)
-        correct, total = correct + c, total + n
-    assert total > 100
-    assert correct / total >= 0.99
+    assert_round_trip(decoded, gts, image_size)
 
 
 def test_encode_values_and_prior_geometry_agree():

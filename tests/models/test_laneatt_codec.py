@@ -7,7 +7,7 @@ import torch
 from lanevil_train.models.laneatt import LaneATTHead
 from lanevil_train.models.laneatt_anchors import TARGET_META, UNDEFINED_X, encode_lane, row_ys
 
-from ._lanes_fixture import synthetic_lanes, tusimple_accuracy
+from ._lanes_fixture import assert_round_trip, synthetic_lanes
 
 
 def _perfect_raw(head: LaneATTHead, targets: np.ndarray) -> dict[str, torch.Tensor]:
@@ -45,17 +45,7 @@ def test_encode_decode_round_trip_tusimple_accuracy(image_size, stride):
     targets = np.stack(targets)
     assert targets.shape == (8, 6, TARGET_META + 72) and targets.dtype == np.float32
     decoded = head.decode(_perfect_raw(head, targets), conf_threshold=0.5)
-    correct = total = 0
-    for gt, pred in zip(gts, decoded):
-        assert len(pred) == len(gt)
-        for lane in pred:
-            assert np.all(np.diff(lane[:, 1]) < 0)  # y strictly descending
-            assert lane[:, 0].min() >= 0 and lane[:, 0].max() <= image_size[1] - 1
-        assert [p[0, 0] for p in pred] == sorted(p[0, 0] for p in pred)  # left to right
-        c, n = tusimple_accuracy(pred, gt, image_size)
-        correct, total = correct + c, total + n
-    assert total > 100
-    assert correct / total >= 0.99
+    assert_round_trip(decoded, gts, image_size)
 
 
 def test_encode_lane_values():

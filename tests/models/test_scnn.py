@@ -14,7 +14,7 @@ from lanevil_train.models.backbones import build_backbone, indices_for_strides
 from lanevil_train.models.scnn import SCNNHead, SpatialMessagePassing
 from lanevil_train.models.scnn_codec import assign_slots, bottom_x
 
-from ._lanes_fixture import synthetic_lanes, tusimple_accuracy
+from ._lanes_fixture import assert_round_trip, synthetic_lanes
 
 
 @pytest.fixture(autouse=True)
@@ -217,18 +217,7 @@ def test_encode_decode_round_trip_tusimple_accuracy(image_size, max_lanes):
         gts.append(gt)
         targets.append(head.encode(gt))
     decoded = head.decode(_perfect_raw(head, targets))
-    correct = total = 0
-    for gt, pred in zip(gts, decoded):
-        assert len(pred) == len(gt)
-        for lane in pred:
-            assert np.all(np.diff(lane[:, 1]) < 0)  # y strictly descending
-            assert lane[:, 0].min() >= 0 and lane[:, 0].max() <= image_size[1] - 1
-            assert lane[:, 1].min() >= 0 and lane[:, 1].max() <= image_size[0] - 1
-        assert [p[0, 0] for p in pred] == sorted(p[0, 0] for p in pred)  # left to right
-        c, n = tusimple_accuracy(pred, gt, image_size)
-        correct, total = correct + c, total + n
-    assert total > 100
-    assert correct / total >= 0.99
+    assert_round_trip(decoded, gts, image_size)
 
 
 def test_decode_thresholds():

@@ -22,7 +22,7 @@ from lanevil_train.models.ufld_losses import (
     similarity_loss,
 )
 
-from ._lanes_fixture import synthetic_lanes, tusimple_accuracy
+from ._lanes_fixture import assert_round_trip, synthetic_lanes
 
 CHANNELS, STRIDES = [128, 256, 512], [8, 16, 32]  # ResNet-18 layers 2-4
 
@@ -49,19 +49,7 @@ def test_encode_decode_round_trip_tusimple_accuracy(image_size, rows):
         gts.append(gt)
         labels.append(enc["cls_labels"])
     decoded = head.decode(_perfect_raw(head, np.stack(labels)))
-    correct = total = 0
-    h, w = image_size
-    for gt, pred in zip(gts, decoded):
-        assert len(pred) == len(gt)
-        for lane in pred:
-            assert np.all(np.diff(lane[:, 1]) < 0)  # y strictly descending
-            assert lane[:, 0].min() >= 0 and lane[:, 0].max() <= w - 1
-            assert lane[:, 1].min() >= 0 and lane[:, 1].max() <= h - 1
-        assert [p[0, 0] for p in pred] == sorted(p[0, 0] for p in pred)  # left to right
-        c, n = tusimple_accuracy(pred, gt, image_size)
-        correct, total = correct + c, total + n
-    assert total > 100
-    assert correct / total >= 0.99
+    assert_round_trip(decoded, gts, image_size)
 
 
 def test_row_anchors_are_the_official_rows_as_fractions():
