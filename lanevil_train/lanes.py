@@ -128,3 +128,28 @@ def row_proposal_to_lane(xs: np.ndarray, ys: np.ndarray, start: int, end: int, w
     if len(pts) < 2:
         return None
     return as_lane(np.asarray(pts))
+
+
+# How lanes are given fixed output slots by the heads that have them (UFLD, SCNN): see assign_slots.
+SLOT_ASSIGNMENTS = ("ego", "packed")
+
+
+def assign_slots(bottom_xs, width: int, max_lanes: int, mode: str = "ego") -> list[int]:
+    """The slot of each lane, given the lanes' bottom x sorted left to right; strictly increasing in
+    0..max_lanes-1.
+
+    "packed": slots 0, 1, ... left to right. "ego": the lanes keep their left-to-right order but sit around the
+    image centre column (the camera), as the datasets' fixed lane indices (left-left, left, right, right-right):
+    the lanes left of the centre end at slot max_lanes // 2 - 1, shifted only as far as needed to fit all of them
+    (a side with more lanes than its slots spills into the other side's free slots instead of losing lanes).
+    """
+    if mode not in SLOT_ASSIGNMENTS:
+        raise ValueError(f"slot_assignment={mode!r}: expected one of {', '.join(SLOT_ASSIGNMENTS)}")
+    n = len(bottom_xs)
+    if n > max_lanes:
+        raise ValueError(f"{n} lanes, but max_lanes={max_lanes}")
+    if mode == "packed" or n == 0:
+        return list(range(n))
+    n_left = sum(1 for x in bottom_xs if x < (width - 1) / 2.0)
+    start = min(max(max_lanes // 2 - n_left, 0), max_lanes - n)
+    return list(range(start, start + n))

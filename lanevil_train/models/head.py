@@ -60,13 +60,19 @@ class LaneHead(nn.Module):
         return tuple(p.name for p in parameters if p.kind in named)
 
 
-def check_decode_options(head: nn.Module, options: dict, key: str) -> None:
-    """A ValueError naming `key`.<name> for an option the head's decode does not take."""
+def decode_option_problems(head, options, key: str) -> list[str]:
+    """One line naming `key`.<name> for each option that `head` (a head or its class) does not take in decode."""
     accepted = head.decode_options() if hasattr(head, "decode_options") else ()
-    unknown = [name for name in options if name not in accepted]
-    if unknown:
-        raise ValueError(f"{key}.{unknown[0]}: not a decoding option of {type(head).__name__}; it takes "
-                         f"{', '.join(accepted) or 'none'}")
+    name = head.__name__ if isinstance(head, type) else type(head).__name__
+    return [f"{key}.{option}: not a decoding option of {name}; it takes {', '.join(accepted) or 'none'}"
+            for option in options if option not in accepted]
+
+
+def check_decode_options(head: nn.Module, options: dict, key: str) -> None:
+    """A ValueError naming `key`.<name> for the first option the head's decode does not take."""
+    problems = decode_option_problems(head, options, key)
+    if problems:
+        raise ValueError(problems[0])
 
 
 def targets_to(targets, device) -> dict[str, torch.Tensor]:

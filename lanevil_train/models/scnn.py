@@ -31,10 +31,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from lanevil_train.lanes import as_lane
+from lanevil_train.lanes import SLOT_ASSIGNMENTS, as_lane
 from lanevil_train.models.head import LaneHead
 from lanevil_train.models.scnn_codec import (
-    SLOT_ASSIGNMENTS,
     draw_width,
     encode_lanes,
     lane_points,

@@ -7,7 +7,7 @@ lines 16 px wide on its 1640x590 images; the width here is ``lane_width`` px at 
 and scales with the input width (16 px at 1640 is about 8 px at SCNN's 800 px input), at least 1 px.
 Where lanes overlap (near the vanishing point) the one drawn later, further right, wins.
 
-Slots (``assign_slots``): CULane's label generator sorts the lanes by the x where their linear fit
+Slots (``lanes.assign_slots``, shared with UFLD): CULane's label generator sorts the lanes by the x where their linear fit
 meets the bottom row, splits them into the lanes left and right of the ego vehicle (where the sign of
 their slope changes, else at the image centre) and gives the two
 nearest left lanes slots 1, 2 and the two nearest right ones slots 3, 4 (0-based here: 0..3), so a slot
@@ -35,7 +35,8 @@ import cv2
 import numpy as np
 import torch
 
-SLOT_ASSIGNMENTS = ("ego", "packed")
+from lanevil_train.lanes import assign_slots
+
 _SHIFT = 4  # cv2 fixed-point bits: lanes are drawn at 1/16 px precision
 
 
@@ -50,26 +51,6 @@ def bottom_x(lane: np.ndarray, height: int) -> float:
     if y1 >= y0:  # a horizontal lane: no extension
         return float(x0)
     return float(x0 + (x0 - x1) / (y0 - y1) * (height - 1 - y0))
-
-
-def assign_slots(bottom_xs: list[float], width: int, max_lanes: int, mode: str = "ego") -> list[int]:
-    """The slot of each lane, given their bottom x sorted left to right; strictly increasing, in 0..max_lanes-1."""
-    n = len(bottom_xs)
-    if mode not in SLOT_ASSIGNMENTS:
-        raise ValueError(f"slot_assignment={mode!r}: expected one of {', '.join(SLOT_ASSIGNMENTS)}")
-    if n > max_lanes:
-        raise ValueError(f"{n} lanes, but max_lanes={max_lanes}")
-    if mode == "packed":
-        return list(range(n))
-    split = max_lanes // 2  # the first right slot
-    n_left = sum(1 for x in bottom_xs if x < width / 2.0)
-    wanted = [split - n_left + i for i in range(n)]  # left lanes end at split - 1, right ones start at split
-    slots = []
-    for i, s in enumerate(wanted):  # push right past the start and earlier slots...
-        slots.append(max(s, 0 if i == 0 else slots[-1] + 1))
-    for i in range(n - 1, -1, -1):  # ...then left past the end and later slots
-        slots[i] = min(slots[i], max_lanes - 1 if i == n - 1 else slots[i + 1] - 1)
-    return slots
 
 
 def draw_width(lane_width: float, reference_width: float, width: int) -> int:

@@ -13,7 +13,7 @@ the aux segmentation (ufld_losses.py). Decoding takes the expectation of the loc
 cells, on the rows where the arg-max is not "no lane", and keeps a lane with at least ``min_points`` points.
 
 Where we chose: lanes fill the slots by their x at the image bottom, in left-to-right order and centred on the
-camera (ufld_codec.assign_slots; the paper's datasets give fixed lane indices); row anchors are fractions of the
+camera (lanes.assign_slots; the paper's datasets give fixed lane indices); row anchors are fractions of the
 height; the similarity loss compares softmax distributions (the official: smooth L1 on logits) and the shape loss
 counts only rows holding the ground-truth lane (ufld_losses.py); decoding extends each lane's ends to the
 neighbouring row anchors (decode's extend_ends). The loss weights default to the official TuSimple config
@@ -31,10 +31,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from lanevil_train.lanes import as_lane
+from lanevil_train.lanes import SLOT_ASSIGNMENTS, as_lane
 from lanevil_train.models.head import LaneHead
 from lanevil_train.models.ufld_codec import (
-    SLOT_ASSIGNMENTS,
     cell_width,
     draw_seg_mask,
     encode_cls_labels,

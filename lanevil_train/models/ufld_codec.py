@@ -18,7 +18,7 @@ from itertools import pairwise
 
 import numpy as np
 
-from lanevil_train.lanes import as_lane, lane_x_at
+from lanevil_train.lanes import as_lane, assign_slots, lane_x_at
 
 PAPER_HEIGHT = 288.0  # the official row anchors are pixel rows of a 288x800 input
 ROW_ANCHOR_PRESETS: dict[str, tuple[float, ...]] = {
@@ -26,7 +26,6 @@ ROW_ANCHOR_PRESETS: dict[str, tuple[float, ...]] = {
     "culane": (121.0, 131.0, 141.0, 150.0, 160.0, 170.0, 180.0, 189.0, 199.0, 209.0, 219.0, 228.0, 238.0, 248.0,
                258.0, 267.0, 277.0, 287.0),  # 18 rows
 }
-SLOT_ASSIGNMENTS = ("ego", "packed")
 
 
 def row_anchor_fractions(row_anchors: str | Sequence[float] = "tusimple", num_rows: int | None = None) -> np.ndarray:
@@ -112,21 +111,6 @@ def lane_row_xs(lane: np.ndarray, ys: np.ndarray, width: int, height: int,
     if not np.isfinite(xs).any():
         return None
     return xs, a_low * (height - 1.0) + b_low
-
-
-def assign_slots(bottom_xs: Sequence[float], width: int, max_lanes: int, mode: str = "ego") -> list[int]:
-    """The slot of each lane (lanes given left to right by their bottom x).
-
-    "packed": slots 0, 1, ... left to right. "ego": the lanes keep their left-to-right order but sit around the
-    image centre (the camera), as the paper's fixed lane indices (left-left, left, right, right-right): the lanes
-    left of the centre end at slot max_lanes // 2 - 1, shifted only as far as needed to fit all of them.
-    """
-    n = len(bottom_xs)
-    if mode == "packed" or n == 0:
-        return list(range(n))
-    n_left = int(np.sum(np.asarray(bottom_xs) < (width - 1) / 2.0))
-    start = int(np.clip(max_lanes // 2 - n_left, 0, max_lanes - n))
-    return list(range(start, start + n))
 
 
 def encode_cls_labels(lanes: Sequence[np.ndarray], fractions: np.ndarray, image_size: tuple[int, int],

@@ -73,9 +73,9 @@ def build_model(spec: dict) -> LaneDetector:
     backbone_node = dict(spec["backbone"])
     output_stride = backbone_node.get("output_stride") or model.get("output_stride")
     if backbone_node.get("out_indices") is None:
-        strides = model.get("feature_strides") or [32]
+        wanted = model.get("feature_strides") or [32]
         try:
-            backbone_node["out_indices"] = list(indices_for_strides(backbone_node.get("name"), strides, output_stride))
+            backbone_node["out_indices"] = list(indices_for_strides(backbone_node.get("name"), wanted, output_stride))
         except ValueError as error:
             raise ValueError(f"backbone={backbone_node.get('name')}: {error}") from None
     backbone_node["output_stride"] = output_stride

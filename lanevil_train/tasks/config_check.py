@@ -26,7 +26,9 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
 
 from lanevil_train.illusions import ILLUSIONS, SEVERITIES
+from lanevil_train.lanes import SLOT_ASSIGNMENTS
 from lanevil_train.models.backbones import OUTPUT_STRIDES, indices_for_strides, stage_strides
+from lanevil_train.models.head import decode_option_problems
 from lanevil_train.models.schedules import LR_SCALINGS
 from lanevil_train.progress import MODES
 from lanevil_train.tasks.vlm_defense import HARDNESS, PROMPT_DEFENSES
@@ -367,7 +369,7 @@ RULES: dict[str, Rule] = {
     "model.head.use_aux": boolean(),
     "model.head.aux_channels": integer(1),
     "model.head.aux_line_width": integer(1),
-    "model.head.slot_assignment": one_of("ego", "packed"),
+    "model.head.slot_assignment": one_of(*SLOT_ASSIGNMENTS),
     "model.head.extend_to_bottom": boolean(),
     "model.head.sim_loss_weight": number(0),
     "model.head.shape_loss_weight": number(0),
@@ -608,14 +610,12 @@ def check_decode_options(cfg: DictConfig) -> list[str]:
     model need not be the checkpoint's."""
     if _is_vlm(cfg):
         return []
-    target = _get(cfg, "model.head._target_")
     try:
-        accepted = _locate(target).decode_options()
+        head = _locate(_get(cfg, "model.head._target_"))
     except Exception:  # a bad _target_ is reported by check_target
         return []
     node = _get(cfg, "model.decode")
-    return [f"model.decode.{name}: not a decoding option of {target.rsplit('.', 1)[-1]}; it takes {', '.join(accepted)}"
-            for name in (node if isinstance(node, dict) else {}) if name not in accepted]
+    return decode_option_problems(head, node if isinstance(node, dict) else {}, "model.decode")
 
 
 def check_backbone_weights(cfg: DictConfig) -> list[str]:

@@ -34,15 +34,21 @@ def load_checkpoint(cfg: DictConfig) -> LaneDetector:
     else:
         if cfg.ckpt_path is None:
             raise ValueError("task=evaluate needs ckpt_path=/path/to/checkpoint.ckpt (or task.onnx=model.onnx)")
-        checkpoint = read_lightning_checkpoint(cfg.ckpt_path, "ckpt_path")
-        spec = checkpoint.get("lanevil_model") or model_config(cfg)
-        model = build_model(spec)
-        fit_weights(model, checkpoint["state_dict"], f"ckpt_path={cfg.ckpt_path}")
+        model = checkpoint_model(cfg)
     # decoding is post-processing, not the network: task.decode.* overrides what the checkpoint used
     overrides = {key: value for key, value in OmegaConf.to_container(cfg.task.decode, resolve=True).items()
                  if value is not None}
     check_decode_options(model.head, overrides, "task.decode")
     model.decode_kwargs.update(overrides)
+    return model
+
+
+def checkpoint_model(cfg: DictConfig) -> LaneDetector:
+    """The network of the checkpoint at ckpt_path (its stored build config; the command line's for checkpoints
+    without one) with its weights."""
+    checkpoint = read_lightning_checkpoint(cfg.ckpt_path, "ckpt_path")
+    model = build_model(checkpoint.get("lanevil_model") or model_config(cfg))
+    fit_weights(model, checkpoint["state_dict"], f"ckpt_path={cfg.ckpt_path}")
     return model
 
 

@@ -13,6 +13,7 @@ the ONNX file's metadata, as it does in a Lightning checkpoint.
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import logging
 import os
@@ -23,10 +24,10 @@ import torch
 from omegaconf import DictConfig
 from torch import nn
 
-from lanevil_train.checkpoints import fit_weights, read_lightning_checkpoint
 from lanevil_train.data.formats.atomic import atomic_write_bytes
 from lanevil_train.models.detector import LaneDetector
 from lanevil_train.tasks.builders import build_model, model_config, output_dir
+from lanevil_train.tasks.evaluate import checkpoint_model
 
 log = logging.getLogger(__name__)
 
@@ -48,12 +49,11 @@ def export_onnx(model: LaneDetector, path: str | Path, opset: int = 17, batch_si
         names = list(model(images))
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    partial = path.with_name(f".{path.name}.partial")
     axes = {INPUT_NAME: {0: "batch"}, **{name: {0: "batch"} for name in names}}
-    torch.onnx.export(model, (images,), str(partial), dynamo=False, opset_version=opset, input_names=[INPUT_NAME],
+    exported = io.BytesIO()  # in memory: the metadata goes in before the one (atomic) write
+    torch.onnx.export(model, (images,), exported, dynamo=False, opset_version=opset, input_names=[INPUT_NAME],
                       output_names=names, dynamic_axes=axes)
-    graph = onnx.load(str(partial))
-    partial.unlink()
+    graph = onnx.load_from_string(exported.getvalue())
     for key, value in ((METADATA_KEY, json.dumps(model.build_config)), (OUTPUTS_KEY, json.dumps(names))):
         entry = graph.metadata_props.add()
         entry.key, entry.value = key, value
@@ -129,9 +129,7 @@ def export(cfg: DictConfig) -> float:
     task.out (default <run dir>/model.onnx); the onnxruntime check's largest relative difference is logged and
     returned, and one above task.tolerance is an error."""
     if cfg.ckpt_path:
-        checkpoint = read_lightning_checkpoint(cfg.ckpt_path, "ckpt_path")
-        model = build_model(checkpoint.get("lanevil_model") or model_config(cfg))
-        fit_weights(model, checkpoint["state_dict"], f"ckpt_path={cfg.ckpt_path}")
+        model = checkpoint_model(cfg)
     else:
         torch.manual_seed(cfg.seed)
         model = build_model(model_config(cfg))

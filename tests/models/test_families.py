@@ -9,8 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from hydra import compose, initialize_config_module
-from hydra.core.global_hydra import GlobalHydra
+from hydra import compose
 
 import lanevil_train.conf
 from lanevil_train.callbacks import AttentionAreaMixing
@@ -28,12 +27,7 @@ BACKBONE = {"scnn": "vgg16"}  # the family's own backbone; resnet18 for the othe
 NARROW = {"ufld": ["model.head.hidden_dim=128"], "scnn": ["model.head.hidden_channels=64"]}
 
 
-@pytest.fixture(scope="module", autouse=True)
-def hydra_conf():
-    GlobalHydra.instance().clear()
-    with initialize_config_module(config_module="lanevil_train.conf", version_base="1.3"):
-        yield
-    GlobalHydra.instance().clear()
+pytestmark = pytest.mark.usefixtures("hydra_conf")  # tests/conftest.py
 
 
 def _model(family: str):

@@ -12,7 +12,8 @@ import yaml
 
 from lanevil_train.models.backbones import build_backbone, indices_for_strides
 from lanevil_train.models.scnn import SCNNHead, SpatialMessagePassing
-from lanevil_train.models.scnn_codec import assign_slots, bottom_x
+from lanevil_train.lanes import assign_slots
+from lanevil_train.models.scnn_codec import bottom_x
 
 from ._lanes_fixture import assert_round_trip, synthetic_lanes
 

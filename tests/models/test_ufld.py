@@ -7,10 +7,10 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from lanevil_train.lanes import assign_slots
 from lanevil_train.models.backbones import build_backbone
 from lanevil_train.models.ufld import UFLDHead
 from lanevil_train.models.ufld_codec import (
-    assign_slots,
     draw_seg_mask,
     row_anchor_fractions,
     row_ys,

@@ -9,8 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from hydra import compose, initialize_config_module
-from hydra.core.global_hydra import GlobalHydra
+from hydra import compose
 
 import lanevil_train.conf
 from lanevil_train.models.backbones import TESTED_BACKBONES, stage_strides
@@ -22,13 +21,7 @@ GROUPS = ("data", "model", "backbone", "defense", "task", "trainer", "callbacks"
           "hparams_search", "judge")
 
 
-@pytest.fixture(scope="module", autouse=True)
-def hydra_conf():
-    """One Hydra initialisation for the module: compose() is then cheap."""
-    GlobalHydra.instance().clear()
-    with initialize_config_module(config_module="lanevil_train.conf", version_base="1.3"):
-        yield
-    GlobalHydra.instance().clear()
+pytestmark = pytest.mark.usefixtures("hydra_conf")  # tests/conftest.py
 
 
 @pytest.fixture
