@@ -42,3 +42,12 @@ def test_jobs_sharing_a_label_get_no_merged_report(tmp_path):
     _job(tmp_path / "1", "laneatt-resnet18", 50.0)
     _end(tmp_path)
     assert not (tmp_path / "report").exists()
+
+
+def test_rows_follow_the_sweep_order_past_ten_jobs(tmp_path):
+    names = [f"family{i}-resnet18" for i in range(12)]
+    for i, name in enumerate(names):
+        _job(tmp_path / str(i), name, 0.0)
+    _end(tmp_path)
+    rows = json.loads((tmp_path / "report" / "test_scores.json").read_text())
+    assert [r["model"] for r in rows] == names  # job 10 after job 9, not after job 1
