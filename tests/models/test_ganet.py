@@ -1,0 +1,286 @@
+"""GANet: target codec round trip, keypoint heatmap, start-point association, LFA sampling and loss, training,
+decoding of a random network, argument checks."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from lanevil_train.models.backbones import build_backbone
+from lanevil_train.models.ganet import GANetHead, LaneAwareAggregator
+from lanevil_train.models.ganet_codec import gaussian_kernel, lane_keypoints, row_peaks
+from lanevil_train.models.ganet_loss import heatmap_focal_loss, lfa_loss, masked_l1
+from lanevil_train.models.necks import FPN
+
+from ._lanes_fixture import assert_round_trip, synthetic_lanes
+
+SMALL = {"head_channels": 16, "lfa_channels": 16, "lfa_convs": 1}  # a cheap head for CPU tests
+
+
+def _head(image_size, channels=16, **kwargs) -> GANetHead:
+    return GANetHead([channels] * 3, [8, 16, 32], image_size, **{**SMALL, **kwargs})
+
+
+def _perfect_raw(targets: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
+    """Raw outputs built from stacked targets: the offsets and errors themselves, and the target heatmap squared
+    (the same peaks; the squaring keeps the side lobes of the radius-2 Gaussian, exp(-0.72) = 0.49 one cell from
+    a peak, below the official keypoint threshold 0.4, as a network's calibrated heatmap would)."""
+    return {"heatmap": torch.from_numpy(targets["heatmap"]) ** 2, "offsets": torch.from_numpy(targets["offsets"]),
+            "error": torch.from_numpy(targets["error"])}
+
+
+def _stack(items: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    return {k: np.stack([t[k] for t in items]) for k in items[0]}
+
+
+# ---------------------------------------------------------------------------------------------- codec
+@pytest.mark.parametrize("image_size", [(320, 800), (96, 256), (128, 320)])
+def test_encode_decode_round_trip_tusimple_accuracy(image_size):
+    rng = np.random.default_rng(3)
+    head = _head(image_size, max_lanes=6)
+    gts = [synthetic_lanes(rng, image_size, n_lanes=int(rng.integers(2, 6)), curved=bool(i % 2)) for i in range(8)]
+    targets = _stack([head.encode(gt) for gt in gts])
+    hf, wf = math.ceil(image_size[0] / 8), math.ceil(image_size[1] / 8)
+    assert targets["heatmap"].shape == (8, 1, hf, wf) and targets["heatmap"].dtype == np.float32
+    assert targets["offsets"].shape == targets["error"].shape == (8, 2, hf, wf)
+    assert targets["lfa_points"].shape == (8, 6, 41, 2) and targets["lfa_valid"].sum() == sum(map(len, gts))
+    decoded = head.decode(_perfect_raw(targets), min_points=2)  # official thresholds otherwise
+    assert_round_trip(decoded, gts, image_size)
+
+
+def test_heatmap_peaks_at_the_keypoints_with_their_error_and_start_offsets():
+    size, stride = (160, 400), 8
+    lane = np.array([[100.0, 159.0], [220.0, 40.0]])
+    t = _head(size, points_per_lane=20).encode([lane])
+    kp = lane_keypoints(lane, size, 20)
+    assert len(kp) == 20 and kp[0, 1] == 159.0 and kp[-1, 1] == 40.0
+    cells = {(int(x // stride), int(y // stride)) for x, y in kp}
+    peaks = {(int(x), int(y)) for y, x in zip(*np.nonzero(t["heatmap"][0] == 1.0))}
+    assert peaks == cells  # the Gaussians peak (1) exactly at the keypoint cells, nowhere else
+    assert {(int(x), int(y)) for y, x in zip(*np.nonzero(t["mask"][0]))} == cells
+    # row-wise NMS of the (calibrated) heatmap keeps exactly those cells
+    keep = row_peaks(torch.from_numpy(t["heatmap"][None]) ** 2)[0, 0].numpy() & (t["heatmap"][0] ** 2 > 0.4)
+    assert {(int(x), int(y)) for y, x in zip(*np.nonzero(keep))} == cells
+    # a cell beside the start one (not on the lane): the Gaussian one cell away, sigma = 5 / 6
+    sx, sy = int(100 // stride), int(159 // stride)
+    assert t["heatmap"][0, sy, sx - 1] == pytest.approx(math.exp(-1 / (2 * (5 / 6) ** 2)), rel=1e-6)
+    assert gaussian_kernel(2).shape == (5, 5) and gaussian_kernel(2)[2, 2] == 1.0
+    # the start cell: its exact sub-cell position, zero offset; every keypoint cell points back at the start
+    np.testing.assert_allclose(t["error"][:, sy, sx], [100 / 8 - sx, 159 / 8 - sy], atol=1e-5)
+    np.testing.assert_allclose(t["offsets"][:, sy, sx], [0.0, 0.0], atol=1e-6)
+    ys, xs = np.nonzero(t["mask"][0])
+    landed = np.stack([xs, ys]) + t["error"][:, ys, xs] + t["offsets"][:, ys, xs]
+    np.testing.assert_allclose(landed, np.array([[100 / 8], [159 / 8]]).repeat(len(xs), 1), atol=1e-4)
+    assert np.all((t["error"][:, ys, xs] >= 0) & (t["error"][:, ys, xs] < 1))
+    assert np.all(t["offsets"][1, ys, xs] >= 0)  # the start is the lowest point
+    with pytest.raises(ValueError, match="max_lanes=1"):
+        _head(size, max_lanes=1).encode([lane, lane + [150.0, 0.0]])
+
+
+def _interleaved_pair(size=(160, 400)):
+    """Two lanes about 6 cells apart leaning 1.2 cells per row: a keypoint of the left lane lies right of
+    keypoints of the right lane five rows lower, so the lanes' x ranges interleave."""
+    return [np.array([[60.0, 159.0], [200.0, 40.0]]), np.array([[110.0, 159.0], [240.0, 50.0]])], size
+
+
+def test_association_groups_interleaved_keypoints_by_their_start_points():
+    lanes, size = _interleaved_pair()
+    head = _head(size)
+    t = head.encode(lanes)
+    kp = [lane_keypoints(lane, size, head.points_per_lane) for lane in lanes]
+    assert kp[0][:, 0].max() > kp[1][:, 0].min() + 50  # by x alone the lanes' points mix
+    decoded = head.decode(_perfect_raw(_stack([t])), min_points=2)[0]
+    assert len(decoded) == 2
+    for lane, gt in zip(decoded, lanes):
+        gt_x = np.interp(lane[:, 1], gt[::-1, 1], gt[::-1, 0])
+        assert np.abs(lane[:, 0] - gt_x).max() < 0.5  # every decoded point lies on its own lane
+        assert lane[0, 1] == pytest.approx(159.0) and lane[-1, 1] == pytest.approx(gt[-1, 1], abs=1e-3)
+
+
+def test_a_wrong_start_offset_moves_a_keypoint_to_the_other_lane():
+    lanes, size = _interleaved_pair()
+    head = _head(size)
+    t = head.encode(lanes)
+    raw = _perfect_raw(_stack([t]))
+    # a keypoint half way up the left lane, told that its start is the right lane's
+    ys, xs = np.nonzero(t["mask"][0])
+    on_left = np.abs(xs * 8 + 4 - np.interp(ys * 8 + 4, lanes[0][::-1, 1], lanes[0][::-1, 0])) < 8
+    k = np.flatnonzero(on_left)[len(np.flatnonzero(on_left)) // 2]
+    y, x = ys[k], xs[k]
+    point = np.array([x, y]) + t["error"][:, y, x]
+    moved_px = point * 8
+    before = head.decode(raw, min_points=2)[0]
+    assert any(np.allclose(p, moved_px, atol=1e-3) for p in before[0])
+    raw["offsets"][0, :, y, x] = torch.from_numpy(np.array([110.0, 159.0]) / 8 - point)  # the right lane's start
+    after = head.decode(raw, min_points=2)[0]
+    assert len(after) == 2
+    assert not any(np.allclose(p, moved_px, atol=1e-3) for p in after[0])
+    assert any(np.allclose(p, moved_px, atol=1e-3) for p in after[1])
+    assert len(after[0]) == len(before[0]) - 1 and len(after[1]) == len(before[1]) + 1
+
+
+# ---------------------------------------------------------------------------------------------- LFA
+def test_lfa_sampling_points_follow_their_offsets():
+    torch.manual_seed(0)
+    fmap = torch.randn(1, 3, 5, 6)
+    zero = torch.zeros(1, 4, 5, 6)  # K = 2 points, both at the location itself
+    out = LaneAwareAggregator.sample(fmap, zero)
+    assert out.shape == (1, 3, 2, 5, 6)
+    torch.testing.assert_close(out[:, :, 0], fmap)
+    torch.testing.assert_close(out[:, :, 1], fmap)
+    pts = zero.clone()
+    pts[:, 0] = 1.0  # point 0: one cell right
+    pts[:, 3] = -1.0  # point 1: one cell up
+    out = LaneAwareAggregator.sample(fmap, pts)
+    torch.testing.assert_close(out[:, :, 0, :, :-1], fmap[..., 1:])
+    assert torch.all(out[:, :, 0, :, -1] == 0)  # off the map: zeros
+    torch.testing.assert_close(out[:, :, 1, 1:], fmap[:, :, :-1])
+    pts[:, 0] = 0.5  # half way: the mean of the two cells
+    out = LaneAwareAggregator.sample(fmap, pts)
+    torch.testing.assert_close(out[:, :, 0, :, :-1], (fmap[..., 1:] + fmap[..., :-1]) / 2)
+
+
+def test_lfa_aggregates_features_at_its_predicted_points():
+    torch.manual_seed(1)
+    lfa = LaneAwareAggregator(channels=8, feat_channels=6, num_points=3, stacked_convs=1, gradient_mul=0.1)
+    with torch.no_grad():  # points spread along a line: (-1.5, -2), (0, 0), (1.5, 2) cells
+        lfa.point_out[-1].bias.copy_(torch.tensor([-1.5, -2.0, 0.0, 0.0, 1.5, 2.0]))
+    x = torch.randn(2, 8, 7, 9)
+    out, points = lfa(x)
+    assert out.shape == (2, 8, 7, 9) and points.shape == (2, 6, 7, 9)
+    assert (points[:, 4] - 1.5).abs().max() < 0.5  # the bias dominates the small initial weights
+    # the deformable convolution written out: sum_k W_k f(p_k) + b, ReLU
+    sampled = LaneAwareAggregator.sample(lfa.feat_convs(x), points)  # (B, C_in, K, h, w)
+    weight = lfa.project.weight[:, :, 0, 0].reshape(3, 8, 6)  # (K, C_out, C_in)
+    expected = torch.relu(torch.einsum("koc,bckhw->bohw", weight, sampled) + lfa.bias[:, None, None])
+    torch.testing.assert_close(out, expected, rtol=1e-4, atol=1e-5)
+    # the sampling positions pass a tenth of the gradient, the aux loss acts on the points themselves
+    out.sum().backward()
+    assert lfa.point_out[-1].weight.grad.abs().sum() > 0
+
+
+def test_lfa_loss_is_zero_on_the_lane_and_matches_points_one_to_one():
+    h, w, g, k = 12, 10, 9, 3
+    gt = torch.zeros(1, 2, g, 2)
+    gt[0, 0, :, 0] = 4.0  # a vertical lane at x = 4, points at y = 0..8
+    gt[0, 0, :, 1] = torch.arange(g, dtype=torch.float32)
+    valid = torch.tensor([[1.0, 0.0]])
+    pts = torch.zeros(1, 2 * k, h, w)
+    for i in range(k):  # three consecutive lane points from each location (shifted inwards at the lane's ends)
+        pts[:, 2 * i + 1] = i - 1.0
+        pts[:, 2 * i + 1, 0] = float(i)
+        pts[:, 2 * i + 1, g - 1] = i - 2.0
+    loss = lfa_loss(pts, gt, valid)
+    assert loss.shape == (1,) and loss.item() == pytest.approx(0.0, abs=1e-6)
+    shifted = pts.clone()
+    shifted[:, 0::2] = 0.5  # all half a cell right of the lane: smooth L1 = 0.5 - beta / 2 on x, 0 on y
+    loss = lfa_loss(shifted, gt, valid, beta=1 / 9)
+    assert loss.item() == pytest.approx((0.5 - 1 / 18) / 2, rel=1e-5)  # mean over (x, y) elements
+    # the same K points at one location: the Hungarian matching still gives them three different lane points
+    same = torch.zeros(1, 2 * k, h, w)
+    assert lfa_loss(same, gt, valid).item() > 0
+    assert lfa_loss(pts, gt, torch.zeros(1, 2)).item() == 0.0  # no lane: no loss
+
+
+# ---------------------------------------------------------------------------------------------- losses
+def test_focal_heatmap_loss_by_hand():
+    pred = torch.tensor([0.8, 0.3, 0.1, 0.6]).reshape(1, 1, 1, 4)
+    target = torch.tensor([1.0, 0.5, 0.0, 1.0]).reshape(1, 1, 1, 4)
+    pos = math.log(0.8) * 0.2**2 + math.log(0.6) * 0.4**2
+    neg = math.log(0.7) * 0.3**2 * 0.5**4 + math.log(0.9) * 0.1**2 * 1.0
+    expected = -(pos + neg) / 2  # two positives
+    assert heatmap_focal_loss(pred, target).item() == pytest.approx(expected, rel=1e-5)
+    # a batch: each image's sum over the batch's positive count, times the batch size (the mean is the official)
+    both = heatmap_focal_loss(torch.cat([pred, pred]), torch.cat([target, torch.zeros_like(target)]))
+    alone_neg = -(math.log(0.2) * 0.64 + math.log(0.7) * 0.09 + math.log(0.9) * 0.01 + math.log(0.4) * 0.36)
+    torch.testing.assert_close(both, torch.tensor([-(pos + neg), alone_neg]) * 2 / 2)
+    # the clamp: a certain, right prediction costs (almost) nothing, a certain wrong one log(1e-4) at most
+    assert heatmap_focal_loss(torch.ones(1, 1, 1, 1), torch.ones(1, 1, 1, 1)).item() < 1e-7
+    err = masked_l1(torch.ones(1, 2, 1, 2), torch.zeros(1, 2, 1, 2), torch.tensor([[[[1.0, 0.0]]]]), False)
+    off = masked_l1(torch.ones(1, 2, 1, 2), torch.zeros(1, 2, 1, 2), torch.tensor([[[[1.0, 0.0]]]]), True)
+    assert err.item() == pytest.approx(2.0) and off.item() == pytest.approx(1.0)  # the official normalisers
+
+
+def test_loss_parts_weights_and_train_only_lfa_output():
+    torch.manual_seed(0)
+    size = (64, 160)
+    head = _head(size, max_lanes=4)
+    rng = np.random.default_rng(2)
+    targets = {k: torch.from_numpy(v) for k, v in
+               _stack([head.encode(synthetic_lanes(rng, size, 3, curved=True)), head.encode([])]).items()}
+    feats = [torch.randn(2, 16, 8, 20), torch.randn(2, 16, 4, 10), torch.randn(2, 16, 2, 5)]
+    raw = head.train()(feats)
+    assert set(raw) == {"heatmap", "offsets", "error", "lfa_points"} and raw["lfa_points"].shape == (2, 14, 8, 20)
+    out = head.loss(raw, targets)
+    assert out["per_sample"].shape == (2,)
+    torch.testing.assert_close(out["loss"], out["per_sample"].mean())
+    torch.testing.assert_close(out["loss"], out["heatmap_loss"] + out["error_loss"] + 0.5 * out["offset_loss"]
+                               + 0.2 * out["lfa_loss"])
+    assert out["lfa_loss"] > 0 and out["offset_loss"] > 0
+    assert out["per_sample"][1] < out["per_sample"][0]  # the lane-free image: only the heatmap's negatives
+    eval_raw = head.eval()(feats)
+    assert set(eval_raw) == {"heatmap", "offsets", "error"}
+    assert head.loss(eval_raw, targets)["lfa_loss"] == 0
+    assert torch.all((eval_raw["heatmap"] > 0) & (eval_raw["heatmap"] < 1))
+
+
+# ---------------------------------------------------------------------------------------------- network
+def _network(image_size, channels=16, **kwargs):
+    bb = build_backbone("resnet18", out_indices=(2, 3, 4))
+    neck = FPN(bb.channels, bb.strides, out_channels=channels)
+    head = GANetHead(neck.channels, neck.strides, image_size, **{**SMALL, **kwargs})
+    return bb, neck, head
+
+
+def test_a_few_adam_steps_reduce_the_loss():
+    torch.manual_seed(0)
+    torch.set_num_threads(1)  # a shared 2-core machine: one thread is the faster
+    rng = np.random.default_rng(1)
+    size = (64, 128)
+    bb, neck, head = _network(size)
+    targets = {k: torch.from_numpy(v) for k, v in
+               _stack([head.encode(synthetic_lanes(rng, size, 3, bool(i % 2))) for i in range(2)]).items()}
+    images = torch.rand(2, 3, *size)
+    opt = torch.optim.Adam([*bb.parameters(), *neck.parameters(), *head.parameters()], lr=3e-3)
+    history = []
+    for _ in range(8):
+        out = head.loss(head(neck(bb(images))), targets)
+        opt.zero_grad()
+        out["loss"].backward()
+        opt.step()
+        history.append({k: v.item() for k, v in out.items() if v.ndim == 0})
+    losses = [h["loss"] for h in history]
+    assert np.mean(losses[-3:]) < 0.6 * losses[0], losses  # about 0.37 after 8 steps
+    for part in ("heatmap_loss", "offset_loss", "lfa_loss"):  # the LFA's points move towards the lanes too
+        assert history[-1][part] < 0.9 * history[0][part], (part, history)
+
+
+def test_decoded_lanes_of_a_random_network_lie_inside_the_image():
+    torch.manual_seed(0)
+    size = (96, 256)
+    bb, neck, head = _network(size)
+    with torch.no_grad():
+        torch.nn.init.normal_(head.offset_head[-1].weight, 0.0, 0.5)  # offsets of a few cells, some far out
+        raw = head.eval()(neck.eval()(bb.eval()(torch.rand(3, 3, *size))))
+    decoded = head.decode(raw, kpt_threshold=0.05, root_threshold=50.0, cluster_threshold=30.0, min_points=1)
+    assert sum(len(lanes) for lanes in decoded) >= 3
+    for lanes in decoded:
+        for lane in lanes:
+            assert lane.shape[1] == 2 and len(lane) >= 2 and np.all(np.diff(lane[:, 1]) < 0)
+            assert lane[:, 0].min() >= 0 and lane[:, 0].max() <= size[1] - 1
+            assert lane[:, 1].min() >= 0 and lane[:, 1].max() <= size[0] - 1
+        assert [ln[0, 0] for ln in lanes] == sorted(ln[0, 0] for ln in lanes)
+
+
+def test_constructor_checks_name_the_argument():
+    for kwargs, name in (({"lfa_points": 0}, "lfa_points"), ({"points_per_lane": 1}, "points_per_lane"),
+                         ({"lfa_gt_points": 5}, "lfa_gt_points"), ({"lfa_gradient_mul": 1.5}, "lfa_gradient_mul"),
+                         ({"offset_loss_weight": -1.0}, "offset_loss_weight"), ({"max_lanes": 0}, "max_lanes"),
+                         ({"reference_width": 0.0}, "reference_width"), ({"attention_ratio": 32}, "attention_ratio")):
+        with pytest.raises(ValueError, match=name):
+            _head((64, 160), **kwargs)
+    head = _head((64, 160), top_attention=False, lfa_points=3, lfa_gt_points=3)
+    raw = head.eval()([torch.randn(1, 16, 8, 20)])  # a single level will do without the attention
+    assert raw["heatmap"].shape == (1, 1, 8, 20)
+    assert GANetHead.decode_options() == ("kpt_threshold", "root_threshold", "cluster_threshold", "min_points")
