@@ -1,7 +1,7 @@
 """Every detector family at its paper's input size: parameters, forward latency and peak memory (CPU), and
 batch-1 / batch-32 throughput on a GPU when one is there, next to the published FPS of the original code.
 
-Usage: python benchmarks/bench_families.py [--families laneatt,ufld,clrnet,scnn] [--device cpu|cuda]
+Usage: python benchmarks/bench_families.py [--families laneatt,ufld,...] [--device cpu|cuda]
                                            [--batches 1,32] [--repeats 10] [--threads 2] [--json out.jsonl]
 
 Each family is built by build_model from its conf/model config, with ResNet-18 (SCNN: VGG-16, as its paper), in
@@ -28,6 +28,9 @@ FAMILIES = {
     "ufld": ((288, 800), "resnet18", "306 (UFLD paper, GTX 1080 Ti)"),
     "clrnet": ((320, 800), "resnet18", "206 (CLRNet paper, NVIDIA 1080 Ti)"),
     "scnn": ((288, 800), "vgg16", "7.5 (SCNN in the UFLD paper's comparison, GTX 1080 Ti)"),
+    "bezierlanenet": ((288, 800), "resnet18", "213 (BezierLaneNet paper, ResNet-18)"),
+    "ganet": ((320, 800), "resnet18", "153 (GANet paper, GANet-S / ResNet-18)"),
+    "laneformer": ((320, 800), "resnet18", "none published for ResNet-18 (no official code)"),
 }
 
 

@@ -1,11 +1,11 @@
 #!/usr/bin/env bash
 # The detector families on a GPU machine (benchmarks/RESULTS.md "Detector families"): batch-1 / batch-32 forward
 # throughput at each paper's input size, then each family's quickstart (1,000 steps on simulated scenes, clean test,
-# small illusion suite), the four runs side by side. Results land in $OUT (fps.jsonl, one run_<family>.tgz each).
+# small illusion suite), the seven runs side by side. Results land in $OUT (fps.jsonl, one run_<family>.tgz each).
 #   OUT=/tmp/out bash benchmarks/families_gpu.sh                 # STEPS, CASES, TEST, FAMILIES shrink it for a dry run
 set -u
 OUT=${OUT:-/tmp/families_out}; mkdir -p "$OUT"
-STEPS=${STEPS:-1000}; CASES=${CASES:-10}; TEST=${TEST:-100}; FAMILIES=${FAMILIES:-laneatt ufld clrnet scnn}
+STEPS=${STEPS:-1000}; CASES=${CASES:-10}; TEST=${TEST:-100}; FAMILIES=${FAMILIES:-laneatt ufld bezierlanenet ganet scnn laneformer clrnet}
 DEVICE=${DEVICE:-cuda}; REPEATS=${REPEATS:-20}; LIMIT=${LIMIT:-420}; WORKERS=${WORKERS:-3}
 export PYTHONUNBUFFERED=1 WANDB_MODE=offline
 python3 benchmarks/bench_families.py --device "$DEVICE" --families "$(echo $FAMILIES | tr ' ' ,)" --repeats "$REPEATS" \
