@@ -30,8 +30,9 @@ NARROW = {"ufld": ["model.head.hidden_dim=128"], "scnn": ["model.head.hidden_cha
 pytestmark = pytest.mark.usefixtures("hydra_conf")  # tests/conftest.py
 
 
-def _model(family: str):
-    cfg = compose(config_name="config", overrides=[f"model={family}", f"backbone={BACKBONE.get(family, 'resnet18')}",
+def _model(family: str, backbone: str | None = None):
+    backbone = backbone or BACKBONE.get(family, "resnet18")
+    cfg = compose(config_name="config", overrides=[f"model={family}", f"backbone={backbone}",
                                                    f"data.input_size=[{SIZE[0]},{SIZE[1]}]", "data.max_lanes=4",
                                                    *NARROW.get(family, [])])
     torch.manual_seed(0)
@@ -75,6 +76,19 @@ def test_forward_backward_and_decode_follow_the_contract(family):
         for lane in per_image:
             assert lane.ndim == 2 and lane.shape[1] == 2 and np.all(np.diff(lane[:, 1]) <= 0)
             assert lane[:, 0].min() >= -1 and lane[:, 0].max() <= SIZE[1] and lane[:, 1].max() <= SIZE[0]
+
+
+@pytest.mark.parametrize("family", FAMILIES)
+def test_a_bottleneck_resnet_backbone_builds_and_trains(family):
+    """ResNet-50 (and so -101: the same stage widths) gives the head 4x wider maps than ResNet-18/34."""
+    model, _ = _model(family, "resnet50")
+    assert model.backbone.feature_info.channels()[-1] in (1024, 2048)
+    images, targets = _batch(model.head)
+    model.train()
+    losses = model.head.loss(model(images), targets_to(targets, images.device))
+    assert torch.isfinite(losses["loss"])
+    losses["loss"].backward()
+    assert all(p.grad is None or torch.isfinite(p.grad).all() for p in model.head.parameters())
 
 
 class _Network(torch.nn.Module):
