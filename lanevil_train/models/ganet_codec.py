@@ -28,8 +28,8 @@ predicts its start point at (cell + error + offset); keypoints whose predicted y
 ``root_threshold`` are start candidates; their predicted start points (the official: their cells) are grouped
 greedily (a candidate joins the first group holding one within ``cluster_threshold`` cells; the head scales the
 official 5 cells at 800 px to the input width) and averaged into lane centres; every keypoint joins the nearest
-centre within ``cluster_threshold`` of its predicted start (the official takes the first one in its list), others are dropped;
-a group with fewer than ``min_points`` keypoints is dropped (the official: more than points_thr = 10).
+centre within ``cluster_threshold`` of its predicted start (the official takes the first one in its list), others
+are dropped; a group with fewer than ``min_points`` keypoints is dropped (the official: more than points_thr = 10).
 """
 
 from __future__ import annotations

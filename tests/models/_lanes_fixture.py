@@ -51,19 +51,28 @@ def tusimple_accuracy(pred: list[np.ndarray], gt: list[np.ndarray], image_size: 
     return correct, total
 
 
+def assert_lanes_inside(decoded: list[list[np.ndarray]], image_size: tuple[int, int], min_total: int = 1) -> None:
+    """The contract's promise about decoded lanes: each an (N >= 2, 2) float array with y strictly descending and
+    every point inside the image, each image's lanes left to right by their first point; min_total lanes in all."""
+    h, w = image_size
+    assert sum(len(lanes) for lanes in decoded) >= min_total
+    for lanes in decoded:
+        assert [lane[0, 0] for lane in lanes] == sorted(lane[0, 0] for lane in lanes)  # left to right
+        for lane in lanes:
+            assert lane.dtype == np.float64 and lane.ndim == 2 and lane.shape[1] == 2 and len(lane) >= 2
+            assert np.all(np.diff(lane[:, 1]) < 0)  # y strictly descending
+            assert lane[:, 0].min() >= 0 and lane[:, 0].max() <= w - 1
+            assert lane[:, 1].min() >= 0 and lane[:, 1].max() <= h - 1
+
+
 def assert_round_trip(decoded: list[list[np.ndarray]], gts: list[list[np.ndarray]], image_size: tuple[int, int],
                       min_accuracy: float = 0.99) -> None:
     """Decoded lanes reproduce the ground truth they were encoded from: one lane per GT lane, each with y strictly
     descending and inside the image, left to right, and >= min_accuracy TuSimple point accuracy overall."""
-    h, w = image_size
+    assert_lanes_inside(decoded, image_size, min_total=0)
     correct = total = 0
     for gt, pred in zip(gts, decoded, strict=True):
         assert len(pred) == len(gt)
-        for lane in pred:
-            assert np.all(np.diff(lane[:, 1]) < 0)  # y strictly descending
-            assert lane[:, 0].min() >= 0 and lane[:, 0].max() <= w - 1
-            assert lane[:, 1].min() >= 0 and lane[:, 1].max() <= h - 1
-        assert [p[0, 0] for p in pred] == sorted(p[0, 0] for p in pred)  # left to right
         c, n = tusimple_accuracy(pred, gt, image_size)
         correct, total = correct + c, total + n
     assert total > 100

@@ -28,7 +28,7 @@ from lanevil_train.models.clrnet_priors import (
 )
 from lanevil_train.models.necks import FPN
 
-from ._lanes_fixture import assert_round_trip, synthetic_lanes
+from ._lanes_fixture import assert_lanes_inside, assert_round_trip, synthetic_lanes
 
 SMALL = {"num_priors": 32, "sample_points": 12, "fc_hidden_dim": 16}  # a cheap head for CPU tests
 
@@ -337,13 +337,7 @@ def test_decoded_lanes_of_a_random_network_lie_inside_the_image():
         head.reg_layer.bias[3] = 0.6  # long enough lanes to decode (random init predicts length ~0)
         raw = head.eval()(neck.eval()(bb.eval()(torch.rand(3, 3, *size))))
     decoded = head.decode(raw, conf_threshold=0.0, nms_threshold=1.0, nms_topk=20)
-    assert sum(len(lanes) for lanes in decoded) >= 10
-    for lanes in decoded:
-        for lane in lanes:
-            assert lane.shape[1] == 2 and len(lane) >= 2 and np.all(np.diff(lane[:, 1]) < 0)
-            assert lane[:, 0].min() >= 0 and lane[:, 0].max() <= size[1] - 1
-            assert lane[:, 1].min() >= 0 and lane[:, 1].max() <= size[0] - 1
-        assert [ln[0, 0] for ln in lanes] == sorted(ln[0, 0] for ln in lanes)
+    assert_lanes_inside(decoded, size, min_total=10)
 
 
 def test_constructor_checks_name_the_argument():

@@ -13,7 +13,7 @@ from lanevil_train.models.ganet_codec import gaussian_kernel, lane_keypoints, ro
 from lanevil_train.models.ganet_loss import heatmap_focal_loss, lfa_loss, masked_l1
 from lanevil_train.models.necks import FPN
 
-from ._lanes_fixture import assert_round_trip, synthetic_lanes
+from ._lanes_fixture import assert_lanes_inside, assert_round_trip, synthetic_lanes
 
 SMALL = {"head_channels": 16, "lfa_channels": 16, "lfa_convs": 1}  # a cheap head for CPU tests
 
@@ -264,13 +264,7 @@ def test_decoded_lanes_of_a_random_network_lie_inside_the_image():
         torch.nn.init.normal_(head.offset_head[-1].weight, 0.0, 0.5)  # offsets of a few cells, some far out
         raw = head.eval()(neck.eval()(bb.eval()(torch.rand(3, 3, *size))))
     decoded = head.decode(raw, kpt_threshold=0.05, root_threshold=50.0, cluster_threshold=30.0, min_points=1)
-    assert sum(len(lanes) for lanes in decoded) >= 3
-    for lanes in decoded:
-        for lane in lanes:
-            assert lane.shape[1] == 2 and len(lane) >= 2 and np.all(np.diff(lane[:, 1]) < 0)
-            assert lane[:, 0].min() >= 0 and lane[:, 0].max() <= size[1] - 1
-            assert lane[:, 1].min() >= 0 and lane[:, 1].max() <= size[0] - 1
-        assert [ln[0, 0] for ln in lanes] == sorted(ln[0, 0] for ln in lanes)
+    assert_lanes_inside(decoded, size, min_total=3)
 
 
 def test_constructor_checks_name_the_argument():

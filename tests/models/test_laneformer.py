@@ -8,7 +8,7 @@ from lanevil_train.models.backbones import build_backbone
 from lanevil_train.models.laneformer import LaneFormerHead
 from lanevil_train.models.laneformer_loss import assign, encode_lanes, matching_cost
 
-from ._lanes_fixture import assert_round_trip, synthetic_lanes
+from ._lanes_fixture import assert_lanes_inside, assert_round_trip, synthetic_lanes
 
 SMALL = {"d_model": 16, "nhead": 2, "num_encoder_layers": 1, "num_decoder_layers": 2, "dim_feedforward": 32,
          "dropout": 0.0}
@@ -120,14 +120,7 @@ def test_decoded_lanes_from_random_init_lie_inside_the_image():
         raw = head([torch.randn(3, 8, 3, 8)])
     raw["xs"] = raw["xs"] + 0.8 * torch.randn_like(raw["xs"])  # scattered x, many rows outside the image
     decoded = head.decode(raw, conf_threshold=0.0)
-    assert sum(len(lanes) for lanes in decoded) >= 10
-    for lanes in decoded:
-        assert [ln[0, 0] for ln in lanes] == sorted(ln[0, 0] for ln in lanes)
-        for lane in lanes:
-            assert lane.dtype == np.float64 and lane.shape[1] == 2 and len(lane) >= 2
-            assert np.all(np.diff(lane[:, 1]) < 0)
-            assert lane[:, 0].min() >= 0 and lane[:, 0].max() <= w - 1
-            assert lane[:, 1].min() >= 0 and lane[:, 1].max() <= h - 1
+    assert_lanes_inside(decoded, (h, w), min_total=10)
 
 
 def test_decode_drops_background_queries_and_rows_outside_start_end():

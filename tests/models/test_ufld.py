@@ -22,7 +22,7 @@ from lanevil_train.models.ufld_losses import (
     similarity_loss,
 )
 
-from ._lanes_fixture import assert_round_trip, synthetic_lanes
+from ._lanes_fixture import assert_lanes_inside, assert_round_trip, synthetic_lanes
 
 CHANNELS, STRIDES = [128, 256, 512], [8, 16, 32]  # ResNet-18 layers 2-4
 
@@ -191,13 +191,7 @@ def test_decoded_lanes_from_random_outputs_lie_inside_the_image():
     noisy["cls_logits"][:, -1] -= 2.0
     for out in (raw, noisy):
         lanes = head.decode(out, min_points=2)
-        assert sum(len(per) for per in lanes) >= 4
-        for per in lanes:
-            assert [ln[0, 0] for ln in per] == sorted(ln[0, 0] for ln in per)
-            for lane in per:
-                assert np.all(np.diff(lane[:, 1]) < 0)
-                assert lane[:, 0].min() >= 0 and lane[:, 0].max() <= w - 1
-                assert lane[:, 1].min() >= 0 and lane[:, 1].max() <= h - 1
+        assert_lanes_inside(lanes, (h, w), min_total=4)
 
 
 # ---------------------------------------------------------------------------------------------- network
