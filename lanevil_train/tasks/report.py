@@ -17,16 +17,22 @@ RESULT_FILES = (RESULTS, PER_ANSWER)  # a lane detector's per-image scores, a VL
 def results_files(runs: list[str]) -> list[Path]:
     """Every per_image.jsonl (lane detectors) and per_answer.jsonl (VLMs) under the run directories (a run, an
     evaluation, a training run with its robustness/ suite, a multirun sweep or a compare directory), each file
-    once, in path order."""
+    once, runs in the order given, a run's files in path order with numbers as numbers (a sweep's job 10 after
+    job 9), so a report's rows follow the order of the runs and of a sweep's jobs."""
     files: dict[Path, None] = {}
     for run in map(Path, runs):
         if not run.is_dir():
             raise FileNotFoundError(f"task.runs: {run} is not a directory")
-        found = sorted(path for name in RESULT_FILES for path in run.rglob(name))
+        found = sorted((path for name in RESULT_FILES for path in run.rglob(name)), key=path_order)
         if not found:
             raise FileNotFoundError(f"task.runs: no {' or '.join(RESULT_FILES)} in {run} or its subdirectories")
         files.update(dict.fromkeys(path.resolve() for path in found))
     return list(files)
+
+
+def path_order(path: Path) -> tuple:
+    """A sort key reading each path part that is a number as that number: 2 < 10, as Hydra numbers its jobs."""
+    return tuple((0, int(part), "") if part.isdigit() else (1, 0, part) for part in path.parts)
 
 
 def report(cfg: DictConfig) -> float:

@@ -24,14 +24,14 @@ class ReportSweep(Callback):
     """After a multirun: the report of every job's results in <sweep dir>/report."""
 
     def on_multirun_end(self, config: DictConfig, **kwargs) -> None:
-        from lanevil_train.tasks.report import RESULT_FILES
+        from lanevil_train.tasks.report import RESULT_FILES, path_order
         from lanevil_train.tasks.results import write_results
 
         sweep = Path(config.hydra.sweep.dir)
         if not sweep.is_dir():
             return
-        jobs = sorted((job for job in sweep.iterdir() if job.is_dir() and job.name != "report"), key=_job_order)
-        files = [path for job in jobs for name in RESULT_FILES for path in sorted(job.rglob(name))]
+        files = sorted((path for job in sweep.iterdir() if job.is_dir() and job.name != "report"
+                        for name in RESULT_FILES for path in job.rglob(name)), key=path_order)
         owner: dict[tuple, str] = {}  # (model, dataset) -> the job that scored it
         for path in files:
             job = path.relative_to(sweep).parts[0]
@@ -46,12 +46,6 @@ class ReportSweep(Callback):
             write_results(files, sweep / "report")
         except ValueError as error:  # results that do not fit one report (e.g. lanes and VLM answers)
             log.warning("no combined report of %s: %s", sweep, error)
-
-
-def _job_order(job: Path) -> tuple:
-    """Jobs in the sweep's order (Hydra numbers them 0, 1, ..., 10: 10 after 9, not after 1), so a report's rows
-    follow the order the models were given on the command line."""
-    return (0, int(job.name), "") if job.name.isdigit() else (1, 0, job.name)
 
 
 def _label(path: Path) -> tuple:
