@@ -51,6 +51,19 @@ def tusimple_accuracy(pred: list[np.ndarray], gt: list[np.ndarray], image_size: 
     return correct, total
 
 
+def train_steps(network, head, images, targets, optimizer, steps: int) -> list[dict[str, float]]:
+    """`steps` optimizer steps on head.loss(network(images), targets); per step, every scalar the loss returned
+    (the total "loss" and its named parts)."""
+    history = []
+    for _ in range(steps):
+        out = head.loss(network(images), targets)
+        optimizer.zero_grad()
+        out["loss"].backward()
+        optimizer.step()
+        history.append({k: v.item() for k, v in out.items() if v.ndim == 0})
+    return history
+
+
 def assert_lanes_inside(decoded: list[list[np.ndarray]], image_size: tuple[int, int], min_total: int = 1) -> None:
     """The contract's promise about decoded lanes: each an (N >= 2, 2) float array with y strictly descending and
     every point inside the image, each image's lanes left to right by their first point; min_total lanes in all."""

@@ -30,7 +30,7 @@ from lanevil_train.models.bezierlanenet_loss import (
     sample_points,
 )
 
-from ._lanes_fixture import assert_lanes_inside, assert_round_trip, synthetic_lanes
+from ._lanes_fixture import assert_lanes_inside, assert_round_trip, synthetic_lanes, train_steps
 
 SMALL = {"channels": 32, "dilated_mid_channels": 8, "seg_mid_channels": 8}  # a cheap head for CPU tests
 
@@ -307,13 +307,7 @@ def test_a_few_steps_reduce_the_loss():
     images = torch.randn(2, 3, *size)
     params = list(bb.parameters()) + list(head.parameters())
     opt = torch.optim.Adam(params, lr=1e-3)
-    losses = []
-    for _ in range(6):
-        out = head.loss(head(bb(images)), targets)
-        opt.zero_grad()
-        out["loss"].backward()
-        opt.step()
-        losses.append(out["loss"].item())
+    losses = [step["loss"] for step in train_steps(lambda x: head(bb(x)), head, images, targets, opt, 6)]
     assert all(np.isfinite(losses))
     assert losses[-1] < 0.7 * losses[0]
 

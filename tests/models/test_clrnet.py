@@ -28,7 +28,7 @@ from lanevil_train.models.clrnet_priors import (
 )
 from lanevil_train.models.necks import FPN
 
-from ._lanes_fixture import assert_lanes_inside, assert_round_trip, synthetic_lanes
+from ._lanes_fixture import assert_lanes_inside, assert_round_trip, synthetic_lanes, train_steps
 
 SMALL = {"num_priors": 32, "sample_points": 12, "fc_hidden_dim": 16}  # a cheap head for CPU tests
 
@@ -316,14 +316,8 @@ def test_a_few_adamw_steps_reduce_the_loss():
     images = torch.rand(2, 3, *size)
     params = [*bb.parameters(), *neck.parameters(), *head.parameters()]
     opt = torch.optim.AdamW(params, lr=3e-3)
-    losses, ious = [], []
-    for _ in range(12):
-        out = head.loss(head(neck(bb(images))), {"lanes": targets})
-        opt.zero_grad()
-        out["loss"].backward()
-        opt.step()
-        losses.append(out["loss"].item())
-        ious.append(out["iou_loss"].item())
+    history = train_steps(lambda x: head(neck(bb(x))), head, images, {"lanes": targets}, opt, 12)
+    losses, ious = [step["loss"] for step in history], [step["iou_loss"] for step in history]
     assert np.mean(losses[-3:]) < 0.7 * losses[0], losses  # about 0.6 after 12 steps
     assert np.mean(ious[-3:]) < ious[0], ious
 

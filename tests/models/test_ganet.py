@@ -13,7 +13,7 @@ from lanevil_train.models.ganet_codec import gaussian_kernel, lane_keypoints, ro
 from lanevil_train.models.ganet_loss import heatmap_focal_loss, lfa_loss, masked_l1
 from lanevil_train.models.necks import FPN
 
-from ._lanes_fixture import assert_lanes_inside, assert_round_trip, synthetic_lanes
+from ._lanes_fixture import assert_lanes_inside, assert_round_trip, synthetic_lanes, train_steps
 
 SMALL = {"head_channels": 16, "lfa_channels": 16, "lfa_convs": 1}  # a cheap head for CPU tests
 
@@ -243,13 +243,7 @@ def test_a_few_adam_steps_reduce_the_loss():
                _stack([head.encode(synthetic_lanes(rng, size, 3, bool(i % 2))) for i in range(2)]).items()}
     images = torch.rand(2, 3, *size)
     opt = torch.optim.Adam([*bb.parameters(), *neck.parameters(), *head.parameters()], lr=3e-3)
-    history = []
-    for _ in range(8):
-        out = head.loss(head(neck(bb(images))), targets)
-        opt.zero_grad()
-        out["loss"].backward()
-        opt.step()
-        history.append({k: v.item() for k, v in out.items() if v.ndim == 0})
+    history = train_steps(lambda x: head(neck(bb(x))), head, images, targets, opt, 8)
     losses = [h["loss"] for h in history]
     assert np.mean(losses[-3:]) < 0.6 * losses[0], losses  # about 0.37 after 8 steps
     for part in ("heatmap_loss", "offset_loss", "lfa_loss"):  # the LFA's points move towards the lanes too

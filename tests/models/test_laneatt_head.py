@@ -8,7 +8,7 @@ from lanevil_train.models.backbones import build_backbone
 from lanevil_train.models.laneatt import LaneATTHead
 from lanevil_train.models.losses import focal_loss
 
-from ._lanes_fixture import synthetic_lanes
+from ._lanes_fixture import synthetic_lanes, train_steps
 
 
 @pytest.mark.parametrize("image_size", [(64, 160), (96, 160)])
@@ -108,13 +108,8 @@ def test_a_few_adam_steps_reduce_the_loss():
     images = torch.rand(4, 3, *image_size)
     params = list(bb.parameters()) + list(head.parameters())
     opt = torch.optim.Adam(params, lr=1e-3)
-    losses = []
-    for _ in range(30):
-        out = head.loss(head(bb(images)), {"lanes": targets})
-        opt.zero_grad()
-        out["loss"].backward()
-        opt.step()
-        losses.append(out["loss"].item())
+    history = train_steps(lambda x: head(bb(x)), head, images, {"lanes": targets}, opt, 30)
+    losses = [step["loss"] for step in history]
     assert losses[-1] < 0.5 * losses[0], losses
 
 

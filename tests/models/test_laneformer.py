@@ -8,7 +8,7 @@ from lanevil_train.models.backbones import build_backbone
 from lanevil_train.models.laneformer import LaneFormerHead
 from lanevil_train.models.laneformer_loss import assign, encode_lanes, matching_cost
 
-from ._lanes_fixture import assert_lanes_inside, assert_round_trip, synthetic_lanes
+from ._lanes_fixture import assert_lanes_inside, assert_round_trip, synthetic_lanes, train_steps
 
 SMALL = {"d_model": 16, "nhead": 2, "num_encoder_layers": 1, "num_decoder_layers": 2, "dim_feedforward": 32,
          "dropout": 0.0}
@@ -76,13 +76,7 @@ def test_a_few_adamw_steps_reduce_the_loss(one_thread):
     targets = {k: torch.from_numpy(np.stack([e[k] for e in enc])) for k in enc[0]}
     images = torch.rand(2, 3, *image_size)
     opt = torch.optim.AdamW(list(bb.parameters()) + list(head.parameters()), lr=2e-3)
-    outs = []
-    for _ in range(30):
-        out = head.loss(head(bb(images)), targets)
-        opt.zero_grad()
-        out["loss"].backward()
-        opt.step()
-        outs.append({k: v.item() for k, v in out.items() if k != "per_sample"})
+    outs = train_steps(lambda x: head(bb(x)), head, images, targets, opt, 30)
     assert outs[-1]["loss"] < 0.7 * outs[0]["loss"], [o["loss"] for o in outs]
     assert outs[-1]["y_loss"] < 0.6 * outs[0]["y_loss"]  # the geometry is learnt, not only the class
     assert outs[-1]["aux_loss"] < 0.7 * outs[0]["aux_loss"]  # and so are the earlier layers' predictions

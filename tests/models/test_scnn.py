@@ -15,7 +15,7 @@ from lanevil_train.models.scnn import SCNNHead, SpatialMessagePassing
 from lanevil_train.lanes import assign_slots
 from lanevil_train.models.scnn_codec import bottom_x
 
-from ._lanes_fixture import assert_lanes_inside, assert_round_trip, synthetic_lanes
+from ._lanes_fixture import assert_lanes_inside, assert_round_trip, synthetic_lanes, train_steps
 
 
 @pytest.fixture(autouse=True)
@@ -280,13 +280,7 @@ def test_a_few_sgd_steps_reduce_the_loss_and_decoded_lanes_lie_inside():
     images = torch.rand(4, 3, *image_size)
     params = list(bb.parameters()) + list(head.parameters())
     opt = torch.optim.SGD(params, lr=0.01, momentum=0.9, weight_decay=1e-4)
-    losses = []
-    for _ in range(8):
-        out = head.loss(head(bb(images)), targets)
-        opt.zero_grad()
-        out["loss"].backward()
-        opt.step()
-        losses.append(out["loss"].item())
+    losses = [step["loss"] for step in train_steps(lambda x: head(bb(x)), head, images, targets, opt, 8)]
     assert losses[-1] < 0.5 * losses[0], losses
     head.eval()
     with torch.no_grad():

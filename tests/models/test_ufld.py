@@ -22,7 +22,7 @@ from lanevil_train.models.ufld_losses import (
     similarity_loss,
 )
 
-from ._lanes_fixture import assert_lanes_inside, assert_round_trip, synthetic_lanes
+from ._lanes_fixture import assert_lanes_inside, assert_round_trip, synthetic_lanes, train_steps
 
 CHANNELS, STRIDES = [128, 256, 512], [8, 16, 32]  # ResNet-18 layers 2-4
 
@@ -251,13 +251,7 @@ def test_a_few_adam_steps_reduce_the_loss():
     targets = {k: torch.from_numpy(np.stack([e[k] for e in encs])) for k in encs[0]}
     images = torch.rand(4, 3, h, w)
     opt = torch.optim.Adam(list(bb.parameters()) + list(head.parameters()), lr=1e-3)
-    history = []
-    for _ in range(10):
-        out = head.loss(head(bb(images)), targets)
-        opt.zero_grad()
-        out["loss"].backward()
-        opt.step()
-        history.append({k: round(out[k].item(), 3) for k in ("loss", "cls_loss", "aux_loss")})
+    history = train_steps(lambda x: head(bb(x)), head, images, targets, opt, 10)
     first, last = history[0], history[-1]
     assert last["loss"] < 0.5 * first["loss"], history
     assert last["cls_loss"] < 0.5 * first["cls_loss"] and last["aux_loss"] < 0.5 * first["aux_loss"], history
