@@ -37,7 +37,9 @@ def test_export_then_evaluate_the_onnx_model_gives_the_checkpoints_scores(tmp_pa
     for a, b in zip(by_torch, by_onnx):
         assert a["case_id"] == b["case_id"] and a["num_pred"] == b["num_pred"]
         assert a["accuracy"] == pytest.approx(b["accuracy"]) and a["fp"] == b["fp"] and a["fn"] == b["fn"]
-        assert np.allclose(np.asarray(a["pred_lanes"], float), np.asarray(b["pred_lanes"], float), atol=0.5)
+        # the same lanes; an untrained SCNN's nearly flat probability maps can tie two columns, and a 1e-7
+        # difference between onnxruntime and torch then moves a point one column (1 px here)
+        assert np.allclose(np.asarray(a["pred_lanes"], float), np.asarray(b["pred_lanes"], float), atol=1.0)
     scores = [json.loads((tmp_path / d / "test_scores.json").read_text())[0] for d in ("eval_pt", "eval_onnx")]
     for key in ("Accuracy", "FP", "FN", "F1"):
         assert scores[0][key] == pytest.approx(scores[1][key], abs=1e-9), key
