@@ -233,9 +233,8 @@ def _network(image_size, channels=16, **kwargs):
     return bb, neck, head
 
 
-def test_a_few_adam_steps_reduce_the_loss():
+def test_a_few_adam_steps_reduce_the_loss(one_thread):
     torch.manual_seed(0)
-    torch.set_num_threads(1)  # a shared 2-core machine: one thread is the faster
     rng = np.random.default_rng(1)
     size = (64, 128)
     bb, neck, head = _network(size)

@@ -55,15 +55,6 @@ def test_encode_layout_and_too_many_lanes():
         encode_lanes([lane, lane + [20, 0], lane + [40, 0]], (h, w), 72, max_lanes=2)
 
 
-@pytest.fixture
-def one_thread():
-    """One torch thread for the training test (on a shared 2-core machine two threads mostly wait), restored."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 def test_a_few_adamw_steps_reduce_the_loss(one_thread):
     torch.manual_seed(0)
     rng = np.random.default_rng(1)

@@ -18,13 +18,7 @@ from lanevil_train.models.scnn_codec import bottom_x
 from ._lanes_fixture import assert_lanes_inside, assert_round_trip, synthetic_lanes, train_steps
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    # hundreds of tiny slice convolutions: one thread is several times faster than two on a busy machine
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/models/conftest.py
 
 
 # ------------------------------------------------------------------ message passing
