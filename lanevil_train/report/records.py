@@ -22,7 +22,9 @@ from collections import defaultdict
 from dataclasses import dataclass
 from typing import Callable, Iterable, Sequence
 
-from lanevil_train.taxonomy import CATEGORIES, ILLUSION_CATEGORY, ILLUSION_NAMES
+import numpy as np
+
+from lanevil_train.taxonomy import CATEGORIES, ILLUSION_CATEGORY, ILLUSION_NAMES, PAIR_CATEGORIES
 
 NAN = float("nan")
 KINDS = ("Perturbed", "Original", "Gap")
@@ -84,6 +86,26 @@ class RecordSpec:
         return self.summary or self.scores
 
 
+@dataclass(frozen=True)
+class Additive:
+    """A score written as a function of per-record sums: `parts(record)` is a record's k addends and `combine`
+    maps totals (..., k) to score values (...). The bootstrap (report/intervals.py) resamples such a score as a
+    matrix product instead of re-aggregating record lists. An aggregate carries it as its `additive` attribute."""
+
+    parts: Callable[[dict], tuple[float, ...]]
+    combine: Callable[[np.ndarray], np.ndarray]
+
+
+def ratio(scale: float = 1.0) -> Callable[[np.ndarray], np.ndarray]:
+    """combine for (sum, count) totals: scale * sum / count, NaN where the count is 0."""
+
+    def combine(totals: np.ndarray) -> np.ndarray:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(totals[..., 1] > 0, scale * totals[..., 0] / totals[..., 1], np.nan)
+
+    return combine
+
+
 def mean_of(field: str, scale: float = 100.0) -> Callable[[Sequence[dict]], float]:
     """An aggregate: scale * the mean of one field (NaN for no records)."""
 
@@ -91,6 +113,7 @@ def mean_of(field: str, scale: float = 100.0) -> Callable[[Sequence[dict]], floa
         return scale * (sum(r[field] for r in records) / len(records)) if records else NAN
 
     aggregate.__name__ = f"mean_{field}"
+    aggregate.additive = Additive(lambda r: (r[field], 1.0), ratio(scale))
     return aggregate
 
 
@@ -174,7 +197,7 @@ def ordered(values: Iterable, order: Sequence = ()) -> list:
 
 def categories_of(records: Iterable[dict]) -> list[str]:
     """The perturbed records' categories in the paper's order (others after, sorted)."""
-    return ordered((r["category"] for r in records if r["severity"] > 0), tuple(CATEGORIES))
+    return ordered((r["category"] for r in records if r["severity"] > 0), tuple(CATEGORIES) + PAIR_CATEGORIES)
 
 
 def illusions_of(records: Iterable[dict]) -> list[str]:

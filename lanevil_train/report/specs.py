@@ -8,7 +8,9 @@ import math
 from typing import Sequence
 
 from lanevil_train.metrics import tusimple_summary
-from lanevil_train.report.records import NAN, Field, RecordSet, RecordSpec, Score, mean_of
+import numpy as np
+
+from lanevil_train.report.records import NAN, Additive, Field, RecordSet, RecordSpec, Score, mean_of, ratio
 
 
 def _tusimple_f1(records: Sequence[dict]) -> float:
@@ -27,6 +29,28 @@ def _culane_f1(records: Sequence[dict]) -> float:
     tp, fp, fn = (sum(r[k] for r in records) for k in ("culane_tp", "culane_fp", "culane_fn"))
     return 100.0 * 2 * tp / (2 * tp + fp + fn) if tp + fp + fn else 0.0
 
+
+def _tusimple_f1_totals(totals: np.ndarray) -> np.ndarray:
+    """_tusimple_f1 of (accuracy, fp, fn, images) totals, vectorised: F1 (%) from the mean FP and FN rates."""
+    n = totals[..., 3]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        fp, fn = totals[..., 1] / n, totals[..., 2] / n
+        tp = 1 - fp
+        precision = tp / (tp + fp)
+        recall = np.where(tp + fn != 0, tp / (tp + fn), 0.0)
+        f1 = np.where(precision + recall != 0, 2 * precision * recall / (precision + recall), 0.0)
+    return np.where(n > 0, 100.0 * f1, np.nan)
+
+
+def _culane_f1_totals(totals: np.ndarray) -> np.ndarray:
+    """_culane_f1 of (tp, fp, fn) totals, vectorised."""
+    tp, fp, fn = totals[..., 0], totals[..., 1], totals[..., 2]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(tp + fp + fn > 0, 100.0 * 2 * tp / (2 * tp + fp + fn), 0.0)
+
+
+_tusimple_f1.additive = Additive(lambda r: (r["accuracy"], r["fp"], r["fn"], 1.0), _tusimple_f1_totals)
+_culane_f1.additive = Additive(lambda r: (r["culane_tp"], r["culane_fp"], r["culane_fn"]), _culane_f1_totals)
 
 ACCURACY = Score("Accuracy", mean_of("accuracy"))
 TUSIMPLE_F1 = Score("F1", _tusimple_f1)
@@ -55,6 +79,8 @@ def mean_present(field: str, scale: float = 1.0):
         return scale * sum(values) / len(values) if values else NAN
 
     aggregate.__name__ = f"mean_present_{field}"
+    aggregate.additive = Additive(lambda r: (r[field], 1.0) if r.get(field) is not None else (0.0, 0.0),
+                                  ratio(scale))
     return aggregate
 
 
