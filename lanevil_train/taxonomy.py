@@ -21,3 +21,16 @@ CATEGORIES = MappingProxyType({
 # every illusion name, in the paper's order, and its category
 ILLUSION_NAMES: tuple[str, ...] = tuple(name for names in CATEGORIES.values() for name in names)
 ILLUSION_CATEGORY = MappingProxyType({name: category for category, names in CATEGORIES.items() for name in names})
+
+# combined illusions (paper §5.6): a pair is named "<a>+<b>", its category "<category a>+<category b>", and the
+# paper's tables write the category pair short, e.g. RD+TO
+PAIR = "+"
+CATEGORY_SHORT = MappingProxyType({"road_damage": "RD", "traffic_obstruction": "TO", "shadow": "SH", "reflection": "RF"})
+
+
+PAIR_CATEGORIES: tuple[str, ...] = tuple(f"{a}{PAIR}{b}" for i, a in enumerate(CATEGORIES) for b in tuple(CATEGORIES)[i + 1:])
+
+
+def pair_label(category: str) -> str:
+    """A pair category in the paper's short form: "road_damage+shadow" -> "RD+SH" (other names unchanged)."""
+    return PAIR.join(CATEGORY_SHORT.get(part, part) for part in category.split(PAIR))

@@ -35,9 +35,9 @@ from lanevil_train.data.formats.atomic import atomic_write_bytes, atomic_write_t
 from lanevil_train.data.formats.builds import map_jobs, write_build_record
 from lanevil_train.data.formats.manifest import manifest_record, read_manifest
 from lanevil_train.errors import prefixed
-from lanevil_train.illusions import (ILLUSIONS, GroundPlaneError, context_from_lanes, context_from_scene, fallback_context,
-                                     get_illusion)
+from lanevil_train.illusions import GroundPlaneError, context_from_lanes, context_from_scene, fallback_context
 from lanevil_train.lanes import default_h_samples, lanes_to_rows
+from lanevil_train.perturbations import case_perturbations, get_perturbation, suite_names
 from lanevil_train.progress import progress_counter
 from lanevil_train.results_log import ResultsLog
 from lanevil_train.sim import build_scene, render_scene, sample_scene_params
@@ -67,6 +67,8 @@ class Plan:
     label_format: str = "tusimple"  # "tusimple" | "culane"
     fallback: bool = False         # photos whose lanes cannot define a ground plane: fallback camera
     image_ext: str = ".png"
+    kind: str = "illusions"        # perturbations.SUITE_KINDS: illusions | corruptions | combined (`illusions` are
+                                   # then corruption names, or the illusions a combined case draws its pairs from)
 
 
 def synthetic_cases(num_cases: int, first_seed: int, frames: int = 1) -> list[Case]:
@@ -91,15 +93,17 @@ def case_where(case: Case) -> str:
 
 
 def variants(case: Case, plan: Plan) -> list[dict]:
-    """Manifest records (without files) of every image of a case: the original first."""
+    """Manifest records (without files) of every image of a case: the original first, then each of the case's
+    perturbations (perturbations.case_perturbations) x severity x repeat."""
     folder = case.case_id.replace("/", "_").replace(".", "_")
     records = [{"image": f"images/{folder}/original{plan.image_ext}", "case_id": case.case_id, "illusion": None,
                 "category": None, "severity": 0, "seed": case.seed}]
-    for name in plan.illusions:
+    for name in case_perturbations(plan.kind, plan.illusions, case.seed):
+        category = get_perturbation(name).category
         for severity in plan.severities:
             for r in range(plan.repeats):
                 records.append({"image": f"images/{folder}/{name}_s{severity}_r{r}{plan.image_ext}",
-                                "case_id": case.case_id, "illusion": name, "category": ILLUSIONS[name].category,
+                                "case_id": case.case_id, "illusion": name, "category": category,
                                 "severity": severity, "seed": case.seed * 1000 + r})
     for record in records:
         record["source_image"] = records[0]["image"]
@@ -107,7 +111,7 @@ def variants(case: Case, plan: Plan) -> list[dict]:
 
 
 def case_source(case: Case, plan: Plan):
-    """(clean image, lanes, illusion context) of a case."""
+    """(clean image, lanes, illusion context) of a case; a corruption suite's photos need no context (None)."""
     if case.image_path is None:
         params = sample_scene_params(case.seed)
         params = params.replace(travel=params.travel + case.frame * plan.frame_step_m)
@@ -117,6 +121,8 @@ def case_source(case: Case, plan: Plan):
     try:
         image = load_image(case.image_path)
         lanes = [np.asarray(lane, dtype=np.float64) for lane in case.lanes]
+        if plan.kind == "corruptions":
+            return image, lanes, None
         try:
             ctx = context_from_lanes(lanes, image.shape[:2])
         except GroundPlaneError:
@@ -145,7 +151,7 @@ def _header_size(path: str) -> tuple[int, int] | None:
 def check_photo_cases(cases: list[Case], plan: Plan) -> None:
     """Before any rendering: every photo case's lanes must give a ground plane (unless plan.fallback).
     Reads only image headers; raises naming every failing case's source (the first few in full)."""
-    if plan.fallback:
+    if plan.fallback or plan.kind == "corruptions":
         return
     failures = []
     photos = [case for case in cases if case.image_path is not None]
@@ -186,7 +192,7 @@ def render_case(args: tuple[Case, Plan, str, frozenset]) -> list[dict]:
     for record in todo:
         try:
             picture = image if record["illusion"] is None else \
-                ILLUSIONS[record["illusion"]](image, ctx, record["severity"], record["seed"])
+                get_perturbation(record["illusion"])(image, ctx, record["severity"], record["seed"])
         except (ValueError, OSError) as error:
             if case.image_path is None:
                 raise
@@ -207,11 +213,10 @@ def build_illusion_set(cases: list[Case], plan: Plan, root: str | Path, workers:
     if not cases:
         raise ValueError("build_illusion_set: no cases to build (an empty source: no scenes, or a label file that "
                          "lists no images)")
-    for name in plan.illusions:
-        get_illusion(name)  # an unknown name is an error listing the known ones
+    suite_names(plan.kind, plan.illusions)  # an unknown name is an error listing the known ones
     check_photo_cases(cases, plan)
     total = sum(len(variants(c, plan)) for c in cases)
-    expected = {"images": total, "cases": len(cases), "plan": asdict(plan)}
+    expected = {"images": total, "cases": len(cases), "plan": plan_record(plan)}
     builds.begin_build(root, expected, "images", "set", "task=build")
     manifest = ResultsLog(root / "manifest.jsonl", key_field="image")
     done = manifest.resume()
@@ -234,6 +239,15 @@ def build_illusion_set(cases: list[Case], plan: Plan, root: str | Path, workers:
         atomic_write_text(root / "list" / "test.txt", "".join(f"/{image}\n" for image in images))
     write_build_record(root, expected, complete=True)
     return {"root": str(root), "images": total, "written": written, "skipped": skipped}
+
+
+def plan_record(plan: Plan) -> dict:
+    """The plan as build.json records it; an illusion suite's without `kind`, as sets were written before suites had
+    kinds (so they still resume)."""
+    record = asdict(plan)
+    if plan.kind == "illusions":
+        record.pop("kind")
+    return record
 
 
 def read_build_record(root: str | Path) -> dict:

@@ -17,8 +17,8 @@ from lanevil_train.data.formats.manifest import read_manifest
 from lanevil_train.data.formats.builds import BUILD_FILE
 from lanevil_train.data.illusion_set import Plan, case_source, read_build_record, synthetic_cases, variants
 from lanevil_train.errors import prefixed
-from lanevil_train.illusions import ILLUSIONS
-from lanevil_train.illusions.registry import check_severity, get_illusion
+from lanevil_train.illusions.registry import check_severity
+from lanevil_train.perturbations import get_perturbation, suite_names
 from lanevil_train.lanes import default_h_samples
 
 _VARIANT_KEYS = ("case_id", "illusion", "category", "severity", "seed")
@@ -80,36 +80,36 @@ class IllusionSetDataset(Dataset):
         return {"image": image, "lanes": label["lanes"], "meta": meta}
 
 
-def _check_suite_arguments(num_cases: int, names: tuple, severities, repeats: int) -> None:
+def _check_suite_arguments(num_cases: int, severities, repeats: int) -> None:
     """A clear error naming the argument for a suite that would be empty or name what does not exist."""
     if not isinstance(num_cases, int) or num_cases < 1:
         raise EmptySplitError(f"num_cases (scenes) must be an integer >= 1, got {num_cases!r}", "num_cases")
-    if not names:
-        raise ValueError("illusions: expected 'all' or a non-empty list of illusion names, got an empty list")
     if not severities:
         raise ValueError("severities: expected a non-empty list of integers 1..5, got an empty list")
-    for argument, check, values in (("illusions", get_illusion, names), ("severities", check_severity, severities)):
-        for value in values:
-            try:
-                check(value)  # the registry's own checks: an unknown name lists the known ones
-            except ValueError as error:
-                raise prefixed(error, argument) from None
+    for value in severities:
+        try:
+            check_severity(value)
+        except ValueError as error:
+            raise prefixed(error, "severities") from None
     if not isinstance(repeats, int) or repeats < 1:
         raise ValueError(f"repeats: expected an integer >= 1, got {repeats!r}")
 
 
 class SyntheticIllusionSuite(Dataset):
-    """The suite `task=build` would write from simulated scenes, generated on the fly (nothing on disk).
+    """The suite `task=build` would write from simulated scenes, generated on the fly (nothing on disk): the
+    illusions (kind="illusions"), the non-illusion corruptions ("corruptions") or illusion pairs ("combined") of
+    perturbations.py, named by `illusions` ("all" or a list of the kind's names).
 
     Items run case by case (original first), and the last case's clean render is cached, so a loader
     without shuffling renders each scene about once.
     """
 
     def __init__(self, num_cases: int, first_seed: int, size: tuple[int, int] = (720, 1280),
-                 illusions: str | list[str] = "all", severities: tuple[int, ...] = (1, 2, 3, 4, 5), repeats: int = 1):
-        names = tuple(ILLUSIONS) if illusions == "all" else tuple(illusions)
-        _check_suite_arguments(num_cases, names, severities, repeats)
-        self.plan = Plan(illusions=names, severities=tuple(severities), repeats=repeats, size=tuple(size))
+                 illusions: str | list[str] = "all", severities: tuple[int, ...] = (1, 2, 3, 4, 5), repeats: int = 1,
+                 kind: str = "illusions"):
+        names = suite_names(kind, illusions if isinstance(illusions, str) else list(illusions))
+        _check_suite_arguments(num_cases, severities, repeats)
+        self.plan = Plan(illusions=names, severities=tuple(severities), repeats=repeats, size=tuple(size), kind=kind)
         self.items = [(case, record) for case in synthetic_cases(num_cases, first_seed)
                       for record in variants(case, self.plan)]
         self._cached: tuple | None = None
@@ -126,7 +126,7 @@ class SyntheticIllusionSuite(Dataset):
             self._cached = (case, case_source(case, self.plan))
         image, lanes, ctx = self._cached[1]
         if record["illusion"] is not None:
-            image = ILLUSIONS[record["illusion"]](image, ctx, record["severity"], record["seed"])
+            image = get_perturbation(record["illusion"])(image, ctx, record["severity"], record["seed"])
         meta = {k: record[k] for k in _VARIANT_KEYS}
         meta.update(key=record["image"], image_path=None, height=image.shape[0], width=image.shape[1],
                     h_samples=default_h_samples(image.shape[0]))

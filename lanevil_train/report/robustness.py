@@ -165,6 +165,10 @@ def write_report(records, out_dir: str | Path, baseline: str | None = None) -> d
     tables["relative"] = relative_table(rs, baseline)
     titles["relative"] = (f"Relative robustness ({headline}: Perturbed vs Original, %)"
                           + (f"; mCE vs baseline {baseline!r}" if baseline else ""))
+    from lanevil_train.report.combined import combined_markdown, combined_table, pair_categories
+
+    if pair_categories(rs):
+        tables["combined"] = combined_table(rs)
     paths: dict[str, Path] = {}
     for name, rows in tables.items():
         for fmt, p in write_table(rows, out_dir, name).items():
@@ -175,6 +179,11 @@ def write_report(records, out_dir: str | Path, baseline: str | None = None) -> d
              f"items; average = mean of the category values."
              + (f" Lower is better for {', '.join(lower)}." if lower else ""), ""]
     for name, rows in tables.items():
+        if name == "combined":
+            parts += [f"## Combined illusions ({headline}, {rs.spec.unit}; paper Table combined): each pair's "
+                      "Perturbed, Original and Gap, each of its illusions alone on the same cases and severities, "
+                      "and the pair's Gap against each", "", combined_markdown(rows, headline), ""]
+            continue
         parts += [f"## {titles[name]}", "", markdown_table(rows), ""]
     figures = {f"{headline.lower()}_vs_severity": plots.score_vs_severity, "gap_heatmap": plots.gap_heatmap,
                "worst_cases": plots.worst_cases}

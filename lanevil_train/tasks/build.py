@@ -8,16 +8,17 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from lanevil_train.data.illusion_set import Plan, build_illusion_set, dataset_cases, synthetic_cases
-from lanevil_train.illusions import ILLUSIONS
+from lanevil_train.perturbations import suite_names
 from lanevil_train.tasks.builders import build_split, output_dir
 
 
 def build(cfg: DictConfig) -> None:
     """Synthetic data: cases are test-split scene seeds; TuSimple/CULane: the test split's images."""
     task = cfg.task
-    names = tuple(ILLUSIONS) if task.illusions == "all" else tuple(task.illusions)
+    kind = task.get("kind", "illusions")
+    names = suite_names(kind, task.illusions if isinstance(task.illusions, str) else list(task.illusions))
     if cfg.data.name == "clips":
-        return build_clips(cfg, names)
+        return build_clips(cfg, names, kind)
     root = Path(task.out_dir) if task.out_dir else output_dir(cfg) / "illusion_set"
     if cfg.data.name == "synthetic":
         if task.cases < 1:
@@ -30,20 +31,20 @@ def build(cfg: DictConfig) -> None:
         size = (720, 1280)  # unused for photos
     plan = Plan(illusions=names, severities=tuple(task.severities), repeats=task.repeats, size=size,
                 frame_step_m=task.frame_step_m, label_format="culane" if cfg.data.name == "culane" else "tusimple",
-                fallback=task.fallback)
+                fallback=task.fallback, kind=kind)
     summary = build_illusion_set(cases, plan, root, workers=task.workers, progress=cfg.progress)
-    print(f"illusion set: {summary['images']} images in {summary['root']} "
+    print(f"{kind} set: {summary['images']} images in {summary['root']} "
           f"({summary['written']} written now, {summary['skipped']} already there)")
 
 
-def build_clips(cfg: DictConfig, names: tuple[str, ...]) -> None:
+def build_clips(cfg: DictConfig, names: tuple[str, ...], kind: str = "illusions") -> None:
     """data=clips: task.cases scene videos from data.test.first_seed, each cut into 3 clips (clean + every
     severity), with their QA; `data.paraphrase` (a _target_ node, e.g. vlm.paraphrase.OpenAIParaphraser) rewords
     questions and open answers, its replies cached in the out_dir."""
     from hydra.utils import instantiate
 
     from lanevil_train.vlm.clip_set import build_clip_set
-    from lanevil_train.vlm.clips import clip_cases
+    from lanevil_train.vlm.clips import suite_cases
 
     task = cfg.task
     root = Path(task.out_dir) if task.out_dir else output_dir(cfg) / "clip_set"
@@ -53,9 +54,10 @@ def build_clips(cfg: DictConfig, names: tuple[str, ...]) -> None:
     if cfg.data.get("paraphrase") is not None:
         cache = {} if "cache_path" in cfg.data.paraphrase else {"cache_path": str(root / "paraphrase_cache.jsonl")}
         paraphraser = instantiate(cfg.data.paraphrase, **cache)
-    cases = clip_cases(task.cases, cfg.data.test.first_seed, list(names))
+    cases = suite_cases(kind, task.cases, cfg.data.test.first_seed, list(names))
     summary = build_clip_set(cases, tuple(task.severities), root, size=tuple(cfg.data.size), workers=task.workers,
-                             progress=cfg.progress, paraphraser=paraphraser, per_clip=cfg.data.per_clip)
+                             progress=cfg.progress, paraphraser=paraphraser, per_clip=cfg.data.per_clip,
+                             kind=kind, names=list(names))
     drivelm = write_suite_drivelm(root)
     print(f"clip set: {summary['clips']} clips ({summary['qa']} QA) in {summary['root']} "
           f"({summary['written']} written now, {summary['skipped']} already there); DriveLM layout: {drivelm}")

@@ -52,28 +52,33 @@ def checkpoint_model(cfg: DictConfig) -> LaneDetector:
     return model
 
 
+ON_THE_FLY = {"synthetic": "illusions", "corruptions": "corruptions", "combined": "combined"}  # task.suite -> kind
+
+
 def test_dataset(cfg: DictConfig):
-    """data.test as is (task.suite=null), the illusion suite generated from it (task.suite=synthetic),
-    or a set written by task=build (task.suite=/path/to/set)."""
+    """data.test as is (task.suite=null), the suite generated from it (task.suite=synthetic: the illusions;
+    corruptions: the non-illusion corruptions; combined: illusion pairs), or a set written by task=build
+    (task.suite=/path/to/set)."""
     suite = cfg.task.suite
     if suite is None:
         return build_split(cfg, "test"), cfg.data.name
-    if suite == "synthetic":
-        return synthetic_suite(cfg), "synthetic-illusions"
+    if suite in ON_THE_FLY:
+        return synthetic_suite(cfg, ON_THE_FLY[suite]), f"synthetic-{ON_THE_FLY[suite]}"
     try:
         return IllusionSetDataset(suite), Path(suite).name
     except (FileNotFoundError, ValueError) as error:
         raise prefixed(error, f"task.suite={suite}") from None
 
 
-def synthetic_suite(cfg: DictConfig) -> SyntheticIllusionSuite:
-    """The on-the-fly illusion suite, from data.test's seeds when data=synthetic (else the defaults)."""
+def synthetic_suite(cfg: DictConfig, kind: str = "illusions") -> SyntheticIllusionSuite:
+    """The on-the-fly suite of `kind`, from data.test's seeds when data=synthetic (else the defaults)."""
     test = cfg.data.test if cfg.data.name == "synthetic" else {"first_seed": 1000000, "size": [720, 1280]}
+    illusions = cfg.task.illusions if isinstance(cfg.task.illusions, str) else list(cfg.task.illusions)
     try:
-        return SyntheticIllusionSuite(cfg.task.cases, test["first_seed"], tuple(test["size"]), cfg.task.illusions,
-                                      tuple(cfg.task.severities), cfg.task.repeats)
+        return SyntheticIllusionSuite(cfg.task.cases, test["first_seed"], tuple(test["size"]), illusions,
+                                      tuple(cfg.task.severities), cfg.task.repeats, kind=kind)
     except ValueError as error:
-        raise ValueError(f"task.suite=synthetic: {error}") from None
+        raise ValueError(f"task.suite={cfg.task.suite}: {error}") from None
 
 
 def evaluate(cfg: DictConfig) -> float:
