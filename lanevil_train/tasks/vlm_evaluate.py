@@ -63,8 +63,9 @@ def build_judge(cfg: DictConfig, out: Path):
 
 def clip_suite(cfg: DictConfig):
     """(dataset, name) of the clips to evaluate on: task.suite=synthetic (task.cases scenes rendered on the fly with
-    task.illusions and task.severities), a folder written by task=build data=clips, a DriveLM-style QA JSON file, or
-    (task.suite=null) data=clips' test split."""
+    task.illusions and task.severities; corruptions / combined: the corruption or illusion-pair suite of the
+    clips), a folder written by task=build data=clips, a DriveLM-style QA JSON file, or (task.suite=null)
+    data=clips' test split."""
     from lanevil_train.vlm.clip_set import ClipSetDataset, SyntheticClipSuite
 
     suite, task, clips = cfg.task.suite, cfg.task, cfg.data.name == "clips"
@@ -73,14 +74,17 @@ def clip_suite(cfg: DictConfig):
             raise ValueError("task.suite: a VLM answers questions about clips: give task.suite=synthetic, a clip "
                              "suite folder (task=build data=clips) or a DriveLM QA JSON file, or use data=clips")
         return build_split(cfg, "test"), "clips-test"
-    if suite == "synthetic":
+    if suite in ("synthetic", "corruptions", "combined"):
+        kind = {"synthetic": "illusions"}.get(suite, suite)
         first_seed = cfg.data.test.first_seed if clips else 1000000
         size = tuple(cfg.data.size) if clips else (360, 640)
         illusions = "all" if task.illusions == "all" else list(task.illusions)
         try:
-            dataset = SyntheticClipSuite(task.cases, first_seed, illusions, tuple(task.severities), size)
+            dataset = SyntheticClipSuite(task.cases, first_seed, illusions, tuple(task.severities), size, kind=kind)
         except ValueError as error:
-            raise prefixed(error, "task.suite=synthetic") from None
+            raise prefixed(error, f"task.suite={suite}") from None
+        if kind != "illusions":
+            return dataset, f"synthetic-clips-{kind}"
         return dataset, "synthetic-clips"
     path = Path(suite)
     try:

@@ -1,8 +1,15 @@
 """The clip suite: written to disk by `task=build data=clips`, read back as a dataset, or generated on the fly.
 
-On disk (root/): clips/<case>/<segment>/<variant>/<k>.png (6 frames per clip variant, variant `clean` or `s<N>`),
-`clips.jsonl` (one line per clip variant), `qa.jsonl` (one line per QA of a base clip) and `build.json` (the plan,
-the counts, and whether the set is complete).
+On disk (root/): clips/<case>/<segment>/<variant>/<k>.png (6 frames per clip variant, variant `clean` or `s<N>`;
+`<name>-s<N>` in a corruption or combined suite), `clips.jsonl` (one line per clip variant), `qa.jsonl` (one line
+per QA of a base clip) and `build.json` (the plan, the counts, and whether the set is complete).
+
+Suite kinds (perturbations.SUITE_KINDS, recorded in the plan; a set without one is an illusion suite): each base
+clip's clean clip, then each severity of its case's illusion (illusions), of every corruption (corruptions), or of
+the case's illusion, its second illusion and the pair "a+b" (combined; vlm/clips.py). All variants of a base clip
+come from one render of the scene. A corruption suite's QA leaves out the questions whose template reads a fact in
+vlm/suite_qa.py's CORRUPTION_UNSAFE_FACTS (the illusion, which is not drawn; the weather and light, which weather and brightness
+corruptions change the look of), and base clips left without a question.
 
 Safe to kill at any instant, like the image builder (data/illusion_set.py): frames are written atomically, then
 the base clip's QA lines, then its variants' clip lines, each durable before the next, so a clip line promises
@@ -31,11 +38,13 @@ from lanevil_train.data.formats.builds import BUILD_FILE, map_jobs, write_build_
 from lanevil_train.data.formats import builds
 from lanevil_train.data.formats.atomic import atomic_write_bytes
 from lanevil_train.illusions.registry import check_severity, get_illusion
+from lanevil_train.perturbations import PAIR, check_kind, get_perturbation, suite_names
 from lanevil_train.progress import progress_counter
 from lanevil_train.results_log import ResultsLog
 from lanevil_train.taxonomy import ILLUSION_CATEGORY, ILLUSION_NAMES
-from lanevil_train.vlm.qa import make_qa, scene_classes, training_aids
+from lanevil_train.vlm.qa import scene_classes, training_aids
 from lanevil_train.vlm.qa_records import check_qa_record
+from lanevil_train.vlm.suite_qa import kept_questions, suite_qa
 
 CLIPS_FILE = "clips.jsonl"
 QA_FILE = "qa.jsonl"
@@ -57,19 +66,45 @@ def base_clip_id(case, segment: str) -> str:
     return f"{case.case_id}-{segment}"
 
 
-def variant_records(case, segment: str, severities: Sequence[int]) -> list[dict]:
-    """The clips.jsonl records of one base clip: the clean clip first, then each severity of the case's illusion."""
+def clip_variant_names(case, kind: str = "illusions", names: Sequence[str] = ()) -> tuple[str, ...]:
+    """The perturbations a base clip of `case` gets in a `kind` suite, each at every severity: the case's illusion
+    (illusions), each of `names` (corruptions), or the case's illusion, its second and the pair (combined)."""
+    if check_kind(kind) == "illusions":
+        return (case.illusion,)
+    if kind == "corruptions":
+        return tuple(names)
+    second = getattr(case, "second", None)
+    if second is None:
+        raise ValueError(f"cases: {case.case_id} has no second illusion; a combined suite takes its cases from "
+                         f"clips.combined_clip_cases")
+    return case.illusion, second, f"{case.illusion}{PAIR}{second}"
+
+
+def variant_records(case, segment: str, severities: Sequence[int], kind: str = "illusions",
+                    names: Sequence[str] = ()) -> list[dict]:
+    """The clips.jsonl records of one base clip: the clean clip first, then each severity of each of its
+    perturbations (clip_variant_names); variant `s<N>` in an illusion suite, `<name>-s<N>` otherwise."""
     base = base_clip_id(case, segment)
     folder = case.case_id.replace("/", "_").replace(".", "_")
-    out = []
-    for severity in (0, *severities):
-        variant = "clean" if severity == 0 else f"s{severity}"
-        out.append({"clip_id": f"{base}-{variant}", "base_clip_id": base, "case_id": case.case_id,
-                    "segment": segment, "illusion": case.illusion if severity else None,
-                    "category": ILLUSION_CATEGORY[case.illusion] if severity else None, "severity": severity,
-                    "seed": case.seed,
-                    "frames": [f"clips/{folder}/{segment}/{variant}/{k}.png" for k in range(6)]})
-    return out
+    variants = [(None, 0, "clean")] + [(name, sev, f"s{sev}" if kind == "illusions" else f"{name}-s{sev}")
+                                       for name in clip_variant_names(case, kind, names) for sev in severities]
+    return [{"clip_id": f"{base}-{variant}", "base_clip_id": base, "case_id": case.case_id, "segment": segment,
+             "illusion": name, "category": _category(name) if severity else None, "severity": severity,
+             "seed": case.seed, "frames": [f"clips/{folder}/{segment}/{variant}/{k}.png" for k in range(6)]}
+            for name, severity, variant in variants]
+
+
+def _category(name: str) -> str:
+    return ILLUSION_CATEGORY[name] if name in ILLUSION_CATEGORY else get_perturbation(name).category
+
+
+# ---------------------------------------------------------------------------------------------- QA of a suite
+
+def suite_base_clips(cases: Sequence, kind: str = "illusions", per_clip: int = 5) -> list[tuple]:
+    """(case, segment) of every base clip of a `kind` suite: all 3 segments of each case, less (corruption suite)
+    those none of whose questions is kept."""
+    return [(case, segment) for case in cases for segment in SEGMENTS
+            if kept_questions(kind, case.seed, segment, per_clip)]
 
 
 # ---------------------------------------------------------------------------------------------- building
@@ -83,18 +118,28 @@ def _write_frame(path: Path, frame: np.ndarray) -> None:
 
 def render_base_clip(args: tuple) -> tuple[dict, list[dict]]:
     """Render one base clip's variants, write the frames of those not yet done; (truth, their records)."""
-    case, segment, severities, size, root, done = args
+    case, segment, severities, size, root, done, kind, names = args
     geometry = _geometry()
-    todo = [r for r in variant_records(case, segment, severities) if r["clip_id"] not in done]
+    todo = [r for r in variant_records(case, segment, severities, kind, names) if r["clip_id"] not in done]
     truth = geometry.clip_truth(case, segment, size=tuple(size))
-    clips = geometry.render_clip(case, segment, [0, *severities], size=tuple(size)) if todo else {}
+    clips = _render(case, segment, severities, tuple(size), kind, names) if todo else {}
     for record in todo:
-        frames = clips[record["severity"]]
+        frames = clips[(record["illusion"], record["severity"])]
         if len(frames) != 6:
             raise ValueError(f"render_clip({record['clip_id']}): expected 6 frames, got {len(frames)}")
         for path, frame in zip(record["frames"], frames):
             _write_frame(Path(root) / path, frame)
     return truth, todo
+
+
+def _render(case, segment: str, severities: Sequence[int], size: tuple, kind: str,
+            names: Sequence[str]) -> dict[tuple, list[np.ndarray]]:
+    """{(illusion name or None, severity): 6 frames} of every variant of a base clip, from one render of the scene."""
+    if kind == "illusions":
+        clips = _geometry().render_clip(case, segment, [0, *severities], size=size)
+        return {(case.illusion if sev else None, sev): frames for sev, frames in clips.items()}
+    return _geometry().render_variants(case, segment, clip_variant_names(case, kind, names), [0, *severities],
+                                       size=size)
 
 
 def paraphrase_qa(qas: list[dict], paraphraser: Paraphraser | None) -> list[dict]:
@@ -115,15 +160,19 @@ def paraphrase_qa(qas: list[dict], paraphraser: Paraphraser | None) -> list[dict
 
 
 def _cases_digest(cases) -> str:
-    plain = [[c.case_id, c.seed, c.illusion] for c in cases]
+    plain = [[c.case_id, c.seed, c.illusion, *([c.second] if getattr(c, "second", None) else [])] for c in cases]
     return hashlib.sha256(json.dumps(plain).encode("utf-8")).hexdigest()[:16]
 
 
-def _check_build_arguments(cases, severities, size) -> None:
+def _check_build_arguments(cases, severities, size, kind: str = "illusions", names: Sequence[str] = ()) -> None:
     if not cases:
         raise ValueError("build_clip_set: cases: expected at least one case, got none")
-    for case in cases:
+    for i, case in enumerate(cases):
         get_illusion(case.illusion)  # names the known ones
+        drawn = clip_variant_names(case, kind, names)[:2] if kind != "corruptions" else ()
+        if names and any(n not in names for n in drawn):
+            raise ValueError(f"cases[{i}]: {case.case_id} draws {' and '.join(drawn)}, expected illusions among "
+                             f"the suite's names {list(names)}")
     if not severities:
         raise ValueError("severities: expected a non-empty list of integers 1..5, got an empty list")
     for severity in severities:
@@ -134,28 +183,32 @@ def _check_build_arguments(cases, severities, size) -> None:
 
 def build_clip_set(cases: Sequence, severities: Sequence[int], root: str | Path, size: tuple[int, int] = (360, 640),
                    workers: int = 0, progress: str = "auto", paraphraser: Paraphraser | None = None,
-                   per_clip: int = 5) -> dict:
-    """Write every case's clips (3 segments x clean + severities), QA and records under root, resumably;
-    a summary {root, clips, written, skipped, qa}. `paraphraser` rewrites question texts and open answers."""
-    root, severities, size = Path(root), tuple(severities), tuple(size)
-    _check_build_arguments(cases, severities, size)
-    base_clips = len(cases) * len(SEGMENTS)
-    expected = {"clips": base_clips * (1 + len(severities)), "base_clips": base_clips, "qa": base_clips * per_clip,
-                "cases": len(cases), "plan": {"size": list(size), "severities": list(severities),
-                                              "per_clip": per_clip, "paraphrased": paraphraser is not None,
-                                              "cases_digest": _cases_digest(cases)}}
+                   per_clip: int = 5, kind: str = "illusions", names: str | Sequence[str] = "all") -> dict:
+    """Write every case's clips (3 segments x clean + each perturbation x severity of the `kind` suite, `names`
+    the corruptions of a corruption suite), QA and records under root, resumably; a summary {root, clips, written,
+    skipped, qa}. `paraphraser` rewrites question texts and open answers."""
+    root, severities, size, names = Path(root), tuple(severities), tuple(size), suite_names(kind, names)
+    _check_build_arguments(cases, severities, size, kind, names)
+    bases = suite_base_clips(cases, kind, per_clip)
+    plan = {"size": list(size), "severities": list(severities), "per_clip": per_clip,
+            "paraphrased": paraphraser is not None, "cases_digest": _cases_digest(cases)}
+    if kind != "illusions":  # an illusion suite's plan stays as it was: sets built before suite kinds resume
+        plan.update(kind=kind, names=list(names))
+    expected = {"clips": sum(len(variant_records(c, s, severities, kind, names)) for c, s in bases),
+                "base_clips": len(bases), "qa": sum(len(kept_questions(kind, c.seed, s, per_clip)) for c, s in bases),
+                "cases": len(cases), "plan": plan}
     builds.begin_build(root, expected, "clips", "clip set", "task=build data=clips")
     clip_log, qa_log = ResultsLog(root / CLIPS_FILE, "clip_id"), ResultsLog(root / QA_FILE, "qa_id")
     done_clips, done_qa = clip_log.resume(), qa_log.resume()
     clip_log.path.touch()
     qa_log.path.touch()
-    jobs = [(case, segment, severities, size, str(root), frozenset(done_clips)) for case in cases
-            for segment in SEGMENTS
-            if any(r["clip_id"] not in done_clips for r in variant_records(case, segment, severities))]
+    jobs = [(case, segment, severities, size, str(root), frozenset(done_clips), kind, names)
+            for case, segment in bases
+            if any(r["clip_id"] not in done_clips for r in variant_records(case, segment, severities, kind, names))]
     bar = progress_counter(expected["clips"], len(done_clips), "build", "clips", progress)
     written = 0
     for (case, segment, *_), (truth, records) in zip(jobs, map_jobs(render_base_clip, jobs, workers)):
-        qas = [q for q in make_qa(truth, base_clip_id(case, segment), case.seed, per_clip)
+        qas = [q for q in suite_qa(truth, base_clip_id(case, segment), case.seed, per_clip, kind)
                if q["qa_id"] not in done_qa]
         qa_log.append(paraphrase_qa(qas, paraphraser))
         clip_log.append(records)
@@ -170,6 +223,12 @@ def build_clip_set(cases: Sequence, severities: Sequence[int], root: str | Path,
 def read_build_record(root: str | Path) -> dict:
     """The parsed build.json of a clip set, or an error naming it and what it should hold."""
     return builds.read_build_record(root, "clips", "clip set", "task=build data=clips")
+
+
+def build_kind(build: dict) -> str:
+    """The suite kind a build record's plan names; "illusions" for a set built before suite kinds."""
+    plan = build.get("plan") if isinstance(build.get("plan"), dict) else {}
+    return check_kind(plan.get("kind", "illusions"))
 
 
 # ---------------------------------------------------------------------------------------------- records
@@ -234,6 +293,7 @@ class ClipSetDataset(Dataset):
                              f"({BUILD_FILE} complete: {str(build['complete']).lower()}); rerun task=build "
                              f"data=clips with the same out_dir ({root}) to finish it")
         self._setup(root, clips, qas, str(root / CLIPS_FILE))
+        self.kind = build_kind(build)
 
     @classmethod
     def from_drivelm(cls, path: str | Path, image_root: str | Path | None = None) -> "ClipSetDataset":
@@ -249,7 +309,7 @@ class ClipSetDataset(Dataset):
     def _setup(self, root: Path, clips: list[dict], qas: list[dict], source: str) -> None:
         if not clips:
             raise ValueError(f"{source}: the clip set lists no clips")
-        self.root, self.clips = root, clips
+        self.root, self.clips, self.kind = root, clips, "illusions"
         self.qa: dict[str, list[dict]] = {}
         for qa in qas:
             self.qa.setdefault(qa["base_clip_id"], []).append(qa)
@@ -285,24 +345,30 @@ class SyntheticClipSuite(Dataset):
     """The suite `task=build data=clips` would write, rendered on the fly (nothing on disk). Items run base
     clip by base clip (clean first); a base clip renders all its variants at once, and the renders of the last
     `cache_clips` base clips are kept, so an unshuffled pass (or qa_data.WindowShuffleSampler with a window of at
-    most `cache_clips`) renders each base clip once."""
+    most `cache_clips`) renders each base clip once. `kind` is the suite kind; `illusions` its names (the
+    corruptions of a corruption suite)."""
 
     def __init__(self, num_cases: int, first_seed: int, illusions: str | Sequence[str] = "all",
                  severities: Sequence[int] = (1, 2, 3, 4, 5), size: Sequence[int] = (360, 640), per_clip: int = 5,
-                 cache_clips: int = 1):
+                 cache_clips: int = 1, kind: str = "illusions"):
         if not isinstance(num_cases, int) or num_cases < 1:
             raise ValueError(f"num_cases: expected an integer >= 1, got {num_cases!r}")
         if isinstance(cache_clips, bool) or not isinstance(cache_clips, int) or cache_clips < 1:
             raise ValueError(f"cache_clips: expected an integer >= 1 (base clips whose renders are kept), "
                              f"got {cache_clips!r}")
-        names = list(ILLUSION_NAMES) if illusions == "all" else list(illusions)
-        if not names:
-            raise ValueError("illusions: expected 'all' or a non-empty list of illusion names, got an empty list")
-        self.cases = _geometry().clip_cases(num_cases, first_seed, names)
+        if check_kind(kind) == "illusions":
+            names = list(ILLUSION_NAMES) if illusions == "all" else list(illusions)
+            if not names:
+                raise ValueError("illusions: expected 'all' or a non-empty list of illusion names, got an empty list")
+            self.cases = _geometry().clip_cases(num_cases, first_seed, names)
+        else:
+            names = list(suite_names(kind, illusions))
+            self.cases = _geometry().suite_cases(kind, num_cases, first_seed, names)
+        self.kind, self.names = kind, tuple(names)
         self.severities, self.size, self.per_clip = tuple(severities), tuple(size), per_clip
-        _check_build_arguments(self.cases, self.severities, self.size)
-        self.items = [(case, segment, record) for case in self.cases for segment in SEGMENTS
-                      for record in variant_records(case, segment, self.severities)]
+        _check_build_arguments(self.cases, self.severities, self.size, kind, self.names)
+        self.items = [(case, segment, record) for case, segment in suite_base_clips(self.cases, kind, per_clip)
+                      for record in variant_records(case, segment, self.severities, kind, self.names)]
         self.by_base = {base_clip_id(case, segment): (case, segment) for case, segment, _ in self.items}
         self._qa: dict[str, tuple[list[dict], list[dict], list[int], list]] = {}
         self.cache_clips = cache_clips
@@ -321,10 +387,11 @@ class SyntheticClipSuite(Dataset):
         return self._facts(base_clip_id)[0]
 
     def qa_count(self, base_clip_id: str) -> int:
-        """How many QA the base clip has (per_clip), without working out its truth."""
+        """How many QA the base clip has (per_clip, less those a corruption suite leaves out), without its truth."""
         if base_clip_id not in self.by_base:
             raise KeyError(f"no base clip {base_clip_id!r} in this synthetic suite")
-        return self.per_clip
+        case, segment = self.by_base[base_clip_id]
+        return len(kept_questions(self.kind, case.seed, segment, self.per_clip))
 
     def training_aids_for(self, base_clip_id: str) -> list[dict]:
         """The base clip's training-only QA (qa.training_aids: the scene description and the open questions that
@@ -348,7 +415,7 @@ class SyntheticClipSuite(Dataset):
                 raise KeyError(f"no base clip {base_clip_id!r} in this synthetic suite")
             case, segment = self.by_base[base_clip_id]
             truth = _geometry().clip_truth(case, segment, size=self.size)
-            self._qa[base_clip_id] = (make_qa(truth, base_clip_id, case.seed, self.per_clip),
+            self._qa[base_clip_id] = (suite_qa(truth, base_clip_id, case.seed, self.per_clip, self.kind),
                                       training_aids(truth, base_clip_id), scene_classes(truth, base_clip_id),
                                       truth["lanes_px"])
         return self._qa[base_clip_id]
@@ -359,8 +426,8 @@ class SyntheticClipSuite(Dataset):
         if key in self._renders:
             self._renders.move_to_end(key)
         else:
-            self._renders[key] = _geometry().render_clip(case, segment, [0, *self.severities], size=self.size)
+            self._renders[key] = _render(case, segment, self.severities, self.size, self.kind, self.names)
             while len(self._renders) > self.cache_clips:
                 self._renders.popitem(last=False)
-        frames = list(self._renders[key][record["severity"]])
+        frames = list(self._renders[key][(record["illusion"], record["severity"])])
         return {"frames": frames, "qa": self.qa_for(record["base_clip_id"]), "meta": _meta(record)}

@@ -26,6 +26,13 @@ Camera positions. The car drives at SPEED_MPS of the scene kind (urban 10 m/s, r
     (4 m short when it stands in the ego lane or across lanes: the car stops behind it).
 Each clean frame is rendered once and the illusion drawn into it at every requested severity with
 the case seed, so a clean/perturbed pair differs only where the illusion acts.
+
+Suite kinds (perturbations.SUITE_KINDS; `suite_cases` gives a kind's case list, `render_variants` its frames):
+  * illusions: each case's own illusion (`render_clip`);
+  * corruptions: the case still places the camera, but its illusion is not drawn: the clean frames get each
+    non-illusion corruption instead, frame k with `frame_seed` (rain and noise change from frame to frame);
+  * combined (paper §5.6): a case also names a `second` illusion of another category, drawn into the same frames
+    from the same frame context after the first (`combined_clip_cases`: case i takes the i-th category pair).
 """
 
 from __future__ import annotations
@@ -33,16 +40,24 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import lru_cache
+from itertools import combinations
 
 import numpy as np
 
 from lanevil_train.illusions.context import context_for_frame, context_from_scene
 from lanevil_train.illusions.registry import check_seed, get_illusion
 from lanevil_train.illusions.visibility import changed_pixels
+from lanevil_train.perturbations import (
+    Combined,
+    check_kind,
+    combined_choice,
+    get_perturbation,
+    suite_names,
+)
 from lanevil_train.sim import Scene, build_scene, sample_scene_params, shade_scene
 from lanevil_train.sim.presets import WEATHERS, marking_color
 from lanevil_train.sim.sequence import scene_at
-from lanevil_train.taxonomy import ILLUSION_CATEGORY, ILLUSION_NAMES
+from lanevil_train.taxonomy import CATEGORIES, ILLUSION_CATEGORY, ILLUSION_NAMES
 
 SEGMENTS = ("before", "over", "alongside")
 FRAMES_PER_CLIP = 6
@@ -61,15 +76,22 @@ FOOTPRINT_THRESHOLD = 24  # RGB-sum change that counts for the footprint: cuts t
 
 @dataclass(frozen=True)
 class ClipCase:
-    """One scene video: a scene seed and the one illusion type it is built around."""
+    """One scene video: a scene seed and the one illusion type it is built around (it places the camera and
+    drives the QA); a combined-suite case also names the `second` illusion, of another category, drawn over it."""
 
     case_id: str
     seed: int
     illusion: str
+    second: str | None = None
 
     def __post_init__(self) -> None:
         check_seed(self.seed)
         get_illusion(self.illusion)
+        if self.second is not None:
+            get_illusion(self.second)
+            if ILLUSION_CATEGORY[self.second] == ILLUSION_CATEGORY[self.illusion]:
+                raise ValueError(f"second: expected an illusion of another category than {self.illusion!r} "
+                                 f"({ILLUSION_CATEGORY[self.illusion]}), got {self.second!r}")
 
 
 @dataclass(frozen=True)
@@ -95,6 +117,39 @@ def clip_cases(num_cases: int, first_seed: int, illusions: Sequence[str]) -> lis
             raise ValueError(f"illusions[{i}]: unknown {name!r}, expected one of {list(ILLUSION_NAMES)}")
     return [ClipCase(f"clip-{first_seed + i}", int(first_seed + i), names[i % len(names)])
             for i in range(int(num_cases))]
+
+
+def category_pairs(illusions: Sequence[str]) -> list[tuple[str, str]]:
+    """The category pairs the illusions span, in the paper's order (RD+TO, RD+SH, RD+RF, TO+SH, TO+RF, SH+RF)."""
+    present = [c for c, members in CATEGORIES.items() if any(n in illusions for n in members)]
+    return list(combinations(present, 2))
+
+
+def combined_clip_cases(num_cases: int, first_seed: int, illusions: str | Sequence[str] = "all") -> list[ClipCase]:
+    """Combined-suite cases: case i has seed first_seed + i and the (i mod P)-th of the P category pairs its
+    illusions span, so consecutive cases cover the pairs evenly; its own illusion is of the pair's first category,
+    its second of the other, each the one perturbations.combined_choice draws from the seed for that category."""
+    if isinstance(num_cases, bool) or not isinstance(num_cases, (int, np.integer)) or num_cases < 0:
+        raise ValueError(f"num_cases: expected an integer >= 0, got {num_cases!r}")
+    check_seed(first_seed)
+    names = suite_names("combined", illusions)
+    pairs = category_pairs(names)
+    out = []
+    for i in range(int(num_cases)):
+        seed = int(first_seed + i)
+        drawn = {ILLUSION_CATEGORY[n]: n for n in combined_choice(seed, names)[0]}
+        first, second = pairs[i % len(pairs)]
+        out.append(ClipCase(f"clip-{seed}", seed, drawn[first], drawn[second]))
+    return out
+
+
+def suite_cases(kind: str, num_cases: int, first_seed: int, names: str | Sequence[str] = "all") -> list[ClipCase]:
+    """The cases of a `kind` suite: clip_cases over `names` (illusions), over every illusion, which then only
+    places the camera (corruptions: `names` are corruptions), or combined_clip_cases (combined)."""
+    if check_kind(kind) == "combined":
+        return combined_clip_cases(num_cases, first_seed, names)
+    names = suite_names(kind, names)
+    return clip_cases(num_cases, first_seed, names if kind == "illusions" else ILLUSION_NAMES)
 
 
 def _check_size(size) -> tuple[int, int]:
@@ -217,16 +272,48 @@ def render_clip(case: ClipCase, segment: str, severities: Sequence[int],
     """{severity: 6 uint8 HxWx3 RGB frames}; severity 0 is the clean clip. Each clean frame is rendered
     once and the illusion drawn into it at every requested severity with the case seed."""
     sevs = _check_severities(severities)
+    variants = render_variants(case, segment, [_check_case(case).illusion], sevs, size)
+    return {sev: variants[(case.illusion if sev else None, sev)] for sev in sevs}
+
+
+def frame_seed(seed: int, segment: str, k: int) -> int:
+    """The seed of frame k of a case's `segment` clip for image-space corruptions: fixed by the case seed, different
+    for every frame and segment (rain streaks and sensor noise do not stand still)."""
+    state = np.random.SeedSequence([check_seed(seed), SEGMENTS.index(_check_segment(segment)), int(k)])
+    return int(state.generate_state(1)[0] >> 1)
+
+
+def render_variants(case: ClipCase, segment: str, names: Sequence[str], severities: Sequence[int],
+                    size=DEFAULT_SIZE) -> dict[tuple[str | None, int], list[np.ndarray]]:
+    """{(None, 0): the 6 clean frames, (name, severity): those frames with perturbation `name` (an illusion, a
+    corruption or a pair "a+b": perturbations.get_perturbation)} for every name and non-zero severity. Each clean
+    frame is rendered once; illusions and pairs are drawn from the frame's pose with the case seed (they stay put on
+    the road), corruptions with frame_seed; a pair reuses its first illusion's frames when those are asked for too."""
+    sevs = [s for s in dict.fromkeys(_check_severities(severities)) if s]
+    if isinstance(names, str) or not isinstance(names, Sequence):
+        raise ValueError(f"names: expected a list of perturbation names, got {names!r}")
+    perturbations = []
+    for i, name in enumerate(names):
+        try:
+            perturbations.append(get_perturbation(name))
+        except ValueError as error:
+            raise ValueError(f"names[{i}]: {error}") from error
     size = _check_size(size)
     scene = reference_scene(_check_case(case), size)
     ref_clean = _reference(case.seed, case.illusion, size)[0]
-    illusion = get_illusion(case.illusion)
-    out: dict[int, list[np.ndarray]] = {sev: [] for sev in sevs}
-    for s0 in segment_positions(case, segment, size):
+    out: dict[tuple[str | None, int], list[np.ndarray]] = {(None, 0): []}
+    out.update({(p.name, sev): [] for p in perturbations for sev in sevs})
+    for k, s0 in enumerate(segment_positions(case, segment, size)):
         clean = shade_scene(scene_at(scene, float(s0)))
         ctx = context_for_frame(scene, float(s0), ref_clean)
-        for sev in sevs:
-            out[sev].append(clean if sev == 0 else illusion(clean, ctx, sev, case.seed))
+        out[(None, 0)].append(clean)
+        for p in perturbations:
+            in_world = isinstance(p, Combined) or p.name in ILLUSION_CATEGORY
+            seed = case.seed if in_world else frame_seed(case.seed, segment, k)
+            for sev in sevs:
+                first = out.get((p.first.name, sev), []) if isinstance(p, Combined) else []
+                frame = p.second(first[k], ctx, sev, seed) if len(first) > k else p(clean, ctx, sev, seed)
+                out[(p.name, sev)].append(frame)
     return out
 
 
