@@ -198,22 +198,37 @@ def _finish_wandb() -> None:
         wandb.finish()
 
 
-def _defense_of(run: Path, records: list[dict]) -> str:
-    """A run's defense: from its .hydra/config.yaml or config.yaml, else from its label <model>-<bb>[+<defense>]."""
+def _run_config(run: Path) -> DictConfig | None:
+    """A run's config: its .hydra/config.yaml (a command-line run) or config.yaml (a compare's run), if any."""
     for config in (run / ".hydra" / "config.yaml", run / "config.yaml"):
         if config.is_file():
-            name = OmegaConf.select(OmegaConf.load(config), "defense.name")
-            if name:
-                return str(name)
+            return OmegaConf.load(config)
+    return None
+
+
+def _defense_of(run: Path, records: list[dict]) -> str:
+    """A run's defense: from its .hydra/config.yaml or config.yaml, else from its label <model>-<bb>[+<defense>]."""
+    config = _run_config(run)
+    name = OmegaConf.select(config, "defense.name") if config is not None else None
+    if name:
+        return str(name)
     labels = sorted({r.get("model", "") for r in records})
     if len(labels) != 1:
         raise ValueError(f"task.runs: {run} has no config naming its defense and {len(labels)} model labels {labels}")
     return labels[0].split("+", 1)[1] if "+" in labels[0] else REFERENCE
 
 
+def _seed_of(run: Path) -> int:
+    """A run's training seed, from its config (0 when it has none)."""
+    config = _run_config(run)
+    seed = OmegaConf.select(config, "seed") if config is not None else None
+    return int(seed) if seed is not None else 0
+
+
 def _run_dirs(path: Path) -> tuple[list[tuple[Path, Path]], list[Path]]:
-    """(run directory, results file) for a run, an evaluate output, or a directory of runs one level down; and
-    the subdirectories skipped for having no results (a run that failed or is still training)."""
+    """(run directory, results file) for a run, an evaluate output, or a directory of runs one or two levels down
+    (a sweep, a compare's runs/<defense>/ or runs/<defense>/seed<s>/); and the subdirectories skipped for having no
+    results (a run that failed or is still training)."""
     if not path.is_dir():
         raise FileNotFoundError(f"task.runs: {path} is not a directory; expected a run directory or a directory "
                                 f"of runs")
@@ -224,10 +239,12 @@ def _run_dirs(path: Path) -> tuple[list[tuple[Path, Path]], list[Path]]:
     for sub in path.iterdir():
         if sub.is_dir():
             results = results_of(sub)
-            if results is None:
-                skipped.append(sub)
-            else:
+            if results is not None:
                 found.append((sub, results))
+                continue
+            seeds = [(d, results_of(d)) for d in sorted(sub.iterdir()) if d.is_dir() and d.name.startswith("seed")]
+            found += [(d, r) for d, r in seeds if r is not None]
+            skipped += [d for d, r in seeds if r is None] if seeds else [sub]
     if not found:
         raise FileNotFoundError(f"task.runs: no robustness/per_image.jsonl (or a VLM's test/per_answer.jsonl) in "
                                 f"{path} or its subdirectories")
@@ -235,8 +252,9 @@ def _run_dirs(path: Path) -> tuple[list[tuple[Path, Path]], list[Path]]:
     return sorted(found, key=key), sorted(skipped)
 
 
-def records_from_runs(runs: list[str]) -> tuple[dict[str, list[dict]], dict[str, str]]:
-    """{defense: records} and {defense: run dir} from run directories trained elsewhere; `none` first.
+def records_from_runs(runs: list[str]) -> tuple[dict[str, dict[int, list[dict]]], dict[str, dict[int, str]]]:
+    """{defense: {seed: records}} and {defense: {seed: run dir}} from run directories trained elsewhere (a defense's
+    runs with different `seed` values are its seeds); `none` first.
 
     Subdirectories without results (or with an empty results file) are skipped and named in the log; at least
     one defense besides `none` must have results, or there is nothing to compare.
@@ -250,71 +268,191 @@ def records_from_runs(runs: list[str]) -> tuple[dict[str, list[dict]], dict[str,
             if not recs:
                 skipped.append(str(run))
                 continue
-            defense = _defense_of(run, recs)
-            if defense in records:
-                raise ValueError(f"task.runs: defense {defense!r} found twice: {where[defense]} and {run}")
-            records[defense], where[defense] = recs, str(run)
+            defense, seed = _defense_of(run, recs), _seed_of(run)
+            if seed in records.get(defense, {}):
+                raise ValueError(f"task.runs: defense {defense!r} with seed={seed} found twice: "
+                                 f"{where[defense][seed]} and {run}")
+            records.setdefault(defense, {})[seed] = recs
+            where.setdefault(defense, {})[seed] = str(run)
     note = f"; skipped for having no results (no complete robustness/per_image.jsonl): {skipped}" if skipped else ""
     if not any(d != REFERENCE for d in records):
-        found_text = f"only {REFERENCE!r} has results ({where[REFERENCE]})" if records else "no run has results"
+        found_text = (f"only {REFERENCE!r} has results ({', '.join(where[REFERENCE].values())})" if records
+                      else "no run has results")
         raise ValueError(f"task.runs={list(runs)}: {found_text}; need the results of {REFERENCE!r} and at least one "
                          f"other defense to compare with it{note}")
     if skipped:
         log.warning("compare: task.runs%s", note)
     order = sorted(records, key=lambda d: d != REFERENCE)
-    return {d: records[d] for d in order}, {d: where[d] for d in order}
+    return ({d: dict(sorted(records[d].items())) for d in order}, {d: dict(sorted(where[d].items())) for d in order})
+
+
+def check_seeds(seeds) -> list[int]:
+    """task.seeds: distinct integers >= 0 (empty: one run per defense with the run's `seed`)."""
+    seeds = list(seeds or [])
+    bad = [s for s in seeds if isinstance(s, bool) or not isinstance(s, int) or s < 0]
+    if bad:
+        raise ValueError(f"task.seeds: expected a list of integers >= 0 (one training run per seed), got {bad}")
+    if len(set(seeds)) != len(seeds):
+        raise ValueError(f"task.seeds={seeds} lists a seed twice")
+    return seeds
+
+
+def run_dirs(out: Path, defenses: list[str], seeds: list[int], default_seed: int) -> dict[str, dict[int, Path]]:
+    """Where each (defense, seed) run lives: runs/<defense>/ with one seed (task.seeds empty), else
+    runs/<defense>/seed<s>/."""
+    if not seeds:
+        return {d: {default_seed: out / "runs" / d} for d in defenses}
+    return {d: {s: out / "runs" / d / f"seed{s}" for s in seeds} for d in defenses}
 
 
 def compare(cfg: DictConfig, overrides: list[str] | None = None) -> float | None:
     """Run (or, with task.runs, only report) the defense comparison; returns the best average perturbed Accuracy
-    (None in the non-zero ranks of a DDP run, which only train).
+    (None in the non-zero ranks of a DDP run, which only train, and in a job that runs one of its runs).
 
     `overrides`: the command-line overrides every run gets (default: this Hydra run's own, minus task/defense).
+    With `hydra/launcher=<a job launcher>` (tasks/launch.py) each run is one job of that launcher, and this process
+    waits for them; task.run_only="<defense>@<seed>" runs that one run only (what each job does).
     """
     out = Path(cfg.task.out_dir) if cfg.task.get("out_dir") else output_dir(cfg)
     if cfg.task.get("runs"):
         records, runs = records_from_runs(list(cfg.task.runs))
+        return write_compare_report(cfg, records, runs, out)
+    defenses = check_defenses(list(cfg.task.defenses))
+    seeds = check_seeds(cfg.task.get("seeds"))
+    user = overrides
+    if overrides is None:
+        from hydra.core.hydra_config import HydraConfig
+
+        user = list(HydraConfig.get().overrides.task)
+        searchpath = [o for o in HydraConfig.get().overrides.hydra if o.startswith("hydra.searchpath")]
+        overrides = [*searchpath, *user]  # the user's own configs found too
+    common = run_overrides(overrides)
+    paths = run_dirs(out, defenses, seeds, int(cfg.seed))
+    with_seed = (lambda s: [*common, f"seed={s}"]) if seeds else (lambda s: common)  # noqa: E731
+    only = _run_only(cfg, paths)
+    # every run's config and defense arguments are checked before the first one trains
+    configs = {d: {s: compose_run(cfg, d, with_seed(s), path) for s, path in by_seed.items()}
+               for d, by_seed in paths.items()}
+    sources = _sources(cfg, defenses, {d: next(iter(by_seed.values())) for d, by_seed in configs.items()})
+    order = sorted(defenses, key=lambda d: sources[d] is not None)  # the fine-tuned models before their prompts
+    todo = [(d, s) for d in order for s in paths[d] if only in (None, (d, s))]
+    if only is None and _launching():
+        failed = launch_runs(user, todo, sources, paths, out, is_vlm(cfg))
     else:
-        defenses = check_defenses(list(cfg.task.defenses))
-        if overrides is None:
-            from hydra.core.hydra_config import HydraConfig
-
-            searchpath = [o for o in HydraConfig.get().overrides.hydra if o.startswith("hydra.searchpath")]
-            overrides = [*searchpath, *HydraConfig.get().overrides.task]  # the user's own configs found too
-        common = run_overrides(overrides)
-        runs = {d: str(out / "runs" / d) for d in defenses}
-        # every run's config and defense arguments are checked before the first one trains
-        configs = {d: compose_run(cfg, d, common, Path(runs[d])) for d in defenses}
-        if is_vlm(cfg):
-            from lanevil_train.tasks.vlm_train import check_vlm_run
-
-            for defense, run_cfg in configs.items():
-                try:
-                    check_vlm_run(run_cfg)
-                except ValueError as error:
-                    raise ValueError(f"task.defenses: the defense={defense} run cannot fine-tune or defend this VLM: "
-                                     f"{error}. Nothing was trained") from None
-            sources = vlm_sources(configs)
-        else:
-            models: dict[str, object] = {}
-            for run_cfg in configs.values():
-                check_defense_model(run_cfg, build_defense(run_cfg), models)
-            sources = dict.fromkeys(defenses)
-        order = sorted(defenses, key=lambda d: sources[d] is not None)  # the fine-tuned models before their prompts
-        for i, defense in enumerate(order, 1):
-            log.info("compare: [%d/%d] defense=%s", i, len(order), defense)
+        failed = []
+        for i, (defense, seed) in enumerate(todo, 1):
+            log.info("compare: [%d/%d] defense=%s%s", i, len(todo), defense, f" seed={seed}" if seeds else "")
             source = sources[defense]
-            run_defense(cfg, defense, common, Path(runs[defense]), None if source is None else Path(runs[source]))
-        if not _is_rank_zero():
-            return None
-        records = {d: read_records(results_of(Path(runs[d])), keep_lanes=False) for d in defenses}
+            run_defense(cfg, defense, with_seed(seed), paths[defense][seed],
+                        None if source is None else paths[source][seed])
+    if only is not None or not _is_rank_zero():
+        return None
+    finished = {d: {s: path for s, path in by_seed.items() if done_marker(path, is_vlm(cfg)).is_file()}
+                for d, by_seed in paths.items()}
+    records = {d: {s: read_records(results_of(path), keep_lanes=False) for s, path in by_seed.items()}
+               for d, by_seed in finished.items() if by_seed}
+    runs = {d: {s: str(path) for s, path in by_seed.items()} for d, by_seed in finished.items() if by_seed}
+    if not failed:
+        return write_compare_report(cfg, records, runs, out)
+    listing = "; ".join(f"{d}@{s}" for d, s in failed)
+    if REFERENCE in records and len(records) > 1:
+        write_compare_report(cfg, records, runs, out, failed=failed)
+        where = f"the report of the finished runs is in {out / 'compare.md'}"
+    else:
+        where = f"too few finished runs for a report ({REFERENCE!r} and another defense are needed)"
+    raise RuntimeError(f"task=compare: {len(failed)} run(s) failed: {listing} (each job's error and log are above); "
+                       f"{where}. Rerun the same command (task.out_dir={out}) to run only those again")
+
+
+def _run_only(cfg: DictConfig, paths: dict[str, dict[int, Path]]) -> tuple[str, int] | None:
+    """task.run_only "<defense>@<seed>" as (defense, seed), checked against the compare's runs; None when unset."""
+    value = cfg.task.get("run_only")
+    if value is None:
+        return None
+    defense, _, seed = str(value).rpartition("@")
+    runs = [f"{d}@{s}" for d, by_seed in paths.items() for s in by_seed]
+    if not seed.isdigit() or defense not in paths or int(seed) not in paths[defense]:
+        raise ValueError(f"task.run_only={value!r}: expected one of this compare's runs, <defense>@<seed>: {runs}")
+    return defense, int(seed)
+
+
+def _sources(cfg: DictConfig, defenses: list[str], configs: dict[str, DictConfig]) -> dict[str, str | None]:
+    """Checks each defense against the model before anything trains; for a VLM, the defense whose fine-tuned model
+    each textual defense is tuned for (vlm_sources), else None for every defense."""
+    if is_vlm(cfg):
+        from lanevil_train.tasks.vlm_train import check_vlm_run
+
+        for defense, run_cfg in configs.items():
+            try:
+                check_vlm_run(run_cfg)
+            except ValueError as error:
+                raise ValueError(f"task.defenses: the defense={defense} run cannot fine-tune or defend this VLM: "
+                                 f"{error}. Nothing was trained") from None
+        return vlm_sources(configs)
+    models: dict[str, object] = {}
+    for run_cfg in configs.values():
+        check_defense_model(run_cfg, build_defense(run_cfg), models)
+    return dict.fromkeys(defenses)
+
+
+def _launching() -> bool:
+    """Whether this compare runs each training as a job of the Hydra launcher the user picked (tasks/launch.py)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    if not HydraConfig.initialized():
+        return False
+    from lanevil_train.tasks.launch import uses_job_launcher
+
+    return uses_job_launcher()
+
+
+def launch_runs(user: list[str], todo: list[tuple[str, int]], sources: dict[str, str | None],
+                paths: dict[str, dict[int, Path]], out: Path, vlm: bool) -> list[tuple[str, int]]:
+    """Each unfinished run of `todo` as one job of the current launcher (task=compare with task.run_only), into
+    <out>/jobs/<defense>@<seed>/ (the job's log; the run itself writes runs/...); a textual defense's jobs after the
+    jobs of the models they are tuned for. Returns the runs that failed."""
+    from lanevil_train.tasks.launch import launch_jobs
+
+    failed = []
+    waves = [[(d, s) for d, s in todo if sources[d] is None], [(d, s) for d, s in todo if sources[d] is not None]]
+    for wave in waves:
+        pending = [(d, s) for d, s in wave if not done_marker(paths[d][s], vlm).is_file()
+                   and (sources[d] is None or (sources[d], s) not in failed)]
+        failed += [(d, s) for d, s in wave if sources[d] is not None and (sources[d], s) in failed]
+        if not pending:
+            continue
+        log.info("compare: %d run(s) as jobs (%s already done)", len(pending), len(wave) - len(pending))
+        jobs = {f"{d}@{s}": [*user, f"task.out_dir={out.resolve()}", f"task.run_only={d}@{s}"] for d, s in pending}
+        for (defense, seed), outcome in zip(pending, launch_jobs(jobs, out / "jobs")):
+            if not outcome.ok or not done_marker(paths[defense][seed], vlm).is_file():
+                failed.append((defense, seed))
+    return failed
+
+
+def write_compare_report(cfg: DictConfig, records: dict[str, dict[int, list[dict]]], runs: dict[str, dict[int, str]],
+                         out: Path, failed: list[tuple[str, int]] | None = None) -> float:
+    """The compare report from {defense: {seed: records}}: scores (mean and std over seeds), gains over `none` with
+    their bootstrap intervals (report/intervals.py), plot and compare.md; returns the best average perturbed
+    headline score."""
+    from lanevil_train.report.intervals import SeedRuns, gain_rows
+
     scores = defense_scores(records)  # validates: `none` is there, every defense on the same items
-    spec = spec_for(records[REFERENCE])
-    gains = defense_gain(scores)
-    write_defense_report(scores, gains, out, spec, runs)
+    spec = spec_for(next(iter(records[REFERENCE].values())))
+    replicates, confidence = int(cfg.task.get("bootstrap", 1000)), float(cfg.task.get("confidence", 0.95))
+    intervals = gain_rows(SeedRuns(records), REFERENCE, replicates=replicates, confidence=confidence,
+                          seed=int(cfg.get("seed", 0)))
+    gains = defense_gain(scores, intervals=intervals)
+    seeds = sorted({s for by_seed in records.values() for s in by_seed})
+    note = (f"Intervals: {confidence:.0%} paired bootstrap ({replicates} replicates) over the suite's "
+            f"{len({(r['dataset'], r['case_id']) for r in next(iter(records[REFERENCE].values()))})} test cases"
+            + (f" and the {len(seeds)} seeds {seeds}" if len(seeds) > 1 else " (one seed: test-set noise only)")
+            + "; * marks a gain whose interval excludes zero (report/intervals.py)."
+            + (f" **Not included: runs that failed** ({', '.join(f'{d}@{s}' for d, s in failed)}); rerun the compare "
+               f"to finish them." if failed else ""))
+    write_defense_report(scores, gains, out, spec, runs, interval_note=note)
     headline = headline_of(scores, spec).name
-    print_table(gain_pivot(gains, headline),
-                title=f"{headline} gain over {REFERENCE} (points) — {out / 'compare.md'}")
+    print_table(gain_pivot(gains, headline, text=True),
+                title=f"{headline} gain over {REFERENCE} (points) [{confidence:.0%} interval] — {out / 'compare.md'}")
     name, value = best_defense(scores, spec)
     log.info("compare: best average perturbed %s %.2f (defense=%s); report in %s", headline, value, name,
              out / "compare.md")

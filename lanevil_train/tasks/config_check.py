@@ -30,6 +30,7 @@ from lanevil_train.lanes import SLOT_ASSIGNMENTS
 from lanevil_train.models.backbones import OUTPUT_STRIDES, indices_for_strides, stage_strides
 from lanevil_train.models.head import decode_option_problems
 from lanevil_train.models.schedules import LR_SCALINGS
+from lanevil_train.perturbations import SUITE_KINDS, suite_names
 from lanevil_train.progress import MODES
 from lanevil_train.tasks.vlm_defense import HARDNESS, PROMPT_DEFENSES
 from lanevil_train.tasks.vlm_train import TRAINING_KEYS
@@ -195,16 +196,28 @@ def output_folder() -> Rule:
 
 
 def illusion_names() -> Rule:
+    """task.illusions: 'all' or names of the suite's kind (illusions, or corruptions for a corruption suite; which
+    kind is checked by check_suite_names)."""
     def test(v):
         if v == "all":
             return None
         if not isinstance(v, list) or not v or not all(isinstance(x, str) for x in v):
             return ""
-        unknown = [x for x in v if x not in ILLUSIONS]
-        return f"unknown: {', '.join(unknown)}; known: {', '.join(ILLUSIONS)}" if unknown else None
-    return Rule("'all' or a non-empty list of illusion names", test)
+        from lanevil_train.corruptions import CORRUPTIONS
+
+        unknown = [x for x in v if x not in ILLUSIONS and x not in CORRUPTIONS]
+        return (f"unknown: {', '.join(unknown)}; known: illusions {', '.join(ILLUSIONS)}; corruptions "
+                f"{', '.join(CORRUPTIONS)}" if unknown else None)
+    return Rule("'all' or a non-empty list of illusion (or, for a corruption suite, corruption) names", test)
 
 
+def seed_list() -> Rule:
+    """task.seeds: distinct integers >= 0, or empty."""
+    return Rule("a list of distinct integers >= 0 (empty: one run with `seed`)",
+                lambda v: _ok(isinstance(v, list) and all(_is_int(x) and x >= 0 for x in v) and len(set(v)) == len(v)))
+
+
+ON_THE_FLY_SUITES = ("synthetic", "corruptions", "combined")  # generated per run: illusions, corruptions, pairs
 SUITE_FILES = {"manifest.jsonl": "an illusion image set", "clips.jsonl": "a clip suite"}
 
 
@@ -212,7 +225,7 @@ def illusion_suite() -> Rule:
     """task.suite: null, synthetic, a set written by task=build (a directory holding manifest.jsonl, or clips.jsonl
     for VLM clips), or a DriveLM-style QA JSON file (VLMs)."""
     def test(v):
-        if v is None or v == "synthetic":
+        if v is None or v in ON_THE_FLY_SUITES:
             return None
         if not isinstance(v, str) or not v:
             return ""
@@ -221,8 +234,8 @@ def illusion_suite() -> Rule:
         if not Path(v).is_dir():
             return "no such directory"
         return None if any((Path(v) / name).is_file() for name in SUITE_FILES) else "it holds no manifest.jsonl"
-    return Rule("null, synthetic, a directory written by task=build (holding manifest.jsonl, or clips.jsonl for a "
-                "VLM), or a DriveLM QA .json file", test)
+    return Rule("null, synthetic (the illusion suite), corruptions, combined, a directory written by task=build "
+                "(holding manifest.jsonl, or clips.jsonl for a VLM), or a DriveLM QA .json file", test)
 
 
 def defense_keys() -> Rule:
@@ -553,6 +566,11 @@ RULES: dict[str, Rule] = {
     "task.baseline": null_or(text()),
     "task.runs": string_list(),
     "task.defenses": defense_names(),
+    "task.seeds": seed_list(),
+    "task.run_only": null_or(text()),
+    "task.bootstrap": integer(100),
+    "task.confidence": number(0, 1, low_open=True, high_open=True),
+    "task.kind": one_of(*SUITE_KINDS),
     "task.onnx": null_or(existing_file("ONNX model written by task=export")),
     "task.out": null_or(text()),
     "task.opset": integer(9),
@@ -686,6 +704,30 @@ def check_cases(cfg: DictConfig) -> list[str]:
                      "for task=build on a real dataset)", 0)]
 
 
+def suite_kind(cfg: DictConfig) -> str | None:
+    """The kind of suite task.illusions names: task.kind of task=build, or the on-the-fly task.suite's."""
+    if _get(cfg, "task.name") == "build":
+        kind = _get(cfg, "task.kind")
+        return "illusions" if kind is _ABSENT else kind
+    suite = _get(cfg, "task.suite")
+    return {"synthetic": "illusions", "corruptions": "corruptions", "combined": "combined"}.get(suite) \
+        if isinstance(suite, str) else None
+
+
+def check_suite_names(cfg: DictConfig) -> list[str]:
+    """task.illusions must name what the suite applies: illusions, or corruptions for a corruption suite; a
+    combined suite needs illusions of two categories."""
+    names, kind = _get(cfg, "task.illusions"), suite_kind(cfg)
+    if names is _ABSENT or kind not in SUITE_KINDS or not (names == "all" or isinstance(names, list)):
+        return []
+    try:
+        suite_names(kind, names)
+    except ValueError as error:
+        what = f"task.kind={kind}" if _get(cfg, "task.name") == "build" else f"task.suite={_get(cfg, 'task.suite')}"
+        return [f"task.{error} ({what})"]
+    return []
+
+
 def _is_vlm(cfg: DictConfig) -> bool:
     """model=vlm/<backend>: a model node with its own _target_ (tasks.builders.is_vlm)."""
     model = _get(cfg, "model")
@@ -762,7 +804,7 @@ def check_training_ends(cfg: DictConfig) -> list[str]:
 
 
 CROSS_CHECKS = (check_feature_map, check_decode_options, check_backbone_weights, check_cases, check_checkpoint_given, check_training_ends,
-                check_vlm_task, check_split_seeds)
+                check_vlm_task, check_split_seeds, check_suite_names)
 
 
 # ---------------------------------------------------------------------------------------------- _target_ nodes

@@ -36,10 +36,33 @@ def path_order(path: Path) -> tuple:
 
 
 def report(cfg: DictConfig) -> float:
-    """Combine the runs' per-image results into the report in this run's directory."""
+    """Combine the runs' per-image results into the report in this run's directory; runs of one model label with
+    different seeds also get seeds.md (mean ± std over seeds, gains with intervals: tasks/seed_report.py)."""
     if not cfg.task.runs:
         raise ValueError("task=report needs task.runs=[run_dir, ...] (directories holding per_image.jsonl or "
                          "per_answer.jsonl)")
-    value = write_results(results_files(list(cfg.task.runs)), output_dir(cfg), baseline=cfg.task.baseline)
+    value = write_run_reports(results_files(list(cfg.task.runs)), output_dir(cfg), baseline=cfg.task.baseline,
+                              replicates=int(cfg.task.get("bootstrap", 1000)),
+                              confidence=float(cfg.task.get("confidence", 0.95)), seed=int(cfg.seed))
     log_results(build_logger(cfg), output_dir(cfg))
+    return value
+
+
+def write_run_reports(files: list[Path], out: Path, baseline: str | None = None, replicates: int = 1000,
+                      confidence: float = 0.95, seed: int = 0) -> float:
+    """The report of several runs' results (write_results), each seed run of a repeated label as its own row, and
+    seeds.md when labels repeat; returns write_results' headline value."""
+    from lanevil_train.tasks.seed_report import relabels, seed_runs, write_seed_report
+
+    groups = seed_runs(files)
+    labels = relabels(groups)
+    repeated = {label for label, _ in groups}
+    table_baseline = baseline
+    if baseline in repeated:  # the relative table's mCE baseline: that model's first seed run
+        first = next(runs for (label, _), runs in groups.items() if label == baseline)
+        table_baseline = labels[next(iter(first.values()))]
+    value = write_results(files, out, baseline=table_baseline, labels=labels)
+    path = write_seed_report(files, out, baseline, replicates, confidence, seed)
+    if path is not None:
+        print(f"Seeds: {path} (mean ± std over seeds; gains with {confidence:.0%} intervals)")
     return value

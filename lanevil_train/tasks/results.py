@@ -11,14 +11,22 @@ from lanevil_train.report.tables import print_table, write_table
 from lanevil_train.tasks.scoring import read_records
 
 
-def write_results(result_files: list[Path], out_dir: Path, baseline: str | None = None) -> float:
+def write_results(result_files: list[Path], out_dir: Path, baseline: str | None = None,
+                  labels: dict[Path, str] | None = None) -> float:
     """Tables (and plots) from per-image results files; returns the headline score (Accuracy % for lanes) of the
     perturbed images (of all images if none is perturbed): the value a sweep optimises.
 
     Records are read without their stored lanes, then read again keeping lanes only for the few
-    worst cases that get drawn, so memory stays small however many images were scored.
+    worst cases that get drawn, so memory stays small however many images were scored. `labels`: a model label
+    for the records of some files (a seed run's "<label> (seed s)"), replacing their own.
     """
-    records = [r for path in result_files for r in read_records(path, keep_lanes=False)]
+    labels = labels or {}
+
+    def read(path: Path, **kwargs) -> list[dict]:
+        records = read_records(path, keep_lanes=False, **kwargs)
+        return [{**r, "model": labels[path]} for r in records] if path in labels else records
+
+    records = [r for path in result_files for r in read(path)]
     if not records:
         raise ValueError(f"no per-image results to report in {', '.join(map(str, result_files))}")
     rs = _checked_record_set(records, result_files)
@@ -27,7 +35,7 @@ def write_results(result_files: list[Path], out_dir: Path, baseline: str | None 
 
         drawn = {r["key"] for pair in worst_case_pairs(rs) for r in pair}
         if drawn:
-            records = [r for path in result_files for r in read_records(path, keep_lanes=False, lanes_for=drawn)]
+            records = [r for path in result_files for r in read(path, lanes_for=drawn)]
             rs = record_set(records, rs.spec)
     rows = summary_rows(rs.records, rs.spec)
     write_table(rows, out_dir, "test_scores")

@@ -106,13 +106,47 @@ def test_each_run_gets_the_users_overrides_but_its_own_task_defense_and_director
     assert pgd.logger.save_dir == str(tmp_path / "pgd")  # interpolations follow the run directory
 
 
-def _write_run(run_dir, records, defense=None):
+def _write_run(run_dir, records, defense=None, seed=None):
     (run_dir / "robustness").mkdir(parents=True)
     lines = [json.dumps({**r, "key": f"{r['case_id']}/{r.get('illusion')}"}) + "\n" for r in records]
     (run_dir / "robustness" / "per_image.jsonl").write_text("".join(lines))
     if defense:
         (run_dir / ".hydra").mkdir()
-        OmegaConf.save(OmegaConf.create({"defense": {"name": defense}}), run_dir / ".hydra" / "config.yaml")
+        config = {"defense": {"name": defense}, **({"seed": seed} if seed is not None else {})}
+        OmegaConf.save(OmegaConf.create(config), run_dir / ".hydra" / "config.yaml")
+
+
+def _shifted(records, shift):
+    """The records with every perturbed accuracy moved by `shift` (clean ones unchanged)."""
+    return [{**r, "accuracy": r["accuracy"] + shift if r["severity"] else r["accuracy"]} for r in records]
+
+
+def test_report_only_over_seeds_gives_mean_std_and_intervals(tmp_path):
+    # a multirun over defense and seed: none at its records on seeds 0, 1, 2; aam++ +10 points +-1 on each
+    sweep = tmp_path / "multirun"
+    for job, (defense, seed) in enumerate((d, s) for d in ("none", "aam++") for s in (0, 1, 2)):
+        base = RECORDS["none"] if defense == "none" else _shifted(RECORDS["none"], 0.1 + 0.01 * (seed - 1))
+        label = "laneatt-resnet18" if defense == "none" else "laneatt-resnet18+aam++"
+        _write_run(sweep / str(job), [{**r, "model": label} for r in base], defense=defense, seed=seed)
+    records, runs = records_from_runs([str(sweep)])
+    assert {d: sorted(by_seed) for d, by_seed in records.items()} == {"none": [0, 1, 2], "aam++": [0, 1, 2]}
+    assert runs["aam++"][2] == str(sweep / "5")
+    cfg = OmegaConf.create({"task": {"runs": [str(sweep)], "out_dir": None, "bootstrap": 500, "confidence": 0.95},
+                            "output_dir": str(tmp_path / "report"), "seed": 0})
+    compare(cfg)
+    scores = {r["defense"]: r for r in json.loads((tmp_path / "report" / "defense_scores.json").read_text())}
+    assert scores["aam++"]["seeds"] == 3
+    assert scores["aam++"]["shadow/Accuracy"] == pytest.approx(60.0)  # none's shadow 50 + 10
+    assert scores["aam++"]["shadow/Accuracy/std"] == pytest.approx(1.0)
+    assert scores["none"]["shadow/Accuracy/std"] == pytest.approx(0.0)
+    gains = {r["category"]: r for r in json.loads((tmp_path / "report" / "defense_gain.json").read_text())}
+    shadow = gains["shadow"]
+    assert shadow["Accuracy/gain"] == pytest.approx(10.0)
+    assert 9.0 - 1e-9 <= shadow["Accuracy/low"] < 10.0 < shadow["Accuracy/high"] <= 11.0 + 1e-9  # the seeds' spread
+    assert shadow["Accuracy/distinguishable"] is True
+    assert gains["original"]["Accuracy/distinguishable"] is False  # clean images unchanged: gain exactly 0
+    text = (tmp_path / "report" / "compare.md").read_text()
+    assert "+10.00 [+" in text and "the 3 seeds [0, 1, 2]" in text and "60.00 ± 1.00" in text
 
 
 def test_report_only_from_a_multirun_directory_and_a_single_run(tmp_path):
@@ -122,7 +156,7 @@ def test_report_only_from_a_multirun_directory_and_a_single_run(tmp_path):
     _write_run(tmp_path / "elsewhere", RECORDS["aam++"])  # no config: the defense comes from the label
     records, runs = records_from_runs([str(sweep), str(tmp_path / "elsewhere")])
     assert list(records) == ["none", "pgd", "aam++"]
-    assert runs["aam++"] == str(tmp_path / "elsewhere") and runs["pgd"] == str(sweep / "0")
+    assert runs["aam++"] == {0: str(tmp_path / "elsewhere")} and runs["pgd"] == {0: str(sweep / "0")}
     cfg = OmegaConf.create({"task": {"runs": [str(sweep), str(tmp_path / "elsewhere")], "out_dir": None},
                             "output_dir": str(tmp_path / "report")})
     assert compare(cfg) == pytest.approx(72.5)
@@ -131,7 +165,7 @@ def test_report_only_from_a_multirun_directory_and_a_single_run(tmp_path):
     assert pivot["aam++"]["Accuracy/gain"] == pytest.approx(12.5)
     assert pivot["pgd"]["Accuracy/gain"] == pytest.approx(-2.5)
     _write_run(tmp_path / "again", RECORDS["pgd"], defense="pgd")
-    with pytest.raises(ValueError, match="defense 'pgd' found twice"):
+    with pytest.raises(ValueError, match="defense 'pgd' with seed=0 found twice"):
         records_from_runs([str(sweep), str(tmp_path / "again")])
 
 

@@ -263,10 +263,11 @@ BAD = [
     # task
     (["task.severities=[0,6]"], "task.severities: expected a non-empty list of integers from 1 to 5, got [0, 6]"),
     (["task.severities=[]"], "task.severities: expected a non-empty list of integers from 1 to 5, got []"),
-    (["task.illusions=[rain,vehicle]"],
-     "task.illusions: expected 'all' or a non-empty list of illusion names, got ['rain', 'vehicle'] (unknown: "
-     "rain; known: road_crack, road_repair"),
-    (["task.illusions=some"], "task.illusions: expected 'all' or a non-empty list of illusion names, got 'some'"),
+    (["task.illusions=[smoke,vehicle]"],
+     "task.illusions: expected 'all' or a non-empty list of illusion (or, for a corruption suite, corruption) names, "
+     "got ['smoke', 'vehicle'] (unknown: smoke; known: illusions road_crack, road_repair"),
+    (["task.illusions=some"], "task.illusions: expected 'all' or a non-empty list of illusion (or, for a corruption "
+     "suite, corruption) names, got 'some'"),
     (["task.repeats=0"], "task.repeats: expected an integer >= 1, got 0"),
     (["task.cases=-1"], "task.cases: expected an integer >= 0, got -1"),
     (["task.cases=0"], "task.cases: expected an integer >= 1, the number of simulated scenes (0, every image, is "
@@ -276,8 +277,8 @@ BAD = [
      "task.init_from: expected null or the path of an existing checkpoint file, got '/no/such/init.ckpt' "
      "(no such file)"),
     (["task.suite=/no/such/set"],
-     "task.suite: expected null, synthetic, a directory written by task=build (holding manifest.jsonl, or "
-     "clips.jsonl for a VLM), or a DriveLM QA .json file, got "
+     "task.suite: expected null, synthetic (the illusion suite), corruptions, combined, a directory written by "
+     "task=build (holding manifest.jsonl, or clips.jsonl for a VLM), or a DriveLM QA .json file, got "
      "'/no/such/set' (no such directory)"),
     (["task=build", "task.workers=-1"], "task.workers: expected an integer >= 0, got -1"),
     (["task=build", "task.frames=0"], "task.frames: expected an integer >= 1, got 0"),
@@ -310,6 +311,18 @@ BAD = [
     (["trainer.check_val_every_n_epoch=0"],
      "trainer.check_val_every_n_epoch: expected null or an integer >= 1, got 0"),
     (["trainer.gradient_clip_val=-1"], "trainer.gradient_clip_val: expected null or a number >= 0, got -1"),
+    # suites of other kinds, seeds and intervals
+    (["task.suite=corruptions", "task.illusions=[rail_shadow]"],
+     "task.illusions[0]: unknown corruption 'rail_shadow'; the corruptions suite's names: snow, rain, fog"),
+    (["task.suite=combined", "task.illusions=[rail_shadow,fence_shadow]"],
+     "task.illusions: a combined suite pairs illusions of two categories"),
+    (["task=build", "task.kind=weather"], "task.kind: expected one of illusions, corruptions, combined, got 'weather'"),
+    (["task=build", "task.kind=corruptions", "task.illusions=[vehicle]"],
+     "task.illusions[0]: unknown corruption 'vehicle'"),
+    (["task=compare", "task.seeds=[0,1,1]"], "task.seeds: expected a list of distinct integers >= 0"),
+    (["task=compare", "task.bootstrap=10"], "task.bootstrap: expected an integer >= 100, got 10"),
+    (["task=compare", "task.confidence=1.0"], "task.confidence: expected a number in (0, 1), got 1.0"),
+    (["task.suite=smoke"], "task.suite: expected null, synthetic (the illusion suite), corruptions"),
     # callbacks and logger
     (["+callbacks.model_checkpoint.save_every=2"],
      "callbacks.model_checkpoint.save_every: not a parameter of pytorch_lightning.callbacks.ModelCheckpoint; "

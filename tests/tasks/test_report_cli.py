@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from lanevil_train.tasks.scoring import read_records
 from tests.tasks.cli_helpers import TINY, run_cli
 
@@ -93,3 +95,33 @@ def test_evaluate_a_built_set_draws_the_worst_cases(tmp_path):
     assert len(records) == 4 and all(r["image"].startswith(str(suite)) for r in records)
     assert {r["category"] for r in records} == {None, "shadow"}
     assert (out / "worst_cases.png").stat().st_size > 2000
+
+
+def _seed_run(path, model: str, seed: int, perturbed: float):
+    """A Hydra run directory of `model` trained with `seed`: its config and its suite results."""
+    _fake_run(path, model, original=0.9, perturbed=perturbed)
+    (path / ".hydra").mkdir()
+    (path / ".hydra" / "config.yaml").write_text(f"seed: {seed}\n")
+
+
+def test_report_over_seeds_summarises_each_model_and_its_gain_with_an_interval(tmp_path):
+    from lanevil_train.tasks.report import results_files, write_run_reports
+
+    # a sweep over model and seed: laneatt at 60 +- 1 over 3 seeds, ufld at 70 +- 1
+    for job, (model, seed) in enumerate((m, s) for m in ("laneatt", "ufld") for s in (0, 1, 2)):
+        base = 0.6 if model == "laneatt" else 0.7
+        _seed_run(tmp_path / "sweep" / str(job), model, seed, base + 0.01 * (seed - 1))
+    out = tmp_path / "report"
+    out.mkdir()
+    write_run_reports(results_files([str(tmp_path / "sweep")]), out, baseline="laneatt", replicates=400)
+    scores = json.loads((out / "test_scores.json").read_text())
+    assert {r["model"] for r in scores} == {f"{m} (seed {s})" for m in ("laneatt", "ufld") for s in (0, 1, 2)}
+    seeds = {(r["name"], r["category"]): r for r in json.loads((out / "seeds.json").read_text())}
+    assert seeds["ufld", "shadow"]["Accuracy"] == pytest.approx(70.0)
+    assert seeds["ufld", "shadow"]["Accuracy/std"] == pytest.approx(1.0)
+    assert seeds["ufld", "shadow"]["Accuracy/runs"] == pytest.approx([69.0, 70.0, 71.0])
+    gains = {r["category"]: r for r in json.loads((out / "seed_gains.json").read_text())}
+    assert gains["average"]["Accuracy/gain"] == pytest.approx(10.0) and gains["average"]["Accuracy/distinguishable"]
+    assert gains["original"]["Accuracy/gain"] == 0.0 and not gains["original"]["Accuracy/distinguishable"]
+    text = (out / "seeds.md").read_text()
+    assert "70.00 ± 1.00" in text and "+10.00 [" in text and (out / "seed_gains.png").stat().st_size > 2000
