@@ -214,3 +214,29 @@ def test_report_only_needs_a_defense_besides_none_and_names_the_runs_without_res
         records, _ = records_from_runs([str(sweep)])
     assert list(records) == ["none", "pgd"]
     assert f"skipped for having no results (no complete robustness/per_image.jsonl): ['{sweep / '1'}']" in caplog.text
+
+
+def test_seeds_change_the_training_but_not_the_suite(tmp_path):
+    import torch
+
+    out = tmp_path / "compare"
+    args = ["task=compare", "task.defenses=[none,hsv]", "task.seeds=[0,1]", *TINY, "trainer.max_steps=2",
+            "trainer.limit_val_batches=0", "task.cases=1", "task.illusions=[rail_shadow,vehicle]",
+            "task.severities=[3]", "task.test_after_fit=false", "task.bootstrap=200"]
+    run_cli(args, out)
+    runs = {(d, s): out / "runs" / d / f"seed{s}" for d in ("none", "hsv") for s in (0, 1)}
+    for (defense, seed), run in runs.items():
+        config = OmegaConf.load(run / "config.yaml")
+        assert (config.defense.name, config.seed) == (defense, seed)
+    weights = {key: torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)["state_dict"]
+               for key, run in runs.items()}
+    name = next(k for k in weights["none", 0] if k.endswith("weight"))
+    assert not torch.equal(weights["none", 0][name], weights["none", 1][name])  # another seed trains another model
+    suites = {key: [(r["key"], r["gt_lanes"]) for r in read_records(run / "robustness" / "per_image.jsonl")]
+              for key, run in runs.items()}
+    assert len(suites["none", 0]) == 3 and all(s == suites["none", 0] for s in suites.values())  # one suite
+    scores = {r["defense"]: r for r in json.loads((out / "defense_scores.json").read_text())}
+    assert scores["hsv"]["seeds"] == 2 and "average/Accuracy/std" in scores["hsv"]
+    gains = json.loads((out / "defense_gain.json").read_text())
+    assert all(r["Accuracy/low"] <= r["Accuracy/gain"] <= r["Accuracy/high"] for r in gains)
+    assert "the 2 seeds [0, 1]" in (out / "compare.md").read_text()
