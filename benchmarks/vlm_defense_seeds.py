@@ -8,7 +8,8 @@ that `task=compare` wrote, one per seed; and each run's wall time from its resul
 The compares must share their suite (they differ by `seed=` only); a defense that some of them lack (a compare
 stopped early, or run over fewer defenses) is summarised over the seeds that hold it, with their number shown.
 A mean gain whose interval mean +- 2 std / sqrt(n) holds 0 is marked "~" (not told apart from zero by these
-seeds; a paired bootstrap over test cases is issue 17's).
+seeds). This predates `task.seeds`: `task=compare task.seeds=[0,1,2]` (or `task.runs=[cmp_s0,cmp_s1,cmp_s2]`, whose
+runs differ by seed) now gives the same means with a paired bootstrap interval over test cases and seeds.
 """
 
 from __future__ import annotations
