@@ -45,8 +45,9 @@ from itertools import combinations
 import numpy as np
 
 from lanevil_train.illusions.context import context_for_frame, context_from_scene
+from lanevil_train.illusions.footprint import (  # noqa: F401  (changed_road_points, lane_of: part of this API)
+    STANDING, Footprint, changed_road_points, footprint, lane_of)
 from lanevil_train.illusions.registry import check_seed, get_illusion
-from lanevil_train.illusions.visibility import changed_pixels
 from lanevil_train.perturbations import (
     Combined,
     check_kind,
@@ -67,11 +68,8 @@ TRUTH_SEVERITY = 1
 BEFORE_GAP_M = 10.0
 OBSTACLE_GAPS_M = {"before": 25.0, "over": 8.0, "alongside": 0.5}  # last frame this far short of traffic
 BLOCKED_GAP_M = 4.0  # ... or this far when it stands in the ego lane
-STANDING = frozenset(("pedestrian", "vehicle", "bicycle", "guard_rail"))  # footprint: lowest pixel per column
 OBSTACLES = frozenset(("pedestrian", "vehicle", "bicycle"))  # the car passes them, never drives over them
-MAX_EXTENT_M = 60.0  # the illusion's far end is taken at most this far beyond its near end
 DEFAULT_SIZE = (360, 640)
-FOOTPRINT_THRESHOLD = 24  # RGB-sum change that counts for the footprint: cuts the faint tails of soft edges
 
 
 @dataclass(frozen=True)
@@ -92,16 +90,6 @@ class ClipCase:
             if ILLUSION_CATEGORY[self.second] == ILLUSION_CATEGORY[self.illusion]:
                 raise ValueError(f"second: expected an illusion of another category than {self.illusion!r} "
                                  f"({ILLUSION_CATEGORY[self.illusion]}), got {self.second!r}")
-
-
-@dataclass(frozen=True)
-class Footprint:
-    """Where the illusion lies on the road of the reference view (arc lengths from its camera)."""
-
-    near_m: float
-    far_m: float
-    lane: str
-    found: bool  # False: no changed pixel on the road (fallback values)
 
 
 def clip_cases(num_cases: int, first_seed: int, illusions: Sequence[str]) -> list[ClipCase]:
@@ -186,49 +174,6 @@ def _reference(seed: int, illusion: str, size: tuple[int, int]) -> tuple[np.ndar
     clean = shade_scene(scene)
     perturbed = get_illusion(illusion)(clean, context_from_scene(scene), TRUTH_SEVERITY, seed)
     return clean, footprint(scene, clean, perturbed, standing=illusion in STANDING)
-
-
-def footprint(scene: Scene, clean: np.ndarray, perturbed: np.ndarray, standing: bool = False) -> Footprint:
-    """Near/far end and lane of what changed between two renders of `scene`, inverse-projected onto
-    its road (standing objects: the lowest changed pixel of each column)."""
-    s, d = changed_road_points(scene, clean, perturbed, standing)
-    if len(s) == 0:
-        return Footprint(near_m=10.0, far_m=20.0, lane="ego", found=False)
-    # one vote per 0.5 m x 0.25 m road cell, so near pixels (many per square metre) do not dominate
-    cells = np.unique(np.stack([np.round(s * 2.0), np.round(d * 4.0)], 1), axis=0)
-    cs, cd = cells[:, 0] / 2.0, cells[:, 1] / 4.0
-    near = float(np.percentile(cs, 1))
-    far = float(min(np.percentile(cs, 98), near + MAX_EXTENT_M))
-    return Footprint(near_m=near, far_m=max(far, near), lane=lane_of(scene, cd), found=True)
-
-
-def changed_road_points(scene: Scene, clean: np.ndarray, perturbed: np.ndarray, standing: bool = False,
-                        threshold: int = FOOTPRINT_THRESHOLD) -> tuple[np.ndarray, np.ndarray]:
-    """Road coordinates (s, d) of the changed pixels of a render of `scene` that hit its road."""
-    mask = changed_pixels(clean, perturbed, threshold)
-    if standing:
-        cols = np.flatnonzero(mask.any(axis=0))
-        rows = mask.shape[0] - 1 - np.argmax(mask[::-1, cols], axis=0)
-        v, u = rows, cols
-    else:
-        v, u = np.nonzero(mask)
-    pts = scene.ground_hit(u.astype(np.float64), v.astype(np.float64))
-    ok = np.all(np.isfinite(pts), axis=1)
-    s, d = scene.road_coords(pts[ok, 0], pts[ok, 2])
-    return np.asarray(s, np.float64), np.asarray(d, np.float64)
-
-
-def lane_of(scene: Scene, d: np.ndarray) -> str:
-    """Where lateral offsets d lie: 'ego' | 'left' | 'right' | 'left_shoulder' | 'right_shoulder',
-    or 'across' when no one place holds 60 % of them."""
-    bounds = np.array([b.d for b in scene.road.boundaries])
-    ego = scene.params.resolved_ego_lane
-    idx = np.searchsorted(bounds, d) - 1  # lane index; -1 left of the road, len(bounds) - 1 right of it
-    names = np.where(idx < 0, "left_shoulder", np.where(idx >= len(bounds) - 1, "right_shoulder", np.where(
-        idx < ego, "left", np.where(idx > ego, "right", "ego"))))
-    labels, counts = np.unique(names, return_counts=True)
-    top = int(np.argmax(counts))
-    return str(labels[top]) if counts[top] >= 0.6 * counts.sum() else "across"
 
 
 def frame_step_m(scene: Scene) -> float:
