@@ -72,9 +72,11 @@ def context_from_scene(scene: Scene) -> IllusionContext:
                            wet=float(weather["wet"]))
 
 
-def context_for_frame(reference: Scene, s0: float, reference_image: np.ndarray | None = None) -> IllusionContext:
-    """The context of the frame s0 metres along the road from `reference`: illusions are placed as in
-    the reference view (whose clean image `reference_image` placement may read) and drawn from the pose."""
-    view = FrameView.at(reference, s0)
+def context_for_frame(reference: Scene, s0: float, reference_image: np.ndarray | None = None,
+                      lateral: float | None = None, heading: float = 0.0) -> IllusionContext:
+    """The context of the frame s0 metres along the road from `reference` (a car's pose: also its `lateral` offset
+    and `heading`, as sim.scene_at): illusions are placed as in the reference view (whose clean image
+    `reference_image` placement may read) and drawn from the pose."""
+    view = FrameView.at(reference, s0, lateral, heading)
     return replace(context_from_scene(reference), camera=PoseCamera.of(view), view=view,
                    placement_image=reference_image)

@@ -48,11 +48,26 @@ def road_at(road: RoadGeometry, s0: float) -> RoadGeometry:
     return replace(road, k=k, grade=0.0)
 
 
-def scene_at(scene: Scene, s0: float) -> Scene:
-    """The Scene rendered from s0 metres further along the road (negative: behind the reference)."""
+def scene_at(scene: Scene, s0: float, lateral: float | None = None, heading: float = 0.0) -> Scene:
+    """The Scene rendered from s0 metres further along the road (negative: behind the reference).
+
+    By default the camera keeps its lateral offset and looks along the road; a car's pose moves it to `lateral`
+    (its offset d from the centre line, m, + right) and turns it by `heading` (rad, + right, from the road's
+    tangent), a yaw added to the camera's mounting yaw.
+    """
     s0 = float(s0)
     params = scene.params.replace(travel=scene.params.travel + s0)
-    return replace(scene, params=params, road=road_at(scene.road, s0))
+    road = road_at(scene.road, s0)
+    camera = scene.camera
+    if lateral is not None:
+        if not math.isfinite(lateral):
+            raise ValueError(f"lateral: expected a finite offset from the centre line in metres, got {lateral!r}")
+        road = replace(road, x0=-float(lateral))
+    if heading:
+        if not math.isfinite(heading) or abs(heading) >= math.radians(40.0):
+            raise ValueError(f"heading: expected an angle to the road under 40 degrees (in radians), got {heading!r}")
+        camera = replace(camera, yaw_deg=camera.yaw_deg + math.degrees(heading))
+    return replace(scene, params=params, road=road, camera=camera)
 
 
 def z_at_arc_length(road: RoadGeometry, s) -> np.ndarray:
@@ -88,9 +103,9 @@ class FrameView:
     s0: float
 
     @classmethod
-    def at(cls, reference: Scene, s0: float) -> "FrameView":
-        """The view from s0 metres along the road of `reference`."""
-        return cls(reference=reference, current=scene_at(reference, s0), s0=float(s0))
+    def at(cls, reference: Scene, s0: float, lateral: float | None = None, heading: float = 0.0) -> "FrameView":
+        """The view from s0 metres along the road of `reference` (from a car's pose: `scene_at`)."""
+        return cls(reference=reference, current=scene_at(reference, s0, lateral, heading), s0=float(s0))
 
     @property
     def camera(self) -> Camera:

@@ -135,3 +135,38 @@ def test_moved_frame_renders_deterministically_and_differs_from_the_reference():
 def test_bad_pose_is_refused():
     with pytest.raises(ValueError, match="s0"):
         road_at(_scene().road, float("nan"))
+
+
+def _paint_column(image, row, near_x, half_window=25):
+    """Centre (px) of the brightest run of pixels of `row` within half_window px of near_x: the paint there."""
+    lo = max(0, int(near_x) - half_window)
+    values = image[row, lo:int(near_x) + half_window].astype(np.float64).sum(axis=1)
+    bright = np.flatnonzero(values > values.max() - 60)
+    return lo + float(bright.mean())
+
+
+def test_a_cars_lateral_offset_and_heading_move_the_lanes_as_the_camera_model_predicts():
+    scene = build_scene(7, SceneParams(road="straight", markings=("white_solid",) * 4, paint_wear=0.0,
+                                       weather="clear_noon", pitch_deg=2.0, yaw_deg=0.0), 640, 360)
+    centre = -scene.road.x0
+    right = scene.road.boundaries[2].d  # the ego lane's right line
+    row = 300
+    z = float(scene.camera.ground_intersect(np.array([320.0]), np.array([float(row)]))[0, 2])
+    base = scene_at(scene, 0.0, centre, 0.0)
+    moved = scene_at(scene, 0.0, centre + 0.5, 0.0)  # the car 0.5 m further right: the line 0.5 m nearer
+    x_base, x_moved = _x_at_row(base, right, row), _x_at_row(moved, right, row)
+    fx = scene.camera.fx
+    # the line's image x at depth z is cx + fx * (lateral distance to it) / (depth along the optical axis)
+    depth = float(base.camera.to_camera(np.array([[right - centre, 0.0, z]]))[0, 2])
+    assert x_base - x_moved == pytest.approx(fx * 0.5 / depth, rel=0.02)
+    # the image itself: the painted line is where the ground truth says, in both views
+    for view, x in ((base, x_base), (moved, x_moved)):
+        assert _paint_column(shade_scene(view), row, x) == pytest.approx(x, abs=1.5)
+    # a heading of +2 degrees (turned right) moves the far road left by fx * tan(2 deg)
+    turned = scene_at(scene, 0.0, centre, np.radians(2.0))
+    far = 1000.0
+    shift = (scene.camera.project(base.road.world_point(centre, far))[0]
+             - turned.camera.project(turned.road.world_point(centre, far))[0])
+    assert shift == pytest.approx(fx * np.tan(np.radians(2.0)), rel=0.01)
+    with pytest.raises(ValueError, match="heading"):
+        scene_at(scene, 0.0, centre, np.radians(45.0))
