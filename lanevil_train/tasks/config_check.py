@@ -283,6 +283,24 @@ def defense_names() -> Rule:
     return Rule("a list of defense config names, each once, with none and at least one other", test)
 
 
+def checkpoint_mapping() -> Rule:
+    """task.models of task=closed_loop: {label: path of an existing checkpoint file}, possibly empty."""
+    def test(v):
+        if not isinstance(v, dict):
+            return ""
+        missing = [f"{label}: {path!r}" for label, path in v.items()
+                   if not isinstance(path, str) or not Path(path).is_file()]
+        return f"no such checkpoint file for {', '.join(missing)}" if missing else None
+    return Rule("a mapping {label: checkpoint file}", test)
+
+
+def number_range(low: float) -> Rule:
+    """[a, b] with low <= a <= b (a range of numbers)."""
+    return Rule(f"[low, high], two numbers with {low} <= low <= high",
+                lambda v: _ok(isinstance(v, list) and len(v) == 2 and all(_is_number(x) for x in v)
+                              and low <= v[0] <= v[1]))
+
+
 def http_url() -> Rule:
     return Rule("an http(s) URL, e.g. http://127.0.0.1:8000/v1",
                 lambda v: _ok(isinstance(v, str) and re.match(r"^https?://[^\s/]+", v) is not None))
@@ -578,6 +596,28 @@ RULES: dict[str, Rule] = {
     "task.decode.conf_threshold": null_or(number(0, 1)),
     "task.decode.nms_threshold": null_or(number(0)),
     "task.decode.nms_topk": null_or(integer(1)),
+    # task=closed_loop
+    "task.policy": null_or(one_of("detector", "truth", "vlm")),
+    "task.models": null_or(checkpoint_mapping()),
+    "task.first_seed": integer(0),
+    "task.start_before_m": number_range(0.0),
+    "task.size": int_pair(32),
+    "task.control_hz": number(0, 100, low_open=True),
+    "task.window_s": number(0, low_open=True),
+    "task.after_s": number(0),
+    "task.threshold_m": number(0, low_open=True),
+    "task.animate": boolean(),
+    "task.vehicle.wheelbase_m": number(0.5, 10),
+    "task.vehicle.speed_mph": number(0, 100, low_open=True),
+    "task.vehicle.max_steer_deg": number(0, 80, low_open=True, high_open=True),
+    "task.vehicle.max_steer_rate_dps": number(0, low_open=True),
+    "task.controller.lookahead_s": number(0, low_open=True),
+    "task.controller.min_lookahead_m": number(0, low_open=True),
+    "task.controller.max_range_m": number(1),
+    "task.controller.lane_width_m": number(2.0, 5.0),
+    "task.vlm.question": text(),
+    "task.vlm.steer_deg": number(0, 30, low_open=True, high_open=True),
+    "task.vlm.frames": integer(1),
     # trainer (Lightning's Trainer arguments)
     "trainer.max_steps": any_of(exactly(-1), integer(1)),
     "trainer.max_epochs": null_or(any_of(exactly(-1), integer(1))),
@@ -709,6 +749,8 @@ def suite_kind(cfg: DictConfig) -> str | None:
     if _get(cfg, "task.name") == "build":
         kind = _get(cfg, "task.kind")
         return "illusions" if kind is _ABSENT else kind
+    if _get(cfg, "task.name") == "closed_loop":
+        return "illusions"
     suite = _get(cfg, "task.suite")
     return {"synthetic": "illusions", "corruptions": "corruptions", "combined": "combined"}.get(suite) \
         if isinstance(suite, str) else None
@@ -743,10 +785,10 @@ def check_vlm_task(cfg: DictConfig) -> list[str]:
                              "that is a VLM clip suite: evaluate it with model=vlm/<backend>")]
         return []
     task = _get(cfg, "task.name")
-    if task not in ("train", "evaluate", "report", "compare"):
+    if task not in ("train", "evaluate", "report", "compare", "closed_loop"):
         return [f"task: task={task} with a VLM (model={_get(cfg, 'model._target_')}) is not available; VLMs are "
-                f"trained with task=train, evaluated with task=evaluate, compared with task=compare and reported "
-                f"with task=report"]
+                f"trained with task=train, evaluated with task=evaluate, compared with task=compare, reported "
+                f"with task=report and driven with task=closed_loop"]
     if task in ("train", "compare") and _get(cfg, "model.base_url") is not _ABSENT:
         return [f"task: task=train with model={_get(cfg, 'model._target_')}: a model behind a server cannot be "
                 f"trained here; fine-tune a local one (model=vlm/hf model.path=DIR, or model=vlm/embedded)"]
@@ -793,6 +835,13 @@ def check_checkpoint_given(cfg: DictConfig) -> list[str]:
             and _get(cfg, "task.onnx") in (None, _ABSENT):
         return [f"ckpt_path: task={task} scores a checkpoint; expected the path of a Lightning checkpoint file "
                 f"(or task.onnx=model.onnx), got null"]
+    if task == "closed_loop":
+        policy = _get(cfg, "task.policy")
+        if policy == "vlm":
+            return ["task.policy: vlm needs a VLM: model=vlm/<backend> (e.g. model=vlm/embedded ckpt_path=...)"]
+        if policy in (None, "detector") and _get(cfg, "ckpt_path") is None and not _get(cfg, "task.models"):
+            return ["ckpt_path: task=closed_loop drives a trained detector; expected ckpt_path=<checkpoint>, "
+                    "task.models={label: checkpoint, ...}, or task.policy=truth (the simulator's own lanes)"]
     return []
 
 

@@ -1,0 +1,91 @@
+"""Scores of closed-loop runs: the paper's attack success rule, deviations, lane departures, and ASR intervals.
+
+A trace is a list of steps {t (s), s (m along the road), deviation (m from the ego lane's centre, + right), ...}.
+Attack success (the paper, after Sato et al. 2021 and AASHTO's lane-keeping margin): the car deviates laterally
+by more than `threshold_m` (0.285 m) within `window_s` (2.5 s) of entering the illusion region, i.e. at some step
+with entry <= t <= entry + window. The same rule scores a clean twin (same start, no illusion): its successes
+are the policy's own failures, the floor the illusion's ASR is read against.
+
+A lane departure is a wheel on a lane line: |deviation| > lane_width / 2 - half_width_m (a car 1.8 m wide);
+departures count the steps where the car goes from inside to departed.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+ASR_THRESHOLD_M = 0.285
+ASR_WINDOW_S = 2.5
+HALF_CAR_WIDTH_M = 0.9
+Z95 = 1.959963984540054
+
+
+def entry_time(trace: Sequence[dict], region_start_m: float) -> float | None:
+    """When the car first reaches the illusion region (linear between steps), None if it never does."""
+    for before, after in zip(trace, trace[1:]):
+        if before["s"] >= region_start_m:
+            return float(before["t"])
+        if after["s"] >= region_start_m:
+            part = (region_start_m - before["s"]) / (after["s"] - before["s"])
+            return float(before["t"] + part * (after["t"] - before["t"]))
+    if trace and trace[-1]["s"] >= region_start_m:
+        return float(trace[-1]["t"])
+    return None
+
+
+def attack_fired_at(trace: Sequence[dict], entry_s: float | None, threshold_m: float = ASR_THRESHOLD_M,
+                    window_s: float = ASR_WINDOW_S) -> float | None:
+    """The first time within [entry, entry + window] that |deviation| exceeds threshold_m, else None."""
+    if entry_s is None:
+        return None
+    for step in trace:
+        if entry_s - 1e-9 <= step["t"] <= entry_s + window_s + 1e-9 and abs(step["deviation"]) > threshold_m:
+            return float(step["t"])
+    return None
+
+
+def departures(trace: Sequence[dict], lane_width_m: float, half_width_m: float = HALF_CAR_WIDTH_M) -> list[float]:
+    """The times the car goes from inside its lane to a wheel on a lane line."""
+    limit = lane_width_m / 2.0 - half_width_m
+    out, inside = [], True
+    for step in trace:
+        departed = abs(step["deviation"]) > limit
+        if departed and inside:
+            out.append(float(step["t"]))
+        inside = not departed
+    return out
+
+
+def run_scores(trace: Sequence[dict], region_start_m: float, lane_width_m: float,
+               threshold_m: float = ASR_THRESHOLD_M, window_s: float = ASR_WINDOW_S) -> dict:
+    """One run's scores: success (the ASR rule), when it fired (s after entry), the largest |deviation| (m),
+    the first lane departure (s after entry; None if none), departures and departures per km driven."""
+    if not trace:
+        raise ValueError("run_scores: an empty trace")
+    entry = entry_time(trace, region_start_m)
+    fired = attack_fired_at(trace, entry, threshold_m, window_s)
+    times = departures(trace, lane_width_m)
+    distance_km = max(trace[-1]["s"] - trace[0]["s"], 1e-9) / 1000.0
+    after_entry = [t - entry for t in times if entry is not None and t >= entry - 1e-9]
+    return {
+        "entered": entry is not None,
+        "entry_s": None if entry is None else round(entry, 4),
+        "success": fired is not None,
+        "fired_after_s": None if fired is None else round(fired - entry, 4),
+        "max_deviation_m": round(max(abs(step["deviation"]) for step in trace), 4),
+        "first_departure_s": round(after_entry[0], 4) if after_entry else None,
+        "departures": len(times),
+        "departures_per_km": round(len(times) / distance_km, 3),
+        "distance_m": round(distance_km * 1000.0, 3),
+    }
+
+
+def wilson_interval(successes: int, runs: int, z: float = Z95) -> tuple[float, float]:
+    """Wilson score interval of a success proportion (in [0, 1]); (0, 1) for no runs."""
+    if runs <= 0:
+        return 0.0, 1.0
+    p = successes / runs
+    centre = (p + z * z / (2 * runs)) / (1 + z * z / runs)
+    half = z * math.sqrt(p * (1 - p) / runs + z * z / (4 * runs * runs)) / (1 + z * z / runs)
+    return max(0.0, centre - half), min(1.0, centre + half)

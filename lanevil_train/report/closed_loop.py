@@ -1,0 +1,184 @@
+"""Closed-loop tables and plots from run records (one dict per run, closed_loop/ and tasks/closed_loop.py).
+
+A run record holds: model, key, case_id, illusion, category, severity (0: the clean twin), perturbed, repeat,
+and the scores of closed_loop.scoring.run_scores (success, max_deviation_m, first_departure_s,
+departures_per_km...). Every table compares each group's perturbed runs with their clean twins (the same cases,
+illusions and starts driven without the illusion); ASR intervals are Wilson 95 % intervals over the runs (cases
+x repeats). Plots: ASR per category (clean vs perturbed, whiskers: the intervals) and the lateral deviation over
+time of each category's worst run beside its clean twin, the attack window shaded.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from lanevil_train.closed_loop.scoring import ASR_THRESHOLD_M, ASR_WINDOW_S, wilson_interval  # noqa: E402
+from lanevil_train.data.formats.atomic import atomic_write_text  # noqa: E402
+from lanevil_train.report.plots import save_figure  # noqa: E402
+from lanevil_train.report.records import ordered  # noqa: E402
+from lanevil_train.report.tables import markdown_table, write_table  # noqa: E402
+from lanevil_train.taxonomy import CATEGORIES, ILLUSION_NAMES  # noqa: E402
+
+ALL = "all"
+
+
+def _asr(records: Sequence[dict]) -> tuple[float, float, float]:
+    """ASR (%) and its Wilson 95 % interval (%)."""
+    wins = sum(bool(r["success"]) for r in records)
+    low, high = wilson_interval(wins, len(records))
+    return (100.0 * wins / len(records) if records else float("nan")), 100.0 * low, 100.0 * high
+
+
+def _mean(values) -> float:
+    values = [v for v in values if v is not None]
+    return float(np.mean(values)) if values else float("nan")
+
+
+def _group_row(model: str, column: str, value, perturbed: list[dict], clean: list[dict]) -> dict:
+    asr, low, high = _asr(perturbed)
+    asr0, low0, high0 = _asr(clean)
+    departed = [r["first_departure_s"] for r in perturbed if r.get("first_departure_s") is not None]
+    return {
+        "model": model, column: value, "runs": len(perturbed),
+        "clean ASR (%)": asr0, "clean 95% CI": f"[{low0:.1f}, {high0:.1f}]",
+        "ASR (%)": asr, "95% CI": f"[{low:.1f}, {high:.1f}]",
+        "clean max dev (m)": _mean(r["max_deviation_m"] for r in clean),
+        "max dev (m)": _mean(r["max_deviation_m"] for r in perturbed),
+        "departed (%)": 100.0 * len(departed) / len(perturbed) if perturbed else float("nan"),
+        "time to departure (s)": float(np.median(departed)) if departed else float("nan"),
+        "departures/km": _mean(r["departures_per_km"] for r in perturbed),
+    }
+
+
+def asr_rows(records: Sequence[dict], by: str) -> list[dict]:
+    """One row per model and value of `by` (category | illusion | severity), then the model's `all` row: its
+    perturbed runs' scores beside their clean twins' (for severity: every clean twin of the model)."""
+    order = {"category": tuple(CATEGORIES), "illusion": ILLUSION_NAMES}.get(by, ())
+    rows = []
+    for model in ordered(dict.fromkeys(r["model"] for r in records)):
+        mine = [r for r in records if r["model"] == model]
+        clean_all = [r for r in mine if not r["perturbed"]]
+        values = ordered({r[by] for r in mine if r["perturbed"]}, order)
+        for value in values:
+            perturbed = [r for r in mine if r["perturbed"] and r[by] == value]
+            clean = clean_all if by == "severity" else [r for r in clean_all if r[by] == value]
+            rows.append(_group_row(model, by, value, perturbed, clean))
+        rows.append(_group_row(model, by, ALL, [r for r in mine if r["perturbed"]], clean_all))
+    return rows
+
+
+def compare_rows(records: Sequence[dict]) -> list[dict]:
+    """Category x model: perturbed ASR (%) with its interval, and the clean ASR, one column pair per model."""
+    rows = []
+    by_category = asr_rows(records, "category")
+    for category in dict.fromkeys(row["category"] for row in by_category):
+        row = {"category": category}
+        for item in (r for r in by_category if r["category"] == category):
+            row[f"{item['model']} ASR (%)"] = f"{item['ASR (%)']:.1f} {item['95% CI']}"
+            row[f"{item['model']} clean (%)"] = f"{item['clean ASR (%)']:.1f}"
+        rows.append(row)
+    return rows
+
+
+def asr_plot(records: Sequence[dict], path: str | Path) -> Path:
+    """Bars of ASR per category (and all) for each model, clean (hatched) beside perturbed, Wilson whiskers."""
+    rows = asr_rows(records, "category")
+    models = list(dict.fromkeys(r["model"] for r in rows))
+    groups = list(dict.fromkeys(r["category"] for r in rows))
+    width = 0.8 / (2 * len(models))
+    fig, ax = plt.subplots(figsize=(1.6 + 1.4 * len(groups) * max(1, len(models) / 2), 3.6))
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for m, model in enumerate(models):
+        for k, (key, low_key, hatch) in enumerate((("clean ASR (%)", "clean 95% CI", "//"), ("ASR (%)", "95% CI", ""))):
+            xs, heights, errs = [], [], [[], []]
+            for g, group in enumerate(groups):
+                row = next((r for r in rows if r["model"] == model and r["category"] == group), None)
+                if row is None:
+                    continue
+                low, high = (float(v) for v in row[low_key].strip("[]").split(","))
+                xs.append(g - 0.4 + width * (2 * m + k + 0.5))
+                heights.append(row[key])
+                errs[0].append(max(row[key] - low, 0.0))
+                errs[1].append(max(high - row[key], 0.0))
+            label = f"{model} {'clean' if k == 0 else 'illusion'}"
+            ax.bar(xs, heights, width, yerr=errs, capsize=2, color=colors[m % len(colors)],
+                   alpha=0.45 if k == 0 else 0.9, hatch=hatch, label=label, edgecolor="black", linewidth=0.4)
+    ax.set_xticks(range(len(groups)), [g.replace("_", " ") for g in groups], fontsize=8)
+    ax.set_ylabel("ASR (%)")
+    ax.set_ylim(0, 105)
+    ax.set_title(f"Attack success: > {ASR_THRESHOLD_M} m within {ASR_WINDOW_S} s of the illusion (95 % CI)", fontsize=9)
+    ax.legend(fontsize=7, ncol=max(1, len(models)))
+    return save_figure(fig, path)
+
+
+def worst_pairs(records: Sequence[dict]) -> list[tuple[dict, dict]]:
+    """Per category, the first model's perturbed run with the largest max deviation and its clean twin."""
+    if not records:
+        return []
+    model = records[0]["model"]
+    mine = [r for r in records if r["model"] == model]
+    clean = {(r["case_id"], r["illusion"], r["repeat"]): r for r in mine if not r["perturbed"]}
+    pairs = []
+    for category in ordered({r["category"] for r in mine}, tuple(CATEGORIES)):
+        runs = [r for r in mine if r["perturbed"] and r["category"] == category]
+        runs = [r for r in runs if (r["case_id"], r["illusion"], r["repeat"]) in clean]
+        if runs:
+            worst = max(runs, key=lambda r: r["max_deviation_m"])
+            pairs.append((worst, clean[(worst["case_id"], worst["illusion"], worst["repeat"])]))
+    return pairs
+
+
+def deviation_plot(pairs: Sequence[tuple[dict, dict]], trace_of: Callable[[dict], list[dict]],
+                   path: str | Path) -> Path | None:
+    """Lateral deviation over time (0 = entering the illusion region) of each pair (worst run, clean twin), a panel
+    each; the attack window shaded, the ASR threshold dashed."""
+    if not pairs:
+        return None
+    fig, axes = plt.subplots(1, len(pairs), figsize=(3.4 * len(pairs), 3.0), squeeze=False, sharey=True)
+    for ax, (run, twin) in zip(axes[0], pairs):
+        for record, style, label in ((twin, "--", "clean"), (run, "-", f"{run['illusion']} s{run['severity']}")):
+            trace = trace_of(record)
+            entry = record.get("entry_s") or 0.0
+            ax.plot([s["t"] - entry for s in trace], [s["deviation"] for s in trace], style, label=label)
+        ax.axvspan(0.0, ASR_WINDOW_S, color="orange", alpha=0.15, label="attack window")
+        for sign in (-1, 1):
+            ax.axhline(sign * ASR_THRESHOLD_M, color="red", linestyle=":", linewidth=0.8)
+        ax.set_title(f"{run['category'].replace('_', ' ')} ({run['case_id']})", fontsize=8)
+        ax.set_xlabel("time since entering the illusion (s)", fontsize=8)
+        ax.legend(fontsize=6)
+    axes[0][0].set_ylabel("lateral deviation (m, + right)")
+    return save_figure(fig, path)
+
+
+def write_closed_loop_report(records: Sequence[dict], trace_of: Callable[[dict], list[dict]], out: str | Path,
+                             settings: dict) -> Path:
+    """Tables (asr_by_category/illusion/severity, asr_compare with several models), plots and closed_loop.md."""
+    out = Path(out)
+    if not records:
+        raise ValueError(f"{out}: no finished closed-loop runs to report")
+    sections = [f"# Closed loop\n\nSettings: {', '.join(f'{k}={v}' for k, v in settings.items())}.\n",
+                f"A run is an attack success when the car deviates more than {ASR_THRESHOLD_M} m from its lane's "
+                f"centre within {ASR_WINDOW_S} s of entering the illusion region (the paper, after Sato et al. "
+                f"2021). Clean: the same starts without the illusion. CI: Wilson 95 % over the runs.\n"]
+    for by in ("category", "illusion", "severity"):
+        rows = asr_rows(records, by)
+        write_table(rows, out, f"asr_by_{by}")
+        sections.append(f"## By {by}\n\n{markdown_table(rows)}\n")
+    if len({r["model"] for r in records}) > 1:
+        rows = compare_rows(records)
+        write_table(rows, out, "asr_compare")
+        sections.append(f"## Models compared\n\n{markdown_table(rows)}\n")
+    asr_plot(records, out / "asr.png")
+    sections.append("![ASR per category](asr.png)\n")
+    if deviation_plot(worst_pairs(records), trace_of, out / "deviation.png"):
+        sections.append("![Worst run per category beside its clean twin](deviation.png)\n")
+    path = out / "closed_loop.md"
+    atomic_write_text(path, "\n".join(sections))
+    return path

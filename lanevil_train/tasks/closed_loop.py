@@ -1,0 +1,176 @@
+"""task=closed_loop: drive the simulated car through illusions with a trained model steering it; the paper's ASR.
+
+For every case (a scene seed), every illusion of task.illusions and every repeat, the car starts 5-10 m
+(task.start_before_m, random per repeat and seed) before the illusion region and drives once with the illusion at
+each severity and once clean (the twin): closed_loop/episode.py. Each model (ckpt_path, or several in task.models,
+label: checkpoint) drives every run. Finished runs are appended to <out>/runs.jsonl with their scores, after their
+traces (one JSON line per control step) were written whole to <out>/traces/<model>/; a rerun with the same out_dir
+skips them. The report (closed_loop.md, asr_by_*.{md,csv,json}, asr.png, deviation.png, worst_run.gif) is built
+from runs.jsonl and the traces alone.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+from omegaconf import DictConfig, OmegaConf
+
+from lanevil_train.closed_loop.controller import PurePursuit
+from lanevil_train.closed_loop.episode import LoopSettings, Run, case_scene, drive, ego_lane, illusion_region
+from lanevil_train.closed_loop.policies import DetectorPolicy, TruthPolicy, VLMPolicy
+from lanevil_train.closed_loop.scoring import run_scores
+from lanevil_train.data.formats.atomic import atomic_write_text
+from lanevil_train.progress import progress_counter
+from lanevil_train.results_log import ResultsLog
+from lanevil_train.sim.vehicle import MPH, VehicleParams
+from lanevil_train.tasks.builders import is_vlm, output_dir
+from lanevil_train.tasks.streaming import claim_results
+from lanevil_train.taxonomy import ILLUSION_NAMES
+
+RUNS = "runs.jsonl"
+
+
+def loop_settings(task: DictConfig) -> LoopSettings:
+    """The loop's settings from task.* (size, control_hz, window_s, after_s, vehicle.*)."""
+    vehicle = task.vehicle
+    params = VehicleParams(wheelbase_m=vehicle.wheelbase_m, speed_mps=vehicle.speed_mph * MPH,
+                           max_steer_deg=vehicle.max_steer_deg, max_steer_rate_dps=vehicle.max_steer_rate_dps)
+    return LoopSettings(size=tuple(task.size), control_hz=task.control_hz, window_s=task.window_s,
+                        after_s=task.after_s, vehicle=params)
+
+
+def controller(task: DictConfig) -> PurePursuit:
+    return PurePursuit(wheelbase_m=task.vehicle.wheelbase_m, **OmegaConf.to_container(task.controller, resolve=True))
+
+
+def policy_kind(cfg: DictConfig) -> str:
+    """task.policy, or by default: vlm for model=vlm/<backend>, else detector."""
+    return cfg.task.policy or ("vlm" if is_vlm(cfg) else "detector")
+
+
+def build_policies(cfg: DictConfig) -> list[tuple[object, dict]]:
+    """[(policy, identity), ...]: one per model of task.models (label: checkpoint), or the one of ckpt_path, the
+    ground truth (task.policy=truth) or the VLM model=vlm/<backend> configures."""
+    kind = policy_kind(cfg)
+    if kind == "truth":
+        return [(TruthPolicy(controller(cfg.task), name=cfg.task.label or "ground-truth"), {"policy": "truth"})]
+    if kind == "vlm":
+        from lanevil_train.tasks.vlm_evaluate import build_vlm
+
+        vlm = build_vlm(cfg)
+        policy = VLMPolicy(vlm, cfg.task.vlm.question, cfg.task.vlm.steer_deg, cfg.task.vlm.frames,
+                           name=cfg.task.label or vlm.name)
+        return [(policy, {"policy": "vlm", **vlm.identity(), **OmegaConf.to_container(cfg.task.vlm)})]
+    from lanevil_train.tasks.evaluate import checkpoint_model
+    from lanevil_train.tasks.streaming import run_identity
+
+    models = dict(cfg.task.models or {})
+    if not models:
+        if cfg.ckpt_path is None:
+            raise ValueError("task=closed_loop needs ckpt_path=/path/to/checkpoint.ckpt, task.models={label: ckpt, "
+                             "...}, task.policy=truth (the simulator's own lanes) or model=vlm/<backend>")
+        models = {cfg.task.label or "": cfg.ckpt_path}
+    out = []
+    for label, path in models.items():
+        model = checkpoint_model(OmegaConf.merge(cfg, {"ckpt_path": path}))
+        spec = model.build_config or {}
+        label = label or f"{spec['model']['name']}-{spec['backbone']['name']}"
+        policy = DetectorPolicy(model, controller(cfg.task), name=label)
+        out.append((policy, {"policy": "detector", **run_identity(model, {"model": label})}))
+    return out
+
+
+def plan_runs(cfg: DictConfig, settings: LoopSettings) -> list[Run]:
+    """Every run: case x illusion x repeat, the clean twin (severity 0) and each severity, with its start."""
+    task = cfg.task
+    names = list(ILLUSION_NAMES) if task.illusions == "all" else list(task.illusions)
+    low, high = task.start_before_m
+    runs = []
+    for i in range(task.cases):
+        seed = task.first_seed + i
+        for j, name in enumerate(names):
+            region = illusion_region(seed, name, settings.size)
+            for repeat in range(task.repeats):
+                rng = np.random.default_rng([cfg.seed, seed, j, repeat])
+                start = round(region[0] - float(rng.uniform(low, high)), 4)  # as recorded
+                for severity in [0, *task.severities]:
+                    runs.append(Run(f"case{i:03d}", seed, name, int(severity), repeat, start, region))
+    return runs
+
+
+def trace_path(out: Path, model: str, run_key: str) -> Path:
+    """Where a run's trace lives: <out>/traces/<model>/<case>_<illusion>_<severity>_<repeat>.jsonl."""
+    return out / "traces" / model / (run_key.replace("/", "_") + ".jsonl")
+
+
+def read_trace(out: Path, record: dict) -> list[dict]:
+    path = out / record["trace"]
+    with open(path, encoding="utf-8") as handle:
+        return [json.loads(line) for line in handle]
+
+
+def write_trace(path: Path, trace: list[dict]) -> None:
+    """The whole trace or nothing (a kill mid-write leaves no torn trace to be taken as finished)."""
+    atomic_write_text(path, "".join(json.dumps(step) + "\n" for step in trace))
+
+
+def closed_loop(cfg: DictConfig) -> float:
+    """Drive every run with every model, resumably; write the report; return the first model's ASR (%) under
+    illusions."""
+    settings = loop_settings(cfg.task)
+    policies = build_policies(cfg)
+    out = Path(cfg.task.out_dir) if cfg.task.out_dir else output_dir(cfg)
+    runs = plan_runs(cfg, settings)
+    log = ResultsLog(out / RUNS)
+    done = log.resume()
+    identity = {"settings": OmegaConf.to_container(cfg.task, resolve=True), "seed": cfg.seed,
+                "models": [ident for _, ident in policies]}
+    identity["settings"].pop("out_dir", None)
+    claim_results(log.path, {k: json.dumps(v, sort_keys=True, default=str) for k, v in identity.items()}, bool(done))
+    total = len(runs) * len(policies)
+    bar = progress_counter(total, len(done), "closed loop", "run", cfg.get("progress", "auto"))
+    for policy, _ in policies:
+        for run in runs:
+            key = f"{policy.name}|{run.key}"
+            if key in done:
+                continue
+            trace = drive(run, policy, settings)
+            path = trace_path(out, policy.name, run.key)
+            write_trace(path, trace)
+            _, lane_width = ego_lane(case_scene(run.seed, settings.size)[0])
+            scores = run_scores(trace, run.region[0], lane_width, cfg.task.threshold_m, cfg.task.window_s)
+            log.append([{"key": key, "model": policy.name, **run.as_dict(), **scores, "lane_width_m": lane_width,
+                         "off_road": bool(trace[-1].get("off_road", False)), "steps": len(trace),
+                         "trace": str(path.relative_to(out))}])
+            bar.update(1, note=f"{policy.name} {run.key}")
+    bar.close()
+    return write_report(cfg, out, settings)
+
+
+def write_report(cfg: DictConfig, out: Path, settings: LoopSettings) -> float:
+    """closed_loop.md with its tables and plots, and worst_run.gif (task.animate); the first model's ASR (%)."""
+    from lanevil_train.report.closed_loop import asr_rows, worst_pairs, write_closed_loop_report
+    from lanevil_train.report.tables import print_table
+
+    records = ResultsLog(out / RUNS).records()
+    shown = {key: cfg.task[key] for key in ("cases", "repeats", "severities", "control_hz", "window_s", "threshold_m")}
+    shown["speed_mph"] = cfg.task.vehicle.speed_mph
+    path = write_closed_loop_report(records, lambda record: read_trace(out, record), out, shown)
+    rows = asr_rows(records, "category")
+    print_table(rows, f"Closed loop: ASR (%) per illusion category ({path})", digits=1)
+    pairs = worst_pairs(records)
+    if cfg.task.animate and pairs:
+        from lanevil_train.closed_loop.animation import write_animation
+
+        worst, twin = max(pairs, key=lambda pair: pair[0]["max_deviation_m"])
+        write_animation([(_run_of(r), read_trace(out, r), r["entry_s"]) for r in (worst, twin)], settings.size,
+                        out / "worst_run.gif", fps=cfg.task.control_hz)
+    first = next(row for row in rows if row["category"] == "all")
+    return float(first["ASR (%)"])
+
+
+def _run_of(record: dict) -> Run:
+    return Run(record["case_id"], record["seed"], record["illusion"], record["severity"], record["repeat"],
+               record["start_m"], tuple(record["region_m"]))
