@@ -5,7 +5,7 @@ and the scores of closed_loop.scoring.run_scores (success, max_deviation_m, firs
 departures_per_km...). Every table compares each group's perturbed runs with their clean twins (the same cases,
 illusions and starts driven without the illusion); ASR intervals are Wilson 95 % intervals over the runs (cases
 x repeats). Plots: ASR per category (clean vs perturbed, whiskers: the intervals) and the lateral deviation over
-time of each category's worst run beside its clean twin, the attack window shaded.
+time of each category's worst run beside its clean twin, the illusion region shaded.
 """
 
 from __future__ import annotations
@@ -138,7 +138,8 @@ def worst_pairs(records: Sequence[dict]) -> list[tuple[dict, dict]]:
 def deviation_plot(pairs: Sequence[tuple[dict, dict]], trace_of: Callable[[dict], list[dict]],
                    path: str | Path) -> Path | None:
     """Lateral deviation over time (0 = entering the illusion region) of each pair (worst run, clean twin), a panel
-    each; the attack window shaded, the ASR threshold dashed."""
+    each; the illusion region shaded (from entering to leaving it), the end of the attack window and the ASR
+    threshold marked."""
     if not pairs:
         return None
     fig, axes = plt.subplots(1, len(pairs), figsize=(3.4 * len(pairs), 3.0), squeeze=False, sharey=True)
@@ -147,7 +148,11 @@ def deviation_plot(pairs: Sequence[tuple[dict, dict]], trace_of: Callable[[dict]
             trace = trace_of(record)
             entry = record.get("entry_s") or 0.0
             ax.plot([s["t"] - entry for s in trace], [s["deviation"] for s in trace], style, label=label)
-        ax.axvspan(0.0, ASR_WINDOW_S, color="orange", alpha=0.15, label="attack window")
+        trace = trace_of(run)
+        entry = run.get("entry_s") or 0.0
+        leave = next((s["t"] for s in trace if s["s"] >= run["region_m"][1]), trace[-1]["t"])
+        ax.axvspan(0.0, leave - entry, color="orange", alpha=0.15, label="on the illusion")
+        ax.axvline(ASR_WINDOW_S, color="grey", linestyle="-.", linewidth=0.8, label=f"{ASR_WINDOW_S} s window")
         for sign in (-1, 1):
             ax.axhline(sign * ASR_THRESHOLD_M, color="red", linestyle=":", linewidth=0.8)
         ax.set_title(f"{run['category'].replace('_', ' ')} ({run['case_id']})", fontsize=8)

@@ -52,14 +52,20 @@ def policy_kind(cfg: DictConfig) -> str:
 
 def build_policies(cfg: DictConfig) -> list[tuple[object, dict]]:
     """[(policy, identity), ...]: one per model of task.models (label: checkpoint), or the one of ckpt_path, the
-    ground truth (task.policy=truth) or the VLM model=vlm/<backend> configures."""
+    ground truth (task.policy=truth) or the VLM model=vlm/<backend> configures (with its textual defense, e.g.
+    defense=pat++ defense.prefix_path=RUN/prefix.json, as task=evaluate applies it)."""
     kind = policy_kind(cfg)
     if kind == "truth":
         return [(TruthPolicy(controller(cfg.task), name=cfg.task.label or "ground-truth"), {"policy": "truth"})]
     if kind == "vlm":
+        from lanevil_train.tasks.vlm_defense import check_prompt_defense, is_prompt_defense, with_prompt_defense
         from lanevil_train.tasks.vlm_evaluate import build_vlm
 
+        if is_prompt_defense(cfg):
+            check_prompt_defense(cfg)  # before the model loads
         vlm = build_vlm(cfg)
+        if is_prompt_defense(cfg):  # defense=pat++ defense.prefix_path=... (or self_reminder): as task=evaluate
+            vlm = with_prompt_defense(cfg, vlm)
         policy = VLMPolicy(vlm, cfg.task.vlm.question, cfg.task.vlm.steer_deg, cfg.task.vlm.frames,
                            name=cfg.task.label or vlm.name)
         return [(policy, {"policy": "vlm", **vlm.identity(), **OmegaConf.to_container(cfg.task.vlm)})]
