@@ -184,3 +184,8 @@ def test_a_vlm_policy_steers_as_it_answers_and_sees_its_last_frames():
     assert trace[-1]["deviation"] > 0.5 and trace[-1]["direction"] == "right"
     with pytest.raises(ValueError, match="frames"):
         VLMPolicy(_ScriptedVLM("x"), frames=0)
+
+
+def test_a_run_is_deterministic():
+    run = _run(ROADS["s_curve"], "fence_shadow", severity=4)
+    assert drive(run, TruthPolicy(shift_m=0.4), SETTINGS) == drive(run, TruthPolicy(shift_m=0.4), SETTINGS)

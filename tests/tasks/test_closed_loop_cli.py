@@ -130,3 +130,23 @@ def test_a_local_vlm_with_a_textual_defense_drives_the_loop_from_its_answers(tmp
             expected = {"left": -0.5, "right": 0.5}.get(step["direction"], 0.0)
             assert step["command_deg"] == pytest.approx(expected)
     assert (out / "closed_loop.md").is_file()
+
+
+def test_starts_are_random_per_repeat_fixed_by_the_seed_and_shared_by_a_runs_twin():
+    from lanevil_train.tasks.closed_loop import loop_settings, plan_runs
+
+    def starts(seed):
+        cfg = _composed(["task=closed_loop", "task.policy=truth", "task.cases=2", "task.repeats=3",
+                         "task.illusions=[tire_marks]", "task.severities=[1,4]", "task.size=[90,160]", f"seed={seed}"])
+        runs = plan_runs(cfg, loop_settings(cfg.task))
+        assert len(runs) == 2 * 3 * 3
+        by_repeat = {}
+        for run in runs:
+            by_repeat.setdefault((run.case_id, run.repeat), set()).add(run.start_m)
+            assert 5.0 <= run.region[0] - run.start_m <= 10.0
+        assert all(len(v) == 1 for v in by_repeat.values())  # clean twin and severities: one start
+        return [next(iter(v)) for v in by_repeat.values()]
+
+    assert starts(0) == starts(0)
+    assert starts(0) != starts(1)
+    assert len(set(starts(0))) == 6
