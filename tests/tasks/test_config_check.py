@@ -61,7 +61,7 @@ def needs(group: str, option: str, files: Path) -> list[str]:
     """What an option needs from the user by design: a dataset root (???), a checkpoint to score."""
     if (group == "data" and option in ("tusimple", "culane")) or (group == "experiment" and option.startswith("paper_")):
         return [f"data.root={files / 'dataset'}"]
-    if group == "task" and option in ("evaluate", "cross_domain"):
+    if group == "task" and option in ("evaluate", "cross_domain", "closed_loop"):
         return [f"ckpt_path={files / 'model.ckpt'}"]
     if group == "model" and option == "vlm/hf":
         return ["task=evaluate", f"model.path={files / 'dataset'}"]
