@@ -5,7 +5,7 @@ For every case (a scene seed), every illusion of task.illusions and every repeat
 each severity and once clean (the twin): closed_loop/episode.py. Each model (ckpt_path, or several in task.models,
 label: checkpoint) drives every run. Finished runs are appended to <out>/runs.jsonl with their scores, after their
 traces (one JSON line per control step) were written whole to <out>/traces/<model>/; a rerun with the same out_dir
-skips them. The report (closed_loop.md, asr_by_*.{md,csv,json}, asr.png, deviation.png, worst_run.gif) is built
+skips them, and a model added to task.models later drives only its own runs (the settings must be the same). The report (closed_loop.md, asr_by_*.{md,csv,json}, asr.png, deviation.png, worst_run.gif) is built
 from runs.jsonl and the traces alone.
 """
 
@@ -122,6 +122,18 @@ def write_trace(path: Path, trace: list[dict]) -> None:
     atomic_write_text(path, "".join(json.dumps(step) + "\n" for step in trace))
 
 
+def claim_model(out: Path, label: str, identity: dict, resuming: bool) -> None:
+    """Record which model drives under `label` (traces/<label>/model.json), or check that the runs already there
+    are this same model's: a model added to task.models later drives its runs beside the finished ones."""
+    marker = out / "traces" / label / "model.json"
+    text = json.dumps(identity, sort_keys=True, indent=1, default=str) + "\n"
+    if resuming and marker.is_file() and marker.read_text(encoding="utf-8") != text:
+        raise ValueError(f"{out}: the runs of {label!r} there were driven by another model (other weights or "
+                         f"settings, {marker}); resuming would report them as this one's: give it another label "
+                         f"(task.models / task.label) or another task.out_dir")
+    atomic_write_text(marker, text)
+
+
 def closed_loop(cfg: DictConfig) -> float:
     """Drive every run with every model, resumably; write the report; return the first model's ASR (%) under
     illusions."""
@@ -131,10 +143,12 @@ def closed_loop(cfg: DictConfig) -> float:
     runs = plan_runs(cfg, settings)
     log = ResultsLog(out / RUNS)
     done = log.resume()
-    identity = {"settings": OmegaConf.to_container(cfg.task, resolve=True), "seed": cfg.seed,
-                "models": [ident for _, ident in policies]}
-    identity["settings"].pop("out_dir", None)
-    claim_results(log.path, {k: json.dumps(v, sort_keys=True, default=str) for k, v in identity.items()}, bool(done))
+    settings_identity = OmegaConf.to_container(cfg.task, resolve=True)
+    for key in ("out_dir", "models", "label", "policy", "animate"):  # which models drive, and where, may change between reruns
+        settings_identity.pop(key, None)
+    claim_results(log.path, {"settings": json.dumps(settings_identity, sort_keys=True), "seed": cfg.seed}, bool(done))
+    for policy, identity in policies:
+        claim_model(out, policy.name, identity, any(key.startswith(f"{policy.name}|") for key in done))
     total = len(runs) * len(policies)
     bar = progress_counter(total, len(done), "closed loop", "run", cfg.get("progress", "auto"))
     for policy, _ in policies:

@@ -150,3 +150,24 @@ def test_starts_are_random_per_repeat_fixed_by_the_seed_and_shared_by_a_runs_twi
     assert starts(0) == starts(0)
     assert starts(0) != starts(1)
     assert len(set(starts(0))) == 6
+
+
+def test_a_model_added_later_drives_only_its_own_runs_beside_the_finished_ones(tmp_path, monkeypatch):
+    out = tmp_path / "loop"
+    args = ["task=closed_loop", "task.policy=truth", *SMALL, "task.illusions=[tire_marks]", f"task.out_dir={out}",
+            "task.animate=false"]
+    run_in_process([*args, "task.label=first"], tmp_path / "run")
+    first = ResultsLog(out / "runs.jsonl").records()
+    import lanevil_train.tasks.closed_loop as task
+
+    driven = []
+    real_drive = task.drive
+    monkeypatch.setattr(task, "drive", lambda run, policy, settings: driven.append(policy.name) or
+                        real_drive(run, policy, settings))
+    run_in_process([*args, "task.label=second"], tmp_path / "run")
+    assert driven == ["second", "second"]
+    records = ResultsLog(out / "runs.jsonl").records()
+    assert records[:2] == first and [r["model"] for r in records] == ["first", "first", "second", "second"]
+    assert json.loads((out / "traces" / "second" / "model.json").read_text()) == {"policy": "truth"}
+    with pytest.raises(ValueError, match="holds results of another evaluation"):  # other settings: refused
+        run_in_process([*args, "task.label=third", "task.window_s=2.0"], tmp_path / "run")
