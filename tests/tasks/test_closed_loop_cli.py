@@ -169,5 +169,8 @@ def test_a_model_added_later_drives_only_its_own_runs_beside_the_finished_ones(t
     records = ResultsLog(out / "runs.jsonl").records()
     assert records[:2] == first and [r["model"] for r in records] == ["first", "first", "second", "second"]
     assert json.loads((out / "traces" / "second" / "model.json").read_text()) == {"policy": "truth"}
+    compared = json.loads((out / "asr_compare.json").read_text())  # one table, a column pair per model
+    assert [row["category"] for row in compared] == ["road_damage", "all"]
+    assert compared[0]["first ASR (%)"] == compared[0]["second ASR (%)"] == "0.0 [0.0, 79.3]"
     with pytest.raises(ValueError, match="holds results of another evaluation"):  # other settings: refused
         run_in_process([*args, "task.label=third", "task.window_s=2.0"], tmp_path / "run")
