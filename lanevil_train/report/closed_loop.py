@@ -62,7 +62,7 @@ def asr_rows(records: Sequence[dict], by: str) -> list[dict]:
     perturbed runs' scores beside their clean twins' (for severity: every clean twin of the model)."""
     order = {"category": tuple(CATEGORIES), "illusion": ILLUSION_NAMES}.get(by, ())
     rows = []
-    for model in ordered(dict.fromkeys(r["model"] for r in records)):
+    for model in dict.fromkeys(r["model"] for r in records):  # in the order they drove
         mine = [r for r in records if r["model"] == model]
         clean_all = [r for r in mine if not r["perturbed"]]
         values = ordered({r[by] for r in mine if r["perturbed"]}, order)
