@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from lanevil_train.sim import Camera
+from lanevil_train.sim.vehicle import check_positive
 
 MIN_POINTS = 3
 MIN_RANGE_M = 1.0
@@ -77,9 +78,7 @@ class PurePursuit:
 
     def __post_init__(self) -> None:
         for name in ("wheelbase_m", "lookahead_s", "min_lookahead_m", "max_range_m", "lane_width_m"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
-                raise ValueError(f"controller.{name}: expected a positive number, got {value!r}")
+            check_positive(f"controller.{name}", getattr(self, name))
 
     def reset(self) -> None:
         """Forget the last lane width and steering angle (a new run)."""

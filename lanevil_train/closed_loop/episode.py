@@ -25,7 +25,7 @@ from lanevil_train.illusions.footprint import STANDING, footprint
 from lanevil_train.illusions.registry import get_illusion
 from lanevil_train.sim import Scene, build_scene, sample_scene_params, shade_scene
 from lanevil_train.sim.sequence import scene_at
-from lanevil_train.sim.vehicle import VehicleParams, VehicleState, step
+from lanevil_train.sim.vehicle import VehicleParams, VehicleState, check_positive, step
 from lanevil_train.taxonomy import ILLUSION_CATEGORY
 
 REGION_SEVERITY = 3
@@ -75,9 +75,7 @@ class LoopSettings:
         if len(self.size) != 2 or any(isinstance(v, bool) or not isinstance(v, int) or v < 32 for v in self.size):
             raise ValueError(f"size: expected [height, width], integers of at least 32, got {list(self.size)}")
         for name in ("control_hz", "window_s"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
-                raise ValueError(f"{name}: expected a positive number, got {value!r}")
+            check_positive(name, getattr(self, name))
         if isinstance(self.after_s, bool) or not isinstance(self.after_s, (int, float)) or self.after_s < 0:
             raise ValueError(f"after_s: expected a number of seconds >= 0, got {self.after_s!r}")
 

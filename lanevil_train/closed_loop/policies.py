@@ -24,7 +24,6 @@ from lanevil_train.closed_loop.controller import PurePursuit
 from lanevil_train.sim import Camera, Scene
 
 DRIVING_QUESTION = "Should the ego vehicle steer left, keep straight or steer right?"
-DIRECTIONS = ("left", "straight", "right")
 
 
 @dataclass(frozen=True)

@@ -57,21 +57,23 @@ def _group_row(model: str, column: str, value, perturbed: list[dict], clean: lis
     }
 
 
-def asr_rows(records: Sequence[dict], by: str) -> list[dict]:
-    """One row per model and value of `by` (category | illusion | severity), then the model's `all` row: its
-    perturbed runs' scores beside their clean twins' (for severity: every clean twin of the model)."""
+def _groups(records: Sequence[dict], by: str):
+    """(model, value, perturbed runs, their clean twins) for each model and value of `by` (category | illusion |
+    severity), then (model, ALL, ...): for severity the twins are every clean twin of the model."""
     order = {"category": tuple(CATEGORIES), "illusion": ILLUSION_NAMES}.get(by, ())
-    rows = []
     for model in dict.fromkeys(r["model"] for r in records):  # in the order they drove
         mine = [r for r in records if r["model"] == model]
         clean_all = [r for r in mine if not r["perturbed"]]
-        values = ordered({r[by] for r in mine if r["perturbed"]}, order)
-        for value in values:
+        for value in ordered({r[by] for r in mine if r["perturbed"]}, order):
             perturbed = [r for r in mine if r["perturbed"] and r[by] == value]
-            clean = clean_all if by == "severity" else [r for r in clean_all if r[by] == value]
-            rows.append(_group_row(model, by, value, perturbed, clean))
-        rows.append(_group_row(model, by, ALL, [r for r in mine if r["perturbed"]], clean_all))
-    return rows
+            yield model, value, perturbed, clean_all if by == "severity" else [r for r in clean_all if r[by] == value]
+        yield model, ALL, [r for r in mine if r["perturbed"]], clean_all
+
+
+def asr_rows(records: Sequence[dict], by: str) -> list[dict]:
+    """One row per model and value of `by` (category | illusion | severity), then the model's `all` row: its
+    perturbed runs' scores beside their clean twins' (for severity: every clean twin of the model)."""
+    return [_group_row(model, by, value, perturbed, clean) for model, value, perturbed, clean in _groups(records, by)]
 
 
 def compare_rows(records: Sequence[dict]) -> list[dict]:
@@ -89,28 +91,27 @@ def compare_rows(records: Sequence[dict]) -> list[dict]:
 
 def asr_plot(records: Sequence[dict], path: str | Path) -> Path:
     """Bars of ASR per category (and all) for each model, clean (hatched) beside perturbed, Wilson whiskers."""
-    rows = asr_rows(records, "category")
-    models = list(dict.fromkeys(r["model"] for r in rows))
-    groups = list(dict.fromkeys(r["category"] for r in rows))
+    groups = list(_groups(records, "category"))
+    models = list(dict.fromkeys(model for model, *_ in groups))
+    categories = list(dict.fromkeys(value for _, value, *_ in groups))
     width = 0.8 / (2 * len(models))
-    fig, ax = plt.subplots(figsize=(1.6 + 1.4 * len(groups) * max(1, len(models) / 2), 3.6))
+    fig, ax = plt.subplots(figsize=(1.6 + 1.4 * len(categories) * max(1, len(models) / 2), 3.6))
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for m, model in enumerate(models):
-        for k, (key, low_key, hatch) in enumerate((("clean ASR (%)", "clean 95% CI", "//"), ("ASR (%)", "95% CI", ""))):
+        for k, (kind, hatch) in enumerate((("clean", "//"), ("illusion", ""))):
             xs, heights, errs = [], [], [[], []]
-            for g, group in enumerate(groups):
-                row = next((r for r in rows if r["model"] == model and r["category"] == group), None)
-                if row is None:
+            for model_, category, perturbed, clean in groups:
+                if model_ != model:
                     continue
-                low, high = (float(v) for v in row[low_key].strip("[]").split(","))
-                xs.append(g - 0.4 + width * (2 * m + k + 0.5))
-                heights.append(row[key])
-                errs[0].append(max(row[key] - low, 0.0))
-                errs[1].append(max(high - row[key], 0.0))
-            label = f"{model} {'clean' if k == 0 else 'illusion'}"
+                asr, low, high = _asr(clean if kind == "clean" else perturbed)
+                xs.append(categories.index(category) - 0.4 + width * (2 * m + k + 0.5))
+                heights.append(asr)
+                errs[0].append(max(asr - low, 0.0))
+                errs[1].append(max(high - asr, 0.0))
             ax.bar(xs, heights, width, yerr=errs, capsize=2, color=colors[m % len(colors)],
-                   alpha=0.45 if k == 0 else 0.9, hatch=hatch, label=label, edgecolor="black", linewidth=0.4)
-    ax.set_xticks(range(len(groups)), [g.replace("_", " ") for g in groups], fontsize=8)
+                   alpha=0.45 if k == 0 else 0.9, hatch=hatch, label=f"{model} {kind}", edgecolor="black",
+                   linewidth=0.4)
+    ax.set_xticks(range(len(categories)), [c.replace("_", " ") for c in categories], fontsize=8)
     ax.set_ylabel("ASR (%)")
     ax.set_ylim(0, 105)
     ax.set_title(f"Attack success: > {ASR_THRESHOLD_M} m within {ASR_WINDOW_S} s of the illusion (95 % CI)", fontsize=9)
@@ -148,8 +149,7 @@ def deviation_plot(pairs: Sequence[tuple[dict, dict]], trace_of: Callable[[dict]
             trace = trace_of(record)
             entry = record.get("entry_s") or 0.0
             ax.plot([s["t"] - entry for s in trace], [s["deviation"] for s in trace], style, label=label)
-        trace = trace_of(run)
-        entry = run.get("entry_s") or 0.0
+        # the loop ended on the run's own trace and entry: where it left the illusion region
         leave = next((s["t"] for s in trace if s["s"] >= run["region_m"][1]), trace[-1]["t"])
         ax.axvspan(0.0, leave - entry, color="orange", alpha=0.15, label="on the illusion")
         ax.axvline(ASR_WINDOW_S, color="grey", linestyle="-.", linewidth=0.8, label=f"{ASR_WINDOW_S} s window")

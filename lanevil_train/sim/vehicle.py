@@ -24,9 +24,10 @@ MPH = 0.44704  # metres per second in one mile per hour
 INTEGRATION_STEP_S = 0.01  # RK4 sub-step
 
 
-def _positive(name: str, value) -> float:
+def check_positive(label: str, value) -> float:
+    """`value` as a float if it is a finite number > 0, else a ValueError naming `label` (e.g. VehicleParams.speed_mps)."""
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
-        raise ValueError(f"VehicleParams.{name}: expected a positive number, got {value!r}")
+        raise ValueError(f"{label}: expected a positive number, got {value!r}")
     return float(value)
 
 
@@ -42,7 +43,7 @@ class VehicleParams:
 
     def __post_init__(self) -> None:
         for name in ("wheelbase_m", "speed_mps", "max_steer_deg", "max_steer_rate_dps"):
-            _positive(name, getattr(self, name))
+            check_positive(f"VehicleParams.{name}", getattr(self, name))
         if self.max_steer_deg >= 80.0:
             raise ValueError(f"VehicleParams.max_steer_deg: expected under 80 degrees, got {self.max_steer_deg}")
 

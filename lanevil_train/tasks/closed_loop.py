@@ -144,7 +144,7 @@ def closed_loop(cfg: DictConfig) -> float:
     log = ResultsLog(out / RUNS)
     done = log.resume()
     settings_identity = OmegaConf.to_container(cfg.task, resolve=True)
-    for key in ("out_dir", "models", "label", "policy", "animate"):  # which models drive, and where, may change between reruns
+    for key in ("out_dir", "models", "label", "policy", "animate"):  # which models drive may change between reruns
         settings_identity.pop(key, None)
     claim_results(log.path, {"settings": json.dumps(settings_identity, sort_keys=True), "seed": cfg.seed}, bool(done))
     for policy, identity in policies:
