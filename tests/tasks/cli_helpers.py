@@ -58,6 +58,20 @@ def run_in_process(args: list[str], run_dir: Path):
         GlobalHydra.instance().clear()
 
 
+def composed(overrides: list[str]):
+    """The config `python -m lanevil_train OVERRIDES` composes, composed in this process (Hydra initialised for it and
+    cleared after, so it works whatever another test left initialised)."""
+    from hydra import compose, initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_module(config_module="lanevil_train.conf", version_base="1.3"):
+            return compose(config_name="config", overrides=overrides)
+    finally:
+        GlobalHydra.instance().clear()
+
+
 def write_photo_dataset(root: Path, names: list[str]) -> list[dict]:
     """Simulated scenes saved as JPEG files at root/<name> (a stand-in for a folder of photos); their records."""
     records = []

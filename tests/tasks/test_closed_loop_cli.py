@@ -7,35 +7,21 @@ import json
 
 import pytest
 import torch
-from hydra import compose
 
 from lanevil_train.closed_loop.scoring import run_scores
 from lanevil_train.results_log import ResultsLog
 from lanevil_train.tasks import run_task
 from lanevil_train.tasks.builders import build_model, model_config
 from lanevil_train.tasks.config_check import ConfigError, check_config
-from tests.tasks.cli_helpers import TINY, run_cli, run_in_process
+from tests.tasks.cli_helpers import TINY, composed, run_cli, run_in_process
 
 SMALL = ["task.cases=1", "task.repeats=1", "task.size=[90,160]", "progress=none"]
-
-
-def _composed(overrides):
-    """The config the command line composes from these overrides (run_in_process clears Hydra: compose anew)."""
-    from hydra import initialize_config_module
-    from hydra.core.global_hydra import GlobalHydra
-
-    GlobalHydra.instance().clear()
-    try:
-        with initialize_config_module(config_module="lanevil_train.conf", version_base="1.3"):
-            return compose(config_name="config", overrides=overrides)
-    finally:
-        GlobalHydra.instance().clear()
 
 
 def _tiny_checkpoint(path):
     """An untrained LaneATT at the TINY input size, saved as task=train saves it (weights + build config)."""
     torch.manual_seed(0)
-    model = build_model(model_config(_composed(TINY)))
+    model = build_model(model_config(composed(TINY)))
     torch.save({"state_dict": model.state_dict(), "lanevil_model": model.build_config}, path)
     return path
 
@@ -102,7 +88,7 @@ def test_an_interrupted_closed_loop_resumes_driving_only_the_unfinished_runs(tmp
     (["task.policy=vlm"], "task.policy: vlm needs a VLM"),
 ])
 def test_bad_closed_loop_settings_fail_naming_the_key(override, message):
-    cfg = _composed(["task=closed_loop", *override])
+    cfg = composed(["task=closed_loop", *override])
     with pytest.raises(ConfigError, match=message.replace("[", r"\[")):
         check_config(cfg)
     with pytest.raises(ConfigError):
@@ -136,7 +122,7 @@ def test_starts_are_random_per_repeat_fixed_by_the_seed_and_shared_by_a_runs_twi
     from lanevil_train.tasks.closed_loop import loop_settings, plan_runs
 
     def starts(seed):
-        cfg = _composed(["task=closed_loop", "task.policy=truth", "task.cases=2", "task.repeats=3",
+        cfg = composed(["task=closed_loop", "task.policy=truth", "task.cases=2", "task.repeats=3",
                          "task.illusions=[tire_marks]", "task.severities=[1,4]", "task.size=[90,160]", f"seed={seed}"])
         runs = plan_runs(cfg, loop_settings(cfg.task))
         assert len(runs) == 2 * 3 * 3

@@ -11,7 +11,7 @@ from omegaconf import OmegaConf
 
 from lanevil_train.results_log import ResultsLog
 from lanevil_train.vlm.tiny import build_tiny_vlm
-from tests.tasks.cli_helpers import run_cli, run_in_process
+from tests.tasks.cli_helpers import composed, run_cli, run_in_process
 from tests.tasks.test_vlm_train_cli import ANSWERS, TINY_CLIPS
 
 TINY_PAT = ["defense=pat++", "defense.steps=2", "defense.prefix_length=3", "defense.top_k=8",
@@ -64,45 +64,32 @@ def test_pat_plus_plus_tunes_a_prefix_tests_it_resumes_and_evaluates_with_it(tin
     assert str(record["ids"]) in (out / "report.md").read_text()
 
 
-def compose(overrides: list[str]):
-    from hydra import compose as hydra_compose
-    from hydra import initialize_config_module
-    from hydra.core.global_hydra import GlobalHydra
-
-    GlobalHydra.instance().clear()
-    try:
-        with initialize_config_module(config_module="lanevil_train.conf", version_base="1.3"):
-            return hydra_compose(config_name="config", overrides=overrides)
-    finally:
-        GlobalHydra.instance().clear()
-
-
 def test_defense_misuse_is_refused_naming_the_key_before_any_work(tiny_model, tmp_path):
     from lanevil_train.tasks.vlm_evaluate import evaluate_vlm
     from lanevil_train.tasks.vlm_train import check_lanes_for_defense, train_vlm
 
     common = ["model=vlm/hf", f"model.path={tiny_model}", *TINY_CLIPS, f"output_dir={tmp_path / 'run'}"]
     with pytest.raises(ValueError, match="defense.prefix_path: task=evaluate defense=pat\\+\\+ applies a tuned prefix"):
-        evaluate_vlm(compose(["task=evaluate", *common, "defense=pat++", "task.suite=synthetic",
+        evaluate_vlm(composed(["task=evaluate", *common, "defense=pat++", "task.suite=synthetic",
                               f"task.out_dir={tmp_path / 'eval'}"]))
     with pytest.raises(ValueError, match="model.path: defense=pat\\+\\+ tunes a prefix for a trained model"):
-        train_vlm(compose(["task=train", "model=vlm/embedded", *TINY_CLIPS, "defense=pat++"]))
+        train_vlm(composed(["task=train", "model=vlm/embedded", *TINY_CLIPS, "defense=pat++"]))
     with pytest.raises(ValueError, match="defense.hardness: judge needs a judge .* got judge=none"):
-        train_vlm(compose(["task=train", *common, "defense=pat++", "defense.hardness=judge"]))
+        train_vlm(composed(["task=train", *common, "defense=pat++", "defense.hardness=judge"]))
     with pytest.raises(ValueError, match="defense=cutout: its image transforms act on a lane detector's samples"):
-        train_vlm(compose(["task=train", *common, "defense=cutout"]))
+        train_vlm(composed(["task=train", *common, "defense=cutout"]))
     with pytest.raises(ValueError, match="defense=copypaste: .*CopyPaste moves lanes with their labels"):
-        train_vlm(compose(["task=train", *common, "defense=copypaste"]))
+        train_vlm(composed(["task=train", *common, "defense=copypaste"]))
     with pytest.raises(ValueError, match="defense=aam\\+\\+: model.attention_layer: auto knows the vision output of "
                                          "qwen2_vl, .* not 'gemma3'"):
         bad = tmp_path / "gemma"
         bad.mkdir()
         (bad / "config.json").write_text('{"model_type": "gemma3"}')
-        train_vlm(compose(["task=train", *common, f"model.path={bad}", "defense=aam++"]))
+        train_vlm(composed(["task=train", *common, f"model.path={bad}", "defense=aam++"]))
     assert not (tmp_path / "run").exists()  # refused before any output
     with pytest.raises(ValueError, match="defense=aam: AAM compares each frame's attention with its lanes, which "
                                          "object does not keep"):
-        check_lanes_for_defense(compose(["task=train", *common, "defense=aam"]), object())
+        check_lanes_for_defense(composed(["task=train", *common, "defense=aam"]), object())
 
 
 # every VLM defense config, one step (a fine-tuning step, or a tuning step of its prompt), and what it leaves
@@ -121,7 +108,7 @@ def test_every_vlm_defense_config_runs_a_step(defense, tiny_model, tmp_path):
                  "trainer.max_steps=1", "task.test_after_fit=false", f"defense={defense}", f"output_dir={run}",
                  *(tiny_prompt if "prefix" in VLM_DEFENSES[defense] else []),
                  *(["defense.suffix_length=2"] if defense == "pat" else []), "callbacks=none"]
-    assert train_vlm(compose(overrides)) is None
+    assert train_vlm(composed(overrides)) is None
     leaves = VLM_DEFENSES[defense]
     assert (run / "model" / "adapter_config.json").is_file() == ("model" in leaves)
     if "prefix" in leaves:
@@ -158,7 +145,7 @@ def test_a_vlm_compare_tunes_textual_defenses_for_the_none_runs_model_reports_an
     clips = [a for a in TINY_CLIPS if a != "judge=none"] + ["judge=minilm"]
     overrides = ["model=vlm/hf", f"model.path={tiny_model}", "model.max_new_tokens=4", "model.lora.r=2", *clips,
                  "trainer.max_steps=2", "callbacks=[model_checkpoint]"]
-    cfg = compose(["task=compare", "task.defenses=[none,self_reminder,mixup]", f"task.out_dir={out}", *overrides])
+    cfg = composed(["task=compare", "task.defenses=[none,self_reminder,mixup]", f"task.out_dir={out}", *overrides])
     GlobalHydra.instance().clear()
     with initialize_config_module(config_module="lanevil_train.conf", version_base="1.3"):
         compare(cfg, overrides=overrides)
@@ -194,7 +181,7 @@ def test_each_textual_defense_is_tuned_for_the_model_of_the_defense_with_its_vis
     from lanevil_train.tasks.compare import vlm_sources
 
     common = ["task=train", "model=vlm/hf", f"model.path={tiny_model}", *TINY_CLIPS]
-    configs = {d: compose([*common, f"defense={d}"]) for d in ("none", "pat++", "mida", "aam++", "pgd", "pat")}
+    configs = {d: composed([*common, f"defense={d}"]) for d in ("none", "pat++", "mida", "aam++", "pgd", "pat")}
     assert vlm_sources(configs) == {"none": None, "pat++": "none", "mida": "aam++", "aam++": None, "pgd": None,
                                     "pat": "none"}
     del configs["aam++"]  # nothing listed does what mida does to the frames: it fine-tunes in its own run
@@ -215,7 +202,7 @@ def test_pat_plus_plus_finds_hard_examples_by_each_answers_language_score(tiny_m
     real = vqa.language_per_answer
     monkeypatch.setattr(vqa, "language_per_answer", scored)
     run = tmp_path / "run"
-    train_vlm(compose(["task=train", "model=vlm/hf", f"model.path={tiny_model}", "model.max_new_tokens=4",
+    train_vlm(composed(["task=train", "model=vlm/hf", f"model.path={tiny_model}", "model.max_new_tokens=4",
                        *TINY_CLIPS, "task.test_after_fit=false", "defense=pat++", "defense.hardness=language",
                        "defense.steps=1", "defense.prefix_length=2", "defense.top_k=4", "defense.num_candidates=3",
                        "defense.examples=2", "defense.pool_clips=3", "defense.chunk=4", f"output_dir={run}"]))
