@@ -23,6 +23,7 @@ item's base clip, "meta": {clip_id, base_clip_id, case_id, segment, illusion, ca
 
 from __future__ import annotations
 
+import difflib
 import hashlib
 import json
 from collections import OrderedDict
@@ -268,6 +269,27 @@ def check_clip_record(record, where: str) -> dict:
     return record
 
 
+def check_every_question_asked(qas: Sequence[tuple[dict, str]], base_clip_ids: Sequence[str], source: str) -> None:
+    """Every QA ((record, "file:line") pairs) names a base clip of the set (`base_clip_ids`, from `source`) and has
+    a qa_id of its own among that clip's, else a ValueError naming the line, the id and the nearest ids: such a
+    question would never be asked, or its answer would overwrite another's."""
+    bases, seen = set(base_clip_ids), {}
+    for qa, where in qas:
+        base = qa["base_clip_id"]
+        if base not in bases:
+            near = difflib.get_close_matches(base, sorted(bases), n=3, cutoff=0.0)
+            strays = sum(q["base_clip_id"] not in bases for q, _ in qas)
+            raise ValueError(f"{where}: base_clip_id {base!r} names no clip of {source}, so QA {qa['qa_id']!r} would "
+                             f"never be asked; nearest base clip ids: {', '.join(near)}"
+                             + (f" ({strays} QA lines name no clip)" if strays > 1 else ""))
+        key = (base, qa["qa_id"])
+        if key in seen:
+            raise ValueError(f"{where}: qa_id {qa['qa_id']!r} of base clip {base!r} is given twice (first at "
+                             f"{seen[key]}); expected one id per question of a clip, or one answer would overwrite "
+                             f"the other")
+        seen[key] = where
+
+
 # ---------------------------------------------------------------------------------------------- datasets
 
 def _meta(record: dict) -> dict:
@@ -287,7 +309,7 @@ class ClipSetDataset(Dataset):
                                     f"data=clips, or the build never started)")
         build = read_build_record(root)
         clips = [check_clip_record(r, where) for r, where in read_lines(root / CLIPS_FILE)]
-        qas = [check_qa_record(r, where) for r, where in read_lines(root / QA_FILE)]
+        qas = [(check_qa_record(r, where), where) for r, where in read_lines(root / QA_FILE)]
         if not build["complete"] or len(clips) != build["clips"]:
             raise ValueError(f"clip set {root} is incomplete: {len(clips)} of {build['clips']} clips were built "
                              f"({BUILD_FILE} complete: {str(build['complete']).lower()}); rerun task=build "
@@ -303,15 +325,19 @@ class ClipSetDataset(Dataset):
 
         clips, qas = read_drivelm(path)
         self = cls.__new__(cls)
-        self._setup(Path(image_root) if image_root is not None else Path(path).parent, clips, qas, str(path))
+        self._setup(Path(image_root) if image_root is not None else Path(path).parent, clips,
+                    [(qa, f"{path}: QA {qa['qa_id']}") for qa in qas], str(path))
         return self
 
-    def _setup(self, root: Path, clips: list[dict], qas: list[dict], source: str) -> None:
+    def _setup(self, root: Path, clips: list[dict], qas: list[tuple[dict, str]], source: str) -> None:
+        """Keep the clips and their QA ((record, where it was read) pairs); refuse a set where a question would
+        not be asked (its base clip missing, or its qa_id given twice), a base clip without QA, or missing frames."""
         if not clips:
             raise ValueError(f"{source}: the clip set lists no clips")
         self.root, self.clips, self.kind = root, clips, "illusions"
+        check_every_question_asked(qas, [c["base_clip_id"] for c in clips], source)
         self.qa: dict[str, list[dict]] = {}
-        for qa in qas:
+        for qa, _ in qas:
             self.qa.setdefault(qa["base_clip_id"], []).append(qa)
         no_qa = sorted({c["base_clip_id"] for c in clips} - set(self.qa))
         if no_qa:

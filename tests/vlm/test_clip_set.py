@@ -128,6 +128,26 @@ def test_reader_names_bad_lines_and_missing_frames(tmp_path):
         ClipSetDataset(tmp_path / "clips")
 
 
+def test_a_question_whose_base_clip_is_missing_or_whose_id_repeats_is_refused_by_line(tmp_path):
+    build_clip_set(cases(2), [3], tmp_path, size=SIZE, progress="none")
+    qa_lines = (tmp_path / "qa.jsonl").read_text().splitlines()
+    typo = json.loads(qa_lines[6])
+    assert typo["base_clip_id"] == "case-0000500-over"
+    typo["base_clip_id"] = "case-0000500-ovr"
+    (tmp_path / "qa.jsonl").write_text("\n".join(qa_lines[:6] + [json.dumps(typo)] + qa_lines[7:]) + "\n")
+    with pytest.raises(ValueError) as caught:
+        ClipSetDataset(tmp_path)
+    message = str(caught.value)
+    assert message.startswith(f"{tmp_path / 'qa.jsonl'}:7: base_clip_id 'case-0000500-ovr' names no clip of "
+                              f"{tmp_path / 'clips.jsonl'}, so QA {typo['qa_id']!r} would never be asked")
+    assert message.endswith("nearest base clip ids: case-0000500-over, case-0000501-over, case-0000500-before")
+    twice = json.loads(qa_lines[1])
+    (tmp_path / "qa.jsonl").write_text("\n".join(qa_lines[:6] + [json.dumps(twice)] + qa_lines[7:]) + "\n")
+    with pytest.raises(ValueError, match=rf"qa.jsonl:7: qa_id '{twice['qa_id']}' of base clip "
+                                         rf"'case-0000500-before' is given twice \(first at .*qa.jsonl:2\)"):
+        ClipSetDataset(tmp_path)
+
+
 def test_synthetic_suite_matches_the_built_set(tmp_path):
     suite = SyntheticClipSuite(2, 500, ["rail_shadow", "vehicle"], [2, 4], SIZE)
     build_clip_set(suite.cases, [2, 4], tmp_path, size=SIZE, progress="none")
