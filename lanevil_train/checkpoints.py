@@ -54,14 +54,23 @@ def _reason(path: Path, error: Exception) -> str:
         return (f"it holds a pickled Python object ({unsafe.group(1)}), and only tensors and plain values are "
                 f"loaded from checkpoint files (unpickling objects can run code); save the weights as a state dict "
                 f"(torch.save(model.state_dict(), path)) or a Lightning checkpoint")
-    with open(path, "rb") as handle:
-        starts_like_zip = handle.read(4) == _ZIP_MAGIC
-    if starts_like_zip and not zipfile.is_zipfile(path):
+    if is_truncated_archive(path):
         return (f"it is truncated ({size} bytes: it starts like a torch.save archive but its end is missing; an "
                 f"interrupted save or copy leaves such a file)")
-    if starts_like_zip:
+    if _starts_like_zip(path):
         return f"it is corrupt ({size} bytes: a zip archive whose content torch.load cannot read)"
     return f"its content is not a torch.save file ({size} bytes); expected a Lightning .ckpt or a torch.save file"
+
+
+def _starts_like_zip(path: Path) -> bool:
+    with open(path, "rb") as handle:
+        return handle.read(4) == _ZIP_MAGIC
+
+
+def is_truncated_archive(path: str | Path) -> bool:
+    """Whether the file starts like a torch.save (zip) archive but its end, the zip directory, is missing: a save
+    or a download that stopped."""
+    return _starts_like_zip(Path(path)) and not zipfile.is_zipfile(path)
 
 
 def read_lightning_checkpoint(path: str | Path, option: str) -> dict:
@@ -73,9 +82,70 @@ def read_lightning_checkpoint(path: str | Path, option: str) -> dict:
     return checkpoint
 
 
+# ---------------------------------------------------------------------------------------------- its kind
+
+# Where task=train model=vlm/embedded builds the model it then fine-tunes, in its run folder: the base model folder its
+# checkpoints name.
+EMBEDDED_BASE_FOLDER = "init"
+
+
+def vlm_base_model(checkpoint: dict) -> str | None:
+    """The base model folder a VLM fine-tuning checkpoint names (its hyper_parameters' model_dir), else None."""
+    hparams = checkpoint.get("hyper_parameters")
+    return str(hparams["model_dir"]) if isinstance(hparams, dict) and hparams.get("model_dir") else None
+
+
+def detector_name(checkpoint: dict) -> tuple[str, str] | None:
+    """(family, backbone) of a lane detector's checkpoint, from the network spec task=train stores in it, else None."""
+    try:
+        spec = checkpoint["lanevil_model"]
+        return str(spec["model"]["name"]), str(spec["backbone"]["name"])
+    except (KeyError, TypeError):
+        return None
+
+
+def vlm_model_option(model_dir: str) -> str:
+    """The `model=` a VLM checkpoint is used with: the embedded VLM's runs, or the Hugging Face folder it was tuned
+    from."""
+    if Path(model_dir).name == EMBEDDED_BASE_FOLDER:
+        return "model=vlm/embedded"
+    return f"model=vlm/hf model.path={model_dir}"
+
+
+def check_detector_checkpoint(checkpoint: dict, where: str, spec: dict | None = None) -> None:
+    """A lane detector's checkpoint, and, given this run's network spec, of its family and backbone; a VLM's
+    checkpoint, or a detector of another family or backbone, is a CheckpointError starting with `where` that names the
+    model= it needs (rather than counting weights that cannot fit)."""
+    model_dir = vlm_base_model(checkpoint)
+    if model_dir is not None:
+        raise CheckpointError(f"{where}: a VLM's checkpoint (fine-tuned from {model_dir}), not a lane detector's; "
+                              f"give it with {vlm_model_option(model_dir)}")
+    saved = detector_name(checkpoint)
+    wanted = (str(spec["model"]["name"]), str(spec["backbone"]["name"])) if spec else None
+    if saved is not None and wanted is not None and saved != wanted:
+        raise CheckpointError(f"{where}: a {saved[0]}-{saved[1]} checkpoint, and this run builds {wanted[0]}-"
+                              f"{wanted[1]}; use model={saved[0]} backbone={saved[1]}")
+
+
+def check_vlm_checkpoint(checkpoint: dict, where: str) -> str:
+    """The base model folder of a VLM fine-tuning checkpoint; a lane detector's checkpoint (or any other) is a
+    CheckpointError starting with `where` that says what it is and how it is used."""
+    model_dir = vlm_base_model(checkpoint)
+    if model_dir is not None:
+        return model_dir
+    name = detector_name(checkpoint)
+    if name is None:
+        raise CheckpointError(f"{where}: not a VLM fine-tuning checkpoint (its hyper_parameters name no model_dir); "
+                              f"expected a checkpoint a task=train run of a model=vlm/<backend> wrote")
+    raise CheckpointError(f"{where}: a lane detector's checkpoint ({name[0]}-{name[1]}), not a VLM's; drop "
+                          f"model=vlm/...: detector tasks rebuild model={name[0]} backbone={name[1]} from it")
+
+
 def load_weights(model, path: str | Path, option: str) -> dict:
-    """Read the Lightning checkpoint at `path` and load its weights into `model`; returns the checkpoint."""
+    """Read the Lightning checkpoint at `path`, check it is one of `model`'s family and backbone, and load its weights
+    into `model`; returns the checkpoint."""
     checkpoint = read_lightning_checkpoint(path, option)
+    check_detector_checkpoint(checkpoint, f"{option}={path}", getattr(model, "build_config", None))
     fit_weights(model, checkpoint["state_dict"], f"{option}={path}")
     return checkpoint
 

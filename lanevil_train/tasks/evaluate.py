@@ -11,7 +11,7 @@ from pathlib import Path
 import pytorch_lightning as pl
 from omegaconf import DictConfig, OmegaConf
 
-from lanevil_train.checkpoints import fit_weights, read_lightning_checkpoint
+from lanevil_train.checkpoints import check_detector_checkpoint, fit_weights, read_lightning_checkpoint
 from lanevil_train.data.suites import IllusionSetDataset, SyntheticIllusionSuite
 from lanevil_train.errors import prefixed
 from lanevil_train.models.detector import LaneDetector
@@ -47,6 +47,7 @@ def checkpoint_model(cfg: DictConfig) -> LaneDetector:
     """The network of the checkpoint at ckpt_path (its stored build config; the command line's for checkpoints
     without one) with its weights."""
     checkpoint = read_lightning_checkpoint(cfg.ckpt_path, "ckpt_path")
+    check_detector_checkpoint(checkpoint, f"ckpt_path={cfg.ckpt_path}")  # a VLM's names the model= it needs
     model = build_model(checkpoint.get("lanevil_model") or model_config(cfg))
     fit_weights(model, checkpoint["state_dict"], f"ckpt_path={cfg.ckpt_path}")
     return model

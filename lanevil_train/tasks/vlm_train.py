@@ -2,8 +2,8 @@
 the Lightning trainer (checkpoints, resume with ckpt_path, logging, progress), save the model in the Hugging Face
 format, then (task.test_after_fit) evaluate it on the test clips like task=evaluate.
 
-    python -m lanevil_train task=train model=vlm/embedded data=clips              # the small VLM built here
-    python -m lanevil_train task=train model=vlm/hf model.path=DIR data=clips     # LoRA (model.lora) or full
+    python -m lanevil_train task=train model=vlm/embedded              # the small VLM built here
+    python -m lanevil_train task=train model=vlm/hf model.path=DIR     # LoRA (model.lora) or full
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from pathlib import Path
 import pytorch_lightning as pl
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from lanevil_train.checkpoints import read_lightning_checkpoint
+from lanevil_train.checkpoints import EMBEDDED_BASE_FOLDER, check_vlm_checkpoint, read_lightning_checkpoint
 from lanevil_train.tasks.builders import build_callbacks, build_split, build_trainer, output_dir
 from lanevil_train.tasks.results import write_results
 from lanevil_train.tasks.train import remove_stale_checkpoint_temporaries
@@ -38,15 +38,17 @@ def lora_settings(cfg: DictConfig) -> dict | None:
 def base_model_dir(cfg: DictConfig, train_set, out: Path) -> Path:
     """The model the run starts from: model=vlm/hf's model.path, or, for model=vlm/embedded, the small VLM built
     into out/init from the training split's QA texts (a resumed run reuses the one its checkpoint names)."""
+    saved = None
+    if cfg.ckpt_path is not None:  # resuming: a VLM's checkpoint (a lane detector's is named as one)
+        saved = check_vlm_checkpoint(read_lightning_checkpoint(cfg.ckpt_path, "ckpt_path"),
+                                     f"ckpt_path={cfg.ckpt_path}")
     if cfg.model.get("embedded") is None:
         return Path(cfg.model.path)
-    if cfg.ckpt_path is not None:
-        saved = read_lightning_checkpoint(cfg.ckpt_path, "ckpt_path").get("hyper_parameters", {}).get("model_dir")
-        if saved and Path(saved).is_dir():
-            return Path(saved)
+    if saved and Path(saved).is_dir():
+        return Path(saved)
     from lanevil_train.vlm.embedded import make_embedded_vlm, pretrain_vision, qa_corpus, save_model_dir
 
-    init = out / "init"
+    init = out / EMBEDDED_BASE_FOLDER
     if not (init / "config.json").is_file():
         all_bases = list(dict.fromkeys(train_set.clip_meta(i)["base_clip_id"] for i in range(len(train_set))))
         bases = spread(all_bases, TOKENIZER_CLIPS)  # the templates' words: a spread sample is enough

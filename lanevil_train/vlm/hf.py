@@ -22,6 +22,7 @@ from typing import Sequence
 import numpy as np
 
 from lanevil_train.vlm.base import VLM, Frames, check_batch, is_clip_tensor
+from lanevil_train.vlm.weight_files import check_weight_files
 
 FRAMES_AS = ("auto", "images", "video")
 DTYPES = ("auto", "float32", "bfloat16", "float16")
@@ -375,7 +376,7 @@ def _answer_labels(input_ids, answer_spans):
 
 
 def _check_model_dir(path) -> Path:
-    """`path` as a directory holding config.json, else an error naming it."""
+    """`path` as a directory holding config.json and whole weight files, else an error naming it."""
     if not isinstance(path, (str, Path)) or not str(path):
         raise ValueError(f"model.path: expected a directory of a saved Hugging Face model, got {path!r}")
     path = Path(path).expanduser().resolve()
@@ -384,6 +385,7 @@ def _check_model_dir(path) -> Path:
     if not (path / "config.json").is_file():
         raise FileNotFoundError(f"model.path {path}: no config.json, so not a saved Hugging Face model; expected a "
                                 f"directory written by save_pretrained")
+    check_weight_files(path, "model.path")
     return path
 
 
@@ -439,7 +441,8 @@ def _load_model(path: Path, dtype: str, device: str, attn_implementation: str | 
 
 
 def _check_adapter_dir(path) -> Path:
-    """`path` as a directory holding a peft adapter (adapter_config.json), else an error naming it."""
+    """`path` as a directory holding a peft adapter (adapter_config.json) and whole weight files, else an error
+    naming it."""
     if not isinstance(path, (str, Path)) or not str(path):
         raise ValueError(f"model.adapter: expected a directory of a saved peft adapter, got {path!r}")
     path = Path(path).expanduser().resolve()
@@ -450,6 +453,7 @@ def _check_adapter_dir(path) -> Path:
         raise ValueError(f"model.adapter {path}: no {ADAPTER_CONFIG}, so not a peft adapter; expected a directory "
                          f"written by a LoRA run's save_model (a merged or fully fine-tuned model loads as "
                          f"model.path instead)")
+    check_weight_files(path, "model.adapter")
     return path
 
 

@@ -363,12 +363,11 @@ def _replace_dir(staging: Path, out: Path) -> None:
 def load_finetuned(path: str | os.PathLike, option: str = "ckpt_path") -> VLMFineTuner:
     """The fine-tuned model a task=train checkpoint holds: its base model (hparams.model_dir, which must still be on
     disk) with the checkpoint's trainable weights; errors name `option` and the file."""
-    from lanevil_train.checkpoints import read_lightning_checkpoint
+    from lanevil_train.checkpoints import check_vlm_checkpoint, read_lightning_checkpoint
 
     checkpoint = read_lightning_checkpoint(path, option)
-    hparams = checkpoint.get("hyper_parameters") or {}
-    if "model_dir" not in hparams:
-        raise ValueError(f"{option}={path}: not a VLM fine-tuning checkpoint (its hyper_parameters name no model_dir)")
+    check_vlm_checkpoint(checkpoint, f"{option}={path}")
+    hparams = checkpoint["hyper_parameters"]
     if not Path(hparams["model_dir"]).is_dir():
         raise FileNotFoundError(f"{option}={path}: the checkpoint's base model {hparams['model_dir']} is gone; "
                                 f"evaluate the run's saved model/ folder with model.path (or model.adapter) instead")

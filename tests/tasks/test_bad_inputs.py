@@ -19,7 +19,7 @@ from lanevil_train.tasks.build import build
 from lanevil_train.tasks.builders import build_model, model_config
 from lanevil_train.tasks.evaluate import evaluate
 from lanevil_train.tasks.train import train
-from tests.tasks.cli_helpers import TINY, write_photo_dataset
+from tests.tasks.cli_helpers import TINY, composed, write_photo_dataset
 
 
 @pytest.fixture(autouse=True)
@@ -187,3 +187,61 @@ def test_resuming_with_another_input_geometry_is_refused(tmp_path):
                                          r"with, and this config differs \(data\.crop_top was 0\.0, now 0\.4\); .*"
                                          rf"task\.init_from={path}"):
         train(_config(tmp_path, f"ckpt_path={path}", "data.crop_top=0.4"))
+
+
+# ---------------------------------------------------------------------------------------------- a checkpoint of the other kind
+
+@pytest.fixture(scope="module")
+def vlm_checkpoints(tmp_path_factory):
+    """Checkpoints of two VLM fine-tuning runs as Lightning writes them (the module's state dict and hparams): one
+    tuned from a Hugging Face folder, one from the embedded VLM a run builds into its init/ folder."""
+    import shutil
+
+    from lanevil_train.vlm.tiny import build_tiny_vlm
+    from lanevil_train.vlm.training import VLMFineTuner
+
+    root = tmp_path_factory.mktemp("vlm_runs")
+    hf = build_tiny_vlm("qwen2_vl", root / "tiny-qwen2-vl")
+    embedded = shutil.copytree(hf, root / "run" / "init")
+    paths = {}
+    for name, model_dir in (("hf", hf), ("embedded", embedded)):
+        module = VLMFineTuner(str(model_dir), lora={"r": 2, "alpha": 4, "dropout": 0.0})
+        paths[name] = root / f"{name}.ckpt"
+        torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams), "global_step": 3},
+                   paths[name])
+    return {"hf": (paths["hf"], hf), "embedded": (paths["embedded"], embedded)}
+
+
+@pytest.mark.parametrize("task, option", [("task=evaluate", "ckpt_path"), ("task=closed_loop", "ckpt_path"),
+                                          ("task=train", "task.init_from")])
+def test_a_vlm_checkpoint_given_to_a_detector_task_names_the_model_it_needs(tmp_path, vlm_checkpoints, task, option):
+    from lanevil_train.tasks.closed_loop import closed_loop
+
+    run = {"task=evaluate": evaluate, "task=closed_loop": closed_loop, "task=train": train}[task]
+    path, model_dir = vlm_checkpoints["hf"]
+    with pytest.raises(CheckpointError) as caught:
+        run(_config(tmp_path, task, f"{option}={path}", "task.cases=1"))
+    assert str(caught.value) == (f"{option}={path}: a VLM's checkpoint (fine-tuned from {model_dir}), not a lane "
+                                 f"detector's; give it with model=vlm/hf model.path={model_dir}")
+    path, model_dir = vlm_checkpoints["embedded"]
+    with pytest.raises(CheckpointError, match=rf"^{option}={path}: a VLM's checkpoint \(fine-tuned from "
+                                              rf"{model_dir}\), not a lane detector's; give it with model=vlm/embedded$"):
+        run(_config(tmp_path, task, f"{option}={path}", "task.cases=1"))
+
+
+def test_a_detector_checkpoint_of_another_family_or_given_to_a_vlm_is_named(tmp_path, vlm_checkpoints):
+    ufld = build_model(model_config(_config(tmp_path, "model=ufld")))
+    path = tmp_path / "ufld.ckpt"
+    torch.save({"state_dict": ufld.state_dict(), "lanevil_model": ufld.build_config}, path)
+    for option in ("task.init_from", "ckpt_path"):
+        with pytest.raises(CheckpointError, match=rf"^{option}={path}: a ufld-resnet18 checkpoint, and this run builds "
+                                                  r"laneatt-resnet18; use model=ufld backbone=resnet18$"):
+            train(_config(tmp_path, f"{option}={path}"))
+    _, model_dir = vlm_checkpoints["hf"]
+    for task in ("task=evaluate", "task=train"):
+        with pytest.raises(CheckpointError, match=rf"^ckpt_path={path}: a lane detector's checkpoint \(ufld-resnet18\), "
+                                                  r"not a VLM's; drop model=vlm/\.\.\.: detector tasks rebuild "
+                                                  r"model=ufld backbone=resnet18 from it$"):
+            (evaluate if task == "task=evaluate" else train)(composed(
+                [task, "model=vlm/hf", f"model.path={model_dir}", f"ckpt_path={path}", "data.train.num_cases=1",
+                 "task.cases=1", "logger=none", f"output_dir={tmp_path / 'run'}"]))
