@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 
-def prefixed(error: BaseException, prefix: str) -> Exception:
-    """`error` re-made as "<prefix>: <message>": of the same type where that type takes one message, else of the
+def prefixed(error: BaseException, prefix: str, sep: str = ": ") -> Exception:
+    """`error` re-made as "<prefix><sep><message>": of the same type where that type takes one message, else of the
     first of FileNotFoundError, ValueError, TypeError it is, else a RuntimeError. Raise it `from` the original."""
-    message = f"{prefix}: {error}"
+    message = f"{prefix}{sep}{error}"
     bases = [kind for kind in (FileNotFoundError, ValueError, TypeError) if isinstance(error, kind)][:1]
     for kind in (type(error), *bases):
         try:

@@ -40,7 +40,8 @@ def instantiate_at(node, key: str, **kwargs):
     """instantiate(node, **kwargs), where any error names the config key `key` the node came from.
 
     Hydra wraps a constructor's error in its own exception; the user gets the constructor's message prefixed
-    with the key instead (e.g. "defense.callback: beta must be in [0, 1], got 2.0"), of the original's type
+    with the key instead (e.g. "defense.callback: beta must be in [0, 1], got 2.0", or "model.api_key_env: ..."
+    when the message starts with one of the node's own keys), of the original's type
     where it can be (errors.prefixed). An empty dataset names the argument to change too:
     "data.test.label_files: the test split is empty: ...".
     """
@@ -54,6 +55,9 @@ def instantiate_at(node, key: str, **kwargs):
                                   cause.argument) from None
         if str(cause).startswith(key):  # the message names the key already (e.g. backbone.checkpoint=...)
             raise cause from None
+        argument = str(cause).split(":", 1)[0]
+        if OmegaConf.is_dict(node) and argument in node:  # "api_key_env: ..." -> "model.api_key_env: ..."
+            raise prefixed(cause, key, sep=".") from cause
         raise prefixed(cause, key) from cause
 
 

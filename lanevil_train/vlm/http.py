@@ -46,6 +46,30 @@ def _server_message(response: httpx.Response) -> str:
     return str(body)[:500]
 
 
+def api_key_problem(api_key_env) -> str | None:
+    """Why `api_key_env` cannot give an API key (None: it can, or it is None and no key is wanted): not the name of
+    an environment variable, or a variable that is not set or empty."""
+    if api_key_env is None:
+        return None
+    if not isinstance(api_key_env, str) or not api_key_env:
+        return f"expected the name of an environment variable holding the API key (or null), got {api_key_env!r}"
+    if os.environ.get(api_key_env):
+        return None
+    state = "is empty" if api_key_env in os.environ else "is not set"
+    return (f"the environment variable {api_key_env} {state}; export {api_key_env}=<the key>, or set api_key_env "
+            f"to null for a server that takes no key")
+
+
+def api_key(api_key_env: str | None) -> str | None:
+    """The API key held by the environment variable `api_key_env`, or None when `api_key_env` is None (no key sent);
+    a variable that is not set is a ValueError naming it, so a run that needs a key stops before its first request
+    instead of getting the server's 401."""
+    problem = api_key_problem(api_key_env)
+    if problem is not None:
+        raise ValueError(f"api_key_env: {problem}")
+    return os.environ[api_key_env] if api_key_env is not None else None
+
+
 def retry_after_seconds(response: httpx.Response) -> float | None:
     """The Retry-After header in seconds (a number or an HTTP date), None when absent or unreadable."""
     value = response.headers.get("retry-after")
@@ -86,11 +110,11 @@ class ChatClient:
     """POSTs chat-completions bodies to `base_url` + /chat/completions with retries; thread-safe.
 
     base_url: e.g. http://host:8000/v1; api_key_env: the environment variable holding the API key (sent as a Bearer
-    token; unset is fine for a local server without auth); backoff_s: the first retry's mean wait, doubled each
+    token; it must be set), or None for a server without auth; backoff_s: the first retry's mean wait, doubled each
     retry up to backoff_max_s; seed: the jitter's random seed.
     """
 
-    def __init__(self, base_url: str, api_key_env: str | None = "OPENAI_API_KEY", concurrency: int = 8,
+    def __init__(self, base_url: str, api_key_env: str | None = None, concurrency: int = 8,
                  max_retries: int = 5, timeout_s: float = 120.0, backoff_s: float = 1.0,
                  backoff_max_s: float = 60.0, seed: int = 0):
         if not isinstance(base_url, str) or not base_url.startswith(("http://", "https://")):
@@ -106,8 +130,8 @@ class ChatClient:
         self.concurrency, self.max_retries = concurrency, max_retries
         self.backoff_s, self.backoff_max_s = float(backoff_s), float(backoff_max_s)
         headers = {"Content-Type": "application/json"}
-        key = os.environ.get(api_key_env) if api_key_env else None
-        if key:
+        key = api_key(api_key_env)
+        if key is not None:
             headers["Authorization"] = f"Bearer {key}"
         self._http = httpx.Client(headers=headers, timeout=httpx.Timeout(float(timeout_s)),
                                   limits=httpx.Limits(max_connections=concurrency,

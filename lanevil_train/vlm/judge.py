@@ -81,14 +81,15 @@ class Judge(ABC):
 class OpenAIJudge(Judge):
     """The GPT score: DriveLM's rubric through an OpenAI-compatible chat endpoint, with a reply cache.
 
-    cache_path: a JSON-lines file of verdicts (None: in memory only); parse_attempts: requests per item before a
+    api_key_env: the environment variable holding the API key (it must be set; None: no key); cache_path: a
+    JSON-lines file of verdicts (None: in memory only); parse_attempts: requests per item before a
     reply that is not a number in 0..100 leaves it unscored; rescore_unscored: ask again for items a previous run
     left unscored (by default they are cached as unscored too, so a rerun sends nothing).
     """
 
     score_name = "GPT_score"
 
-    def __init__(self, base_url: str, model: str, api_key_env: str | None = "OPENAI_API_KEY",
+    def __init__(self, base_url: str, model: str, api_key_env: str | None = None,
                  cache_path: str | Path | None = None, concurrency: int = 8, max_retries: int = 5,
                  temperature: float = 0.6, parse_attempts: int = 3, max_tokens: int = 64,
                  timeout_s: float = 60.0, backoff_s: float = 1.0, rescore_unscored: bool = False):

@@ -67,14 +67,14 @@ class OpenAIVLM(VLM):
     """A VLM behind an OpenAI-compatible chat-completions endpoint.
 
     base_url: the API root (http://host:8000/v1); name: the served model name; api_key_env: the environment
-    variable with the key (unset is fine without auth); concurrency: requests in flight; max_retries, timeout_s,
-    backoff_s: see ChatClient; max_new_tokens, temperature: generation (greedy by default); image_format: "png"
-    (lossless) or "jpeg" (smaller, jpeg_quality); system_prompt: a system message before the user's; label: the
-    model's name in tables (default: name); batch_size: pairs handed over at once by the evaluation (default
-    4 x concurrency, so the pool stays busy).
+    variable with the key (it must be set; None: no key, a server without auth); concurrency: requests in flight;
+    max_retries, timeout_s, backoff_s: see ChatClient; max_new_tokens, temperature: generation (greedy by default);
+    image_format: "png" (lossless) or "jpeg" (smaller, jpeg_quality); system_prompt: a system message before the
+    user's; label: the model's name in tables (default: name); batch_size: pairs handed over at once by the
+    evaluation (default 4 x concurrency, so the pool stays busy).
     """
 
-    def __init__(self, base_url: str, name: str, api_key_env: str | None = "OPENAI_API_KEY", concurrency: int = 8,
+    def __init__(self, base_url: str, name: str, api_key_env: str | None = None, concurrency: int = 8,
                  max_retries: int = 5, timeout_s: float = 120.0, max_new_tokens: int = 128,
                  temperature: float = 0.0, image_format: str = "png", jpeg_quality: int = 90,
                  system_prompt: str | None = None, label: str | None = None, backoff_s: float = 1.0,

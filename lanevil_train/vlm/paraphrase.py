@@ -75,11 +75,12 @@ def rejection(original: str, paraphrase: str, max_ratio: float) -> str | None:
 class OpenAIParaphraser:
     """Callable list[str] -> list[str]: each question (or open answer) reworded through an OpenAI-compatible endpoint, or kept.
 
-    max_ratio: a paraphrase longer than max_ratio x the original (+20 characters) is refused; cache_path: a
+    api_key_env: the environment variable holding the API key (it must be set; None: no key); max_ratio: a
+    paraphrase longer than max_ratio x the original (+20 characters) is refused; cache_path: a
     JSON-lines cache of replies (None: in memory). `last_summary` counts kept rewrites and refusals by reason.
     """
 
-    def __init__(self, base_url: str, model: str, api_key_env: str | None = "OPENAI_API_KEY",
+    def __init__(self, base_url: str, model: str, api_key_env: str | None = None,
                  concurrency: int = 8, max_retries: int = 5, timeout_s: float = 60.0, temperature: float = 0.7,
                  max_tokens: int = 128, max_ratio: float = 2.0, cache_path: str | Path | None = None,
                  backoff_s: float = 1.0):

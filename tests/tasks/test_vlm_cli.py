@@ -5,6 +5,7 @@ resumed, and reported together with task=report."""
 from __future__ import annotations
 
 import json
+import shutil
 
 import pytest
 
@@ -62,9 +63,22 @@ def test_a_server_model_is_evaluated_on_a_built_suite_judged_and_reported_with_t
     with FakeServer() as vlm_server, FakeServer("--mode", "judge") as judge_server:
         run_cli(["task=evaluate", "model=vlm/openai", f"model.base_url={vlm_server.url}", "model.name=fake-vlm",
                  f"task.suite={suite}", "judge=openai", f"judge.base_url={judge_server.url}",
-                 "judge.model=fake-judge", f"task.out_dir={out}", *CLIPS], tmp_path / "eval")
+                 "judge.model=fake-judge", "judge.api_key_env=null", f"task.out_dir={out}", *CLIPS], tmp_path / "eval")
         assert vlm_server.stats()["chat_requests"] == ANSWERS
         judged = judge_server.stats()["chat_requests"]
+        # a QA line whose base clip is a typo: the suite is refused before any question is asked
+        broken = shutil.copytree(suite, tmp_path / "broken")
+        lines = (broken / "qa.jsonl").read_text().splitlines()
+        typo = {**json.loads(lines[2]), "base_clip_id": "clip-1000000-befor"}
+        (broken / "qa.jsonl").write_text("\n".join([*lines[:2], json.dumps(typo), *lines[3:]]) + "\n")
+        with pytest.raises(ValueError, match=rf"^task.suite={broken}: {broken / 'qa.jsonl'}:3: base_clip_id "
+                                             rf"'clip-1000000-befor' names no clip of {broken / 'clips.jsonl'}, so QA "
+                                             r"'clip-1000000-before-q2' would never be asked; nearest base clip ids: "
+                                             r"clip-1000000-before, "):
+            run_in_process(["task=evaluate", "model=vlm/openai", f"model.base_url={vlm_server.url}",
+                            "model.name=fake-vlm", f"task.suite={broken}", "judge=none",
+                            f"task.out_dir={tmp_path / 'broken-eval'}", *CLIPS], tmp_path / "eval-broken")
+        assert vlm_server.stats()["chat_requests"] == ANSWERS
     records = ResultsLog(out / "per_answer.jsonl").records()
     assert len(records) == ANSWERS and all(0 <= r["gpt_score"] <= 100 and r["judge"] == "fake-judge" for r in records)
     assert all(r["answer"].startswith("answer: ") and "images=6 size=80x48" in r["answer"] for r in records)
@@ -74,6 +88,16 @@ def test_a_server_model_is_evaluated_on_a_built_suite_judged_and_reported_with_t
     scores = json.loads((out / "test_scores.json").read_text())
     assert {"GPT_score", "Language", "BLEU_4", "CIDEr"} <= set(scores[0])
     assert [(row["answers_kind"], row["answers"]) for row in scores] == [("original", 15), ("perturbed", 15)]
+
+    truncated = shutil.copytree(tiny_model, tmp_path / "truncated-model")
+    weights = truncated / "model.safetensors"
+    size = weights.stat().st_size
+    weights.write_bytes(weights.read_bytes()[:size // 3])  # a download that stopped
+    with pytest.raises(ValueError, match=rf"^model.path {truncated}: model.safetensors is truncated: header says "
+                                         rf"{size} bytes, file has {size // 3} "):
+        run_in_process(["task=evaluate", "model=vlm/hf", f"model.path={truncated}", f"task.suite={suite}",
+                        "judge=none", f"task.out_dir={tmp_path / 'truncated-eval'}", *CLIPS], tmp_path / "eval-cut")
+    assert not (tmp_path / "truncated-eval" / "answers.jsonl").exists()
 
     hf = tmp_path / "hf"
     run_cli(["task=evaluate", "model=vlm/hf", f"model.path={tiny_model}", "model.max_new_tokens=4",

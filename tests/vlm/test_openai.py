@@ -9,6 +9,7 @@ import pytest
 from lanevil_train.results_log import ResultsLog
 from lanevil_train.vlm.fake_server import FakeServer
 from lanevil_train.vlm.http import EndpointError, reply_text
+from lanevil_train.vlm.judge import OpenAIJudge
 from lanevil_train.vlm.openai import OpenAIVLM
 
 
@@ -110,9 +111,17 @@ def test_api_key_from_the_named_variable(start_server, monkeypatch):
     clip = make_clip(0)
     assert OpenAIVLM(server.url, "fake-vlm", api_key_env="LANEVIL_TEST_KEY").answer([clip], ["Q?"]) == \
         [expected_answer("Q?", clip)]
-    monkeypatch.delenv("LANEVIL_TEST_KEY")
-    with pytest.raises(EndpointError, match="HTTP 401 .*missing or wrong API key"):
-        OpenAIVLM(server.url, "fake-vlm", api_key_env="LANEVIL_TEST_KEY").answer([clip], ["Q?"])
+    with pytest.raises(EndpointError, match="HTTP 401 .*missing or wrong API key"):  # no key: the server refuses
+        OpenAIVLM(server.url, "fake-vlm").answer([clip], ["Q?"])
+    asked = server.stats()["chat_requests"]
+    monkeypatch.delenv("LANEVIL_TEST_KEY")  # a key named but not set: said before any request, not as the 401
+    with pytest.raises(ValueError, match=r"^api_key_env: the environment variable LANEVIL_TEST_KEY is not set; "
+                                         r"export LANEVIL_TEST_KEY=<the key>, or set api_key_env to null"):
+        OpenAIVLM(server.url, "fake-vlm", api_key_env="LANEVIL_TEST_KEY")
+    monkeypatch.setenv("LANEVIL_TEST_KEY", "")
+    with pytest.raises(ValueError, match=r"^api_key_env: the environment variable LANEVIL_TEST_KEY is empty"):
+        OpenAIJudge(server.url, "fake-judge", api_key_env="LANEVIL_TEST_KEY")
+    assert server.stats()["chat_requests"] == asked
 
 
 def run_logged(vlm, clips, questions, log: ResultsLog, stop_after: int | None = None) -> int:
