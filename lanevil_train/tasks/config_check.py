@@ -133,6 +133,13 @@ def text() -> Rule:
     return Rule("a non-empty string", lambda v: _ok(isinstance(v, str) and v != ""))
 
 
+def api_key_variable() -> Rule:
+    """null (no key) or the name of a set environment variable (vlm/http.py says what is wrong otherwise)."""
+    from lanevil_train.vlm.http import api_key_problem
+
+    return Rule("null (no key sent) or the name of a set environment variable holding the API key", api_key_problem)
+
+
 def one_of(*choices: str) -> Rule:
     return Rule(f"one of {', '.join(choices)}", lambda v: _ok(isinstance(v, str) and v in choices))
 
@@ -370,6 +377,7 @@ RULES: dict[str, Rule] = {
     "data.size": int_pair(16),
     "data.per_clip": integer(1),
     "data.paraphrase": null_or(target_node()),
+    "data.paraphrase.api_key_env": api_key_variable(),
     "data.illusions": illusion_names(),
     "data.severities": int_list(SEVERITIES[0], SEVERITIES[-1]),
     **_for_splits("num_cases", integer(1)),
@@ -523,7 +531,7 @@ RULES: dict[str, Rule] = {
     "model.batch_size": integer(1),
     "model.frames_as": one_of("auto", "images", "video"),
     "model.system_prompt": null_or(text()),
-    "model.api_key_env": text(),
+    "model.api_key_env": api_key_variable(),
     "model.concurrency": integer(1),
     "model.max_retries": integer(0),
     "model.timeout_s": number(0, low_open=True),
@@ -534,7 +542,7 @@ RULES: dict[str, Rule] = {
     # judge (VLM answers)
     "judge.base_url": http_url(),
     "judge.model": text(),
-    "judge.api_key_env": text(),
+    "judge.api_key_env": api_key_variable(),
     "judge.cache_path": null_or(text()),
     "judge.concurrency": integer(1),
     "judge.max_retries": integer(0),
@@ -794,9 +802,8 @@ def check_vlm_task(cfg: DictConfig) -> list[str]:
                 f"trained here; fine-tune a local one (model=vlm/hf model.path=DIR, or model=vlm/embedded)"]
     embedded = _get(cfg, "model.embedded") not in (None, _ABSENT)
     if task in ("train", "compare") and _get(cfg, "data.name") != "clips":
-        hint = ("for model=vlm/embedded: data=clips data.size=[64,112], its frame size; or experiment=vlm_quickstart"
-                if embedded else "")
-        return [_problem("data", "clips (a VLM trains on the clip suite's QA)", _get(cfg, "data.name"), hint)]
+        return [_problem("data", "clips (a VLM trains on the clip suite's QA)", _get(cfg, "data.name"),
+                         "model=vlm/<backend> selects data=clips unless another data= is given: drop it")]
     if task == "evaluate" and _get(cfg, "model.path") is None and _get(cfg, "ckpt_path") is None:
         what = "model=vlm/embedded is trained here" if embedded else "the model is loaded from a folder"
         return [f"model.path: {what}: give ckpt_path=<a task=train run's checkpoint> or model.path=<a saved "

@@ -4,7 +4,7 @@ suffix tuned at the same time; Self-Reminder (defense=self_reminder) wraps every
 no training. defense=mida fine-tunes with AAM++ on the frames first (tasks/vlm_train.py), then tunes PAT++ for the
 fine-tuned model.
 
-    python -m lanevil_train task=train model=vlm/hf model.path=RUN/model data=clips data.size=[64,112] defense=pat++
+    python -m lanevil_train task=train model=vlm/hf model.path=RUN/model data.size=[64,112] defense=pat++
     python -m lanevil_train task=evaluate model=vlm/hf model.path=RUN/model defense=pat++ \\
         defense.prefix_path=PAT_RUN/prefix.json task.suite=synthetic
     python -m lanevil_train task=evaluate model=vlm/hf model.path=RUN/model defense=self_reminder task.suite=synthetic

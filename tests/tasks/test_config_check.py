@@ -66,10 +66,10 @@ def needs(group: str, option: str, files: Path) -> list[str]:
     if group == "model" and option == "vlm/hf":
         return ["task=evaluate", f"model.path={files / 'dataset'}"]
     if group == "model" and option == "vlm/embedded":
-        return ["data=clips"]  # task=train (the default) builds and trains it on the clip suite
+        return []  # task=train (the default) builds and trains it on the clip suite, which it selects
     if group == "model" and option == "vlm/openai":
         return ["task=evaluate", "model.base_url=http://127.0.0.1:8000/v1", "model.name=some-vlm"]
-    if group == "judge" and option == "openai":
+    if group == "judge" and option == "openai":  # and an API key in OPENAI_API_KEY (the test sets one)
         return ["judge.base_url=http://127.0.0.1:8000/v1", "judge.model=some-llm"]
     return []
 
@@ -81,7 +81,8 @@ def test_every_group_has_shipped_options():
 
 
 @pytest.mark.parametrize("group, option", shipped_options(), ids=lambda value: str(value))
-def test_every_shipped_option_passes(group, option, files):
+def test_every_shipped_option_passes(group, option, files, monkeypatch):
+    monkeypatch.setenv("OPENAI_API_KEY", "a-key")
     assert problems(f"{group}={option}", *needs(group, option, files)) == []
 
 
@@ -214,11 +215,9 @@ BAD = [
      "here; fine-tune a local one"),
     (["task=build", "model=vlm/openai", "model.base_url=http://h/v1", "model.name=m"],
      "task: task=build with a VLM (model=lanevil_train.vlm.openai.OpenAIVLM) is not available"),
-    (["task=train", "model=vlm/hf", "model.path=/tmp"],
-     "data: expected clips (a VLM trains on the clip suite's QA), got 'synthetic'"),
-    (["task=train", "model=vlm/embedded"],
-     "data: expected clips (a VLM trains on the clip suite's QA), got 'synthetic' (for model=vlm/embedded: data=clips "
-     "data.size=[64,112], its frame size; or experiment=vlm_quickstart)"),
+    (["task=train", "model=vlm/hf", "model.path=/tmp", "data=synthetic"],
+     "data: expected clips (a VLM trains on the clip suite's QA), got 'synthetic' (model=vlm/<backend> selects "
+     "data=clips unless another data= is given: drop it)"),
     (["task=evaluate", "model=vlm/hf", "model.path=null"],
      "model.path: the model is loaded from a folder: give ckpt_path=<a task=train run's checkpoint> or model.path="),
     (["task=train", "data=clips", "model=vlm/hf", "model.path=/tmp", "model.lora.r=0"],
@@ -228,9 +227,19 @@ BAD = [
     (["task=evaluate", "model=vlm/openai", "model.base_url=http://h/v1", "model.name=m", "+model.top_p=0.9"],
      "model.top_p: not a parameter of lanevil_train.vlm.openai.OpenAIVLM; it accepts base_url"),
     (["task=evaluate", "model=vlm/openai", "model.base_url=http://h/v1", "model.name=m", "judge=openai",
-      "judge.model=gpt-4o-mini"],
+      "judge.model=gpt-4o-mini", "judge.api_key_env=null"],
      "judge.base_url: is not set (??? in the config); set it to an http(s) URL, e.g. http://127.0.0.1:8000/v1: "
      "judge.base_url=..."),
+    # an API key variable that is not set: named before the first request (and before any other work)
+    (["task=evaluate", "model=vlm/openai", "model.base_url=http://h/v1", "model.name=m",
+      "model.api_key_env=LANEVIL_UNSET_TEST_KEY"],
+     "model.api_key_env: expected null (no key sent) or the name of a set environment variable holding the API key, "
+     "got 'LANEVIL_UNSET_TEST_KEY' (the environment variable LANEVIL_UNSET_TEST_KEY is not set; export "
+     "LANEVIL_UNSET_TEST_KEY=<the key>, or set api_key_env to null for a server that takes no key)"),
+    (["task=evaluate", "model=vlm/openai", "model.base_url=http://h/v1", "model.name=m", "judge=openai",
+      "judge.base_url=http://h/v1", "judge.model=j", "judge.api_key_env=LANEVIL_UNSET_TEST_KEY"],
+     "judge.api_key_env: expected null (no key sent) or the name of a set environment variable holding the API key, "
+     "got 'LANEVIL_UNSET_TEST_KEY' (the environment variable LANEVIL_UNSET_TEST_KEY is not set"),
     # backbone
     (["backbone.name=resnet9"], "backbone.name: expected a timm model name (resnet18, resnet34, resnet50, resnet101, "
      "vgg16, ...), got 'resnet9'"),

@@ -12,7 +12,8 @@ from lanevil_train.results_log import ResultsLog
 from lanevil_train.vlm.tiny import build_tiny_vlm
 from tests.tasks.cli_helpers import run_cli, run_in_process
 
-TINY_CLIPS = ["data=clips", "data.size=[32,48]", "data.train.num_cases=2", "data.val.num_cases=1",
+# model=vlm/<backend> selects data=clips itself: the commands below are the natural forms, with tiny sizes
+TINY_CLIPS = ["data.size=[32,48]", "data.train.num_cases=2", "data.val.num_cases=1",
               "data.batch_size=2", "data.illusions=[road_repair]", "data.severities=[3]", "trainer=cpu",
               "trainer.max_steps=3", "trainer.max_epochs=-1", "trainer.log_every_n_steps=1", "judge=none",
               "task.cases=1", "task.illusions=[road_repair]", "task.severities=[3]", "progress=plain"]
@@ -29,7 +30,7 @@ def tiny_model(tmp_path_factory):
 def test_lora_fine_tuning_saves_an_adapter_tests_it_and_evaluates_it_again(tiny_model, tmp_path):
     run = tmp_path / "train"
     run_cli(["task=train", "model=vlm/hf", f"model.path={tiny_model}", "model.max_new_tokens=4", "model.lora.r=4",
-             "+trainer.val_check_interval=3", "trainer.limit_val_batches=2", *TINY_CLIPS], run)
+             "+trainer.val_check_interval=3", "trainer.limit_val_batches=2", "data=clips", *TINY_CLIPS], run)
     adapter = run / "model"
     assert (adapter / "adapter_config.json").is_file() and (run / "checkpoints" / "last.ckpt").is_file()
     metrics = (run / "csv" / "metrics.csv").read_text()
