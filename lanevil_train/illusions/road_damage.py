@@ -395,22 +395,24 @@ def _draw_rail(out: np.ndarray, ctx: IllusionContext, p: dict, d_rail: float, si
     items = [(float(z), "post") for z in posts] + [(float(z), "beam") for z in zs[:-1]]
     items.sort(key=lambda it: -it[0])
     seg = {float(z): i for i, z in enumerate(zs[:-1])}
+    quads = []  # (d pair, z pair, lift pair, shade, the item's z), in painting order
     for z, kind in items:
         if kind == "post":
-            quads = [((d_rail - 0.08, d_rail + 0.08), (z, z), (0.0, p["post_height_m"]), 0.45)]
+            quads.append(((d_rail - 0.08, d_rail + 0.08), (z, z), (0.0, p["post_height_m"]), 0.45, z))
         else:
             i = seg[z]
-            quads = [((d_beam, d_beam), (zs[i], zs[i + 1]), (lo_y, hi_y), shade) for lo_y, hi_y, shade in bands]
-        for (da, db), (za, zb), (ya, yb), shade in quads:
-            corners = draw.road_points(ctx, np.array([da, db, db, da]), np.array([za, zb, zb, za]),
-                                       lift=np.array([ya, ya, yb, yb]))
-            pix, depth = draw.project(ctx, corners)
-            if np.any(depth <= draw.NEAR_Z) or not np.all(np.isfinite(pix)):
-                continue
-            g = grime[int(z * 7.0) % len(grime)]
-            color = np.clip(steel * shade * light * g, 0, 255)
-            pts = np.round(pix * (1 << _SHIFT)).astype(np.int32)
-            cv2.fillPoly(out, [pts], color.tolist(), _AA, _SHIFT)
+            quads += [((d_beam, d_beam), (zs[i], zs[i + 1]), (lo_y, hi_y), shade, z) for lo_y, hi_y, shade in bands]
+    # every quad's 4 corners (d: a b b a, z: a b b a, lift: a a b b) projected at once, then filled one by one
+    d, z, lift = (np.array([[a, b, b, a] if k < 2 else [a, a, b, b] for a, b in (q[k] for q in quads)])
+                  for k in range(3))
+    pixels, depths = draw.project(ctx, draw.road_points(ctx, d, z, lift=lift))
+    for (_, _, _, shade, z), pix, depth in zip(quads, pixels, depths):
+        if np.any(depth <= draw.NEAR_Z) or not np.all(np.isfinite(pix)):
+            continue
+        g = grime[int(z * 7.0) % len(grime)]
+        color = np.clip(steel * shade * light * g, 0, 255)
+        pts = np.round(pix * (1 << _SHIFT)).astype(np.int32)
+        cv2.fillPoly(out, [pts], color.tolist(), _AA, _SHIFT)
 
 
 RENDERERS: dict[str, Callable] = {
