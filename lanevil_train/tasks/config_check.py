@@ -518,6 +518,7 @@ RULES: dict[str, Rule] = {
     "model.fine_tune.train_eos": boolean(),
     "model.fine_tune.variants": one_of("all", "clean"),
     "model.fine_tune.aids": integer(0),
+    "model.embedded.workers": any_of(one_of("auto"), integer(0)),
     "model.embedded.vision_pretraining": null_or(mapping_of(("steps", "clips", "batch", "lr", "mirror"))),
     "model.embedded.vision_pretraining.steps": integer(0),
     "model.embedded.vision_pretraining.clips": integer(1),

@@ -50,18 +50,20 @@ def base_model_dir(cfg: DictConfig, train_set, out: Path) -> Path:
 
     init = out / EMBEDDED_BASE_FOLDER
     if not (init / "config.json").is_file():
+        settings = OmegaConf.to_container(cfg.model.embedded, resolve=True)
+        pretraining = settings.get("vision_pretraining") or {"steps": 0}
         all_bases = list(dict.fromkeys(train_set.clip_meta(i)["base_clip_id"] for i in range(len(train_set))))
         bases = spread(all_bases, TOKENIZER_CLIPS)  # the templates' words: a spread sample is enough
+        scenes = spread(all_bases, pretraining["clips"]) if pretraining["steps"] else []
+        rendered = prepare_clips(train_set, bases, scenes, render_workers(settings.get("workers", "auto")),
+                                 cfg.progress)
         qas = [qa for base in bases for qa in train_set.qa_for(base)]
         if cfg.model.fine_tune.get("aids"):  # the training aids it will train on, too
             qas += [aid for base in bases for aid in train_set.training_aids_for(base)]
-        settings = OmegaConf.to_container(cfg.model.embedded, resolve=True)
         model, processor = make_embedded_vlm(qa_corpus(qas), frame_size=tuple(settings["frame_size"]),
                                              seed=settings["seed"], **settings["sizes"])
-        pretraining = settings.get("vision_pretraining") or {"steps": 0}
         if pretraining["steps"]:
-            sample = scene_batches(train_set, spread(all_bases, pretraining["clips"]), pretraining["batch"],
-                                   seed=settings["seed"], progress=cfg.progress)
+            sample = scene_batches(train_set, rendered, pretraining["batch"], seed=settings["seed"])
             pretrain_vision(model, processor, sample, pretraining["steps"], lr=pretraining["lr"],
                             mirror=pretraining.get("mirror", True), seed=settings["seed"], progress=cfg.progress)
         save_model_dir(model, processor, init)
@@ -73,26 +75,41 @@ def spread(items: list, count: int) -> list:
     return items[::max(1, len(items) // count)]
 
 
-def scene_batches(suite, bases: list[str], batch: int, seed: int, progress: str = "auto"):
+def render_workers(workers: int | str) -> int:
+    """model.embedded.workers (checked with the config) as a process count: auto is one per CPU core this process
+    may use, at most 8 (each worker starts a Python with torch, and the work is about a thousand clips)."""
+    import os
+
+    if workers != "auto":
+        return int(workers)
+    return min(8, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
+
+
+def prepare_clips(train_set, bases: list[str], scenes: list[str], workers: int, progress: str = "auto") -> dict:
+    """The truth of the train split's base clips `bases` (the tokenizer's corpus) and `scenes` (the vision
+    pretraining's), and the frames of every variant of `scenes`, computed in `workers` processes:
+    {scene base clip id: its variants' frames} (SyntheticClipSuite.prepare). A split on disk has no truth: its QA is
+    read as it is, and vision pretraining is refused naming the setting."""
+    if not hasattr(train_set, "prepare"):
+        if scenes:
+            raise ValueError(f"model.embedded.vision_pretraining: the vision tower learns from the scene truth, which "
+                             f"{type(train_set).__name__} does not keep; train on a synthetic split (data=clips) or "
+                             f"set model.embedded.vision_pretraining.steps=0")
+        return {}
+    return train_set.prepare(list(dict.fromkeys([*bases, *scenes])), render=scenes, workers=workers,
+                             progress=progress)
+
+
+def scene_batches(suite, rendered: dict, batch: int, seed: int):
     """`sample_batch(step) -> (clips, scene classes)` for embedded.pretrain_vision: every variant of the base clips
-    `bases` of a synthetic suite, rendered once (a progress bar) and kept in memory, drawn at random."""
+    `rendered` holds (prepare_clips'), with its base clip's scene classes, kept in memory and drawn at random."""
     import numpy as np
 
-    from lanevil_train.progress import progress_counter
-
-    if not hasattr(suite, "scene_classes_for"):
-        raise ValueError(f"model.embedded.vision_pretraining: the vision tower learns from the scene truth, which "
-                         f"{type(suite).__name__} does not keep; train on a synthetic split (data=clips) or set "
-                         f"model.embedded.vision_pretraining.steps=0")
-    wanted = set(bases)
-    indices = [i for i in range(len(suite)) if suite.clip_meta(i)["base_clip_id"] in wanted]
     clips, classes = [], []
-    bar = progress_counter(len(indices), desc="clips for vision pretraining", unit="clip", mode=progress)
-    for index in indices:
-        clips.append(np.stack([np.asarray(frame, dtype=np.uint8) for frame in suite[index]["frames"]]))
-        classes.append(suite.scene_classes_for(suite.clip_meta(index)["base_clip_id"]))
-        bar.update(1)
-    bar.close()
+    for base, variants in rendered.items():
+        for frames in variants:
+            clips.append(np.stack([np.asarray(frame, dtype=np.uint8) for frame in frames]))
+            classes.append(suite.scene_classes_for(base))
     rng = np.random.default_rng(seed)
 
     def sample_batch(step: int):

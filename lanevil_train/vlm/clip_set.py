@@ -133,6 +133,13 @@ def render_base_clip(args: tuple) -> tuple[dict, list[dict]]:
     return truth, todo
 
 
+def render_with_truth(args: tuple) -> tuple[dict | None, dict]:
+    """(every variant's frames, or None when `frames` is false; the truth) of one base clip: a worker's job."""
+    case, segment, severities, size, kind, names, frames = args
+    renders = _render(case, segment, severities, tuple(size), kind, names) if frames else None
+    return renders, _geometry().clip_truth(case, segment, size=tuple(size))
+
+
 def _render(case, segment: str, severities: Sequence[int], size: tuple, kind: str,
             names: Sequence[str]) -> dict[tuple, list[np.ndarray]]:
     """{(illusion name or None, severity): 6 frames} of every variant of a base clip, from one render of the scene."""
@@ -437,14 +444,47 @@ class SyntheticClipSuite(Dataset):
     def _facts(self, base_clip_id: str) -> tuple[list[dict], list[dict], list[int], list]:
         """(QA, training aids, scene classes, lanes per frame) of a base clip, from its truth (computed once)."""
         if base_clip_id not in self._qa:
-            if base_clip_id not in self.by_base:
-                raise KeyError(f"no base clip {base_clip_id!r} in this synthetic suite")
-            case, segment = self.by_base[base_clip_id]
-            truth = _geometry().clip_truth(case, segment, size=self.size)
-            self._qa[base_clip_id] = (suite_qa(truth, base_clip_id, case.seed, self.per_clip, self.kind),
-                                      training_aids(truth, base_clip_id), scene_classes(truth, base_clip_id),
-                                      truth["lanes_px"])
+            case, segment = self._base(base_clip_id)
+            self._keep_facts(base_clip_id, _geometry().clip_truth(case, segment, size=self.size))
         return self._qa[base_clip_id]
+
+    def _base(self, base_clip_id: str) -> tuple:
+        if base_clip_id not in self.by_base:
+            raise KeyError(f"no base clip {base_clip_id!r} in this synthetic suite")
+        return self.by_base[base_clip_id]
+
+    def _keep_facts(self, base_clip_id: str, truth: dict) -> None:
+        case, _ = self.by_base[base_clip_id]
+        self._qa[base_clip_id] = (suite_qa(truth, base_clip_id, case.seed, self.per_clip, self.kind),
+                                  training_aids(truth, base_clip_id), scene_classes(truth, base_clip_id),
+                                  truth["lanes_px"])
+
+    def prepare(self, base_clip_ids: Sequence[str], render: Sequence[str] = (), workers: int = 0,
+                progress: str = "auto") -> dict[str, list[list[np.ndarray]]]:
+        """Compute the facts of the base clips `base_clip_ids` (so qa_for, training_aids_for, scene_classes_for and
+        lanes_for compute nothing for them) and render those also in `render`, all in `workers` processes (0: in this
+        one); {base clip id: the frames of each of its variants, in item order}, in `render`'s order. Frames and facts
+        are those __getitem__ and qa_for give: each is a function of its case alone."""
+        for base in base_clip_ids:
+            self._base(base)
+        stray = sorted(set(render) - set(base_clip_ids))
+        if stray:
+            raise ValueError(f"render: expected base clips among base_clip_ids, got {stray[:3]}")
+        variants: dict[str, list[tuple]] = {base: [] for base in render}
+        for _, _, record in self.items:
+            if record["base_clip_id"] in variants:
+                variants[record["base_clip_id"]].append((record["illusion"], record["severity"]))
+        jobs = [(*self.by_base[base], self.severities, self.size, self.kind, self.names, base in variants)
+                for base in base_clip_ids]
+        bar = progress_counter(len(jobs), desc="scene truth and frames", unit="base clip", mode=progress)
+        rendered = {}
+        for base, (renders, truth) in zip(base_clip_ids, map_jobs(render_with_truth, jobs, workers)):
+            self._keep_facts(base, truth)
+            if renders is not None:
+                rendered[base] = [list(renders[key]) for key in variants[base]]
+            bar.update(1)
+        bar.close()
+        return {base: rendered[base] for base in variants}
 
     def __getitem__(self, index: int) -> dict:
         case, segment, record = self.items[index]

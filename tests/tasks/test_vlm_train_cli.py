@@ -78,12 +78,12 @@ def test_scene_batches_draw_rendered_variants_with_their_scene_classes_and_need_
     scene classes; a suite on disk (no truth) is refused naming the setting."""
     import numpy as np
 
-    from lanevil_train.tasks.vlm_train import scene_batches
+    from lanevil_train.tasks.vlm_train import prepare_clips, scene_batches
     from lanevil_train.vlm.clip_set import ClipSetDataset, SyntheticClipSuite, build_clip_set
 
     suite = SyntheticClipSuite(2, 0, ["road_repair"], severities=[3], size=(32, 48))
     bases = [suite.clip_meta(i)["base_clip_id"] for i in range(0, len(suite), 2)]
-    sample = scene_batches(suite, bases[::2], batch=8, seed=0, progress="none")
+    sample = scene_batches(suite, prepare_clips(suite, bases, bases[::2], workers=0, progress="none"), batch=8, seed=0)
     clips, classes = sample(0)
     assert len(clips) == len(classes) == 8 and all(c.shape == (6, 32, 48, 3) and c.dtype == np.uint8 for c in clips)
     by_frames = {suite[i]["frames"][0].tobytes(): suite.scene_classes_for(suite.clip_meta(i)["base_clip_id"])
@@ -91,4 +91,4 @@ def test_scene_batches_draw_rendered_variants_with_their_scene_classes_and_need_
     assert all(by_frames[c[0].tobytes()] == k for c, k in zip(clips, classes))
     build_clip_set(suite.cases[:1], [3], tmp_path / "set", size=(32, 48))
     with pytest.raises(ValueError, match="model.embedded.vision_pretraining: .*ClipSetDataset"):
-        scene_batches(ClipSetDataset(tmp_path / "set"), bases, batch=2, seed=0)
+        prepare_clips(ClipSetDataset(tmp_path / "set"), bases, bases, workers=0)

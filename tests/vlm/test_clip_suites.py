@@ -210,3 +210,23 @@ def test_bad_kinds_names_and_cases_are_named(tmp_path):
     with pytest.raises(ValueError, match=r"names\[0\]: unknown perturbation 'smoke'"):
         render_variants(case, "over", ["smoke"], [1], SIZE)
     assert not (tmp_path / "build.json").exists()
+
+
+def test_prepare_renders_in_worker_processes_what_the_suite_gives_one_by_one():
+    """SyntheticClipSuite.prepare: the facts of every base clip asked and the frames of those to render, from 2
+    spawned processes, equal to what qa_for and __getitem__ compute here, in the order asked."""
+    suite = SyntheticClipSuite(2, 40, ["rail_shadow", "vehicle"], severities=[2, 4], size=(32, 48))
+    bases = list(dict.fromkeys(suite.clip_meta(i)["base_clip_id"] for i in range(len(suite))))
+    rendered = suite.prepare(bases[1:], render=[bases[4], bases[2]], workers=2, progress="none")
+    assert list(rendered) == [bases[4], bases[2]] and set(suite._qa) == set(bases[1:])
+    fresh = SyntheticClipSuite(2, 40, ["rail_shadow", "vehicle"], severities=[2, 4], size=(32, 48))
+    for base in bases[1:]:
+        assert suite.qa_for(base) == fresh.qa_for(base) and suite.lanes_for(base) == fresh.lanes_for(base)
+        assert suite.scene_classes_for(base) == fresh.scene_classes_for(base)
+    for base, variants in rendered.items():
+        items = [i for i in range(len(fresh)) if fresh.clip_meta(i)["base_clip_id"] == base]
+        assert len(variants) == len(items) == 3  # clean, severity 2, severity 4
+        for frames, index in zip(variants, items):
+            assert all(np.array_equal(a, b) for a, b in zip(frames, fresh[index]["frames"]))
+    with pytest.raises(ValueError, match=r"render: expected base clips among base_clip_ids, got \['clip-40-before'\]"):
+        suite.prepare(bases[1:], render=[bases[0]])
