@@ -135,3 +135,20 @@ def test_multirun_sweep_writes_one_run_per_value_and_one_report(tmp_path):
         own = json.loads((sweep / job / "test_scores.json").read_text())[0]
         assert {k: report[own["model"]][k] for k in ("Accuracy", "F1", "images")} == \
                {k: own[k] for k in ("Accuracy", "F1", "images")}
+
+
+@pytest.mark.parametrize("exported, expected", [(None, "1000"), ("7", "7")])
+def test_the_command_line_shortens_openmp_spinning_before_torch_loads_unless_the_user_set_it(exported, expected):
+    """libgomp reads GOMP_SPINCOUNT when torch loads it: the command line sets 1,000 spins first (a CPU run on a busy
+    machine otherwise goes about 3x slower), and leaves a value the user exported alone."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "GOMP_SPINCOUNT"}
+    if exported is not None:
+        env["GOMP_SPINCOUNT"] = exported
+    script = ("import os, sys; import lanevil_train.__main__; "
+              "print('torch' in sys.modules, os.environ['GOMP_SPINCOUNT'])")
+    out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["False", expected]  # set while torch is not loaded yet: libgomp will read it
