@@ -104,6 +104,16 @@ def detector_name(checkpoint: dict) -> tuple[str, str] | None:
         return None
 
 
+def _model_type(model_dir: str) -> str:
+    """The family (model_type) in a VLM folder's config.json, or "a model" when it cannot be read."""
+    import json
+
+    try:
+        return str(json.loads((Path(model_dir) / "config.json").read_text())["model_type"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return "a model"
+
+
 def vlm_model_option(model_dir: str) -> str:
     """The `model=` a VLM checkpoint is used with: the embedded VLM's runs, or the Hugging Face folder it was tuned
     from."""
@@ -118,8 +128,8 @@ def check_detector_checkpoint(checkpoint: dict, where: str, spec: dict | None = 
     model= it needs (rather than counting weights that cannot fit)."""
     model_dir = vlm_base_model(checkpoint)
     if model_dir is not None:
-        raise CheckpointError(f"{where}: a VLM's checkpoint (fine-tuned from {model_dir}), not a lane detector's; "
-                              f"give it with {vlm_model_option(model_dir)}")
+        raise CheckpointError(f"{where}: a VLM's checkpoint ({_model_type(model_dir)} fine-tuned from {model_dir}), "
+                              f"not a lane detector's; give it with {vlm_model_option(model_dir)}")
     saved = detector_name(checkpoint)
     wanted = (str(spec["model"]["name"]), str(spec["backbone"]["name"])) if spec else None
     if saved is not None and wanted is not None and saved != wanted:

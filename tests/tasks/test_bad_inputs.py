@@ -221,10 +221,10 @@ def test_a_vlm_checkpoint_given_to_a_detector_task_names_the_model_it_needs(tmp_
     path, model_dir = vlm_checkpoints["hf"]
     with pytest.raises(CheckpointError) as caught:
         run(_config(tmp_path, task, f"{option}={path}", "task.cases=1"))
-    assert str(caught.value) == (f"{option}={path}: a VLM's checkpoint (fine-tuned from {model_dir}), not a lane "
-                                 f"detector's; give it with model=vlm/hf model.path={model_dir}")
+    assert str(caught.value) == (f"{option}={path}: a VLM's checkpoint (qwen2_vl fine-tuned from {model_dir}), not "
+                                 f"a lane detector's; give it with model=vlm/hf model.path={model_dir}")
     path, model_dir = vlm_checkpoints["embedded"]
-    with pytest.raises(CheckpointError, match=rf"^{option}={path}: a VLM's checkpoint \(fine-tuned from "
+    with pytest.raises(CheckpointError, match=rf"^{option}={path}: a VLM's checkpoint \(qwen2_vl fine-tuned from "
                                               rf"{model_dir}\), not a lane detector's; give it with model=vlm/embedded$"):
         run(_config(tmp_path, task, f"{option}={path}", "task.cases=1"))
 
