@@ -117,13 +117,18 @@ def _write_frame(path: Path, frame: np.ndarray) -> None:
     atomic_write_bytes(path, encoded.tobytes())
 
 
+def render_with_truth(args: tuple) -> tuple[dict | None, dict]:
+    """(every variant's frames, or None when `frames` is false; the truth) of one base clip: a worker's job."""
+    case, segment, severities, size, kind, names, frames = args
+    renders = _render(case, segment, severities, tuple(size), kind, names) if frames else None
+    return renders, _geometry().clip_truth(case, segment, size=tuple(size))
+
+
 def render_base_clip(args: tuple) -> tuple[dict, list[dict]]:
     """Render one base clip's variants, write the frames of those not yet done; (truth, their records)."""
     case, segment, severities, size, root, done, kind, names = args
-    geometry = _geometry()
     todo = [r for r in variant_records(case, segment, severities, kind, names) if r["clip_id"] not in done]
-    truth = geometry.clip_truth(case, segment, size=tuple(size))
-    clips = _render(case, segment, severities, tuple(size), kind, names) if todo else {}
+    clips, truth = render_with_truth((case, segment, severities, size, kind, names, bool(todo)))
     for record in todo:
         frames = clips[(record["illusion"], record["severity"])]
         if len(frames) != 6:
@@ -131,13 +136,6 @@ def render_base_clip(args: tuple) -> tuple[dict, list[dict]]:
         for path, frame in zip(record["frames"], frames):
             _write_frame(Path(root) / path, frame)
     return truth, todo
-
-
-def render_with_truth(args: tuple) -> tuple[dict | None, dict]:
-    """(every variant's frames, or None when `frames` is false; the truth) of one base clip: a worker's job."""
-    case, segment, severities, size, kind, names, frames = args
-    renders = _render(case, segment, severities, tuple(size), kind, names) if frames else None
-    return renders, _geometry().clip_truth(case, segment, size=tuple(size))
 
 
 def _render(case, segment: str, severities: Sequence[int], size: tuple, kind: str,
