@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 
 import pytorch_lightning as pl
@@ -56,7 +57,7 @@ def instantiate_at(node, key: str, **kwargs):
         if str(cause).startswith(key):  # the message names the key already (e.g. backbone.checkpoint=...)
             raise cause from None
         argument = str(cause).split(":", 1)[0]
-        if OmegaConf.is_dict(node) and argument in node:  # "api_key_env: ..." -> "model.api_key_env: ..."
+        if isinstance(node, Mapping) and argument in node:  # "api_key_env: ..." -> "model.api_key_env: ..."
             raise prefixed(cause, key, sep=".") from cause
         raise prefixed(cause, key) from cause
 

@@ -155,7 +155,7 @@ def test_trainer_deepspeed_composes_into_lightnings_zero_strategy(compose_root):
     cfg = compose_root("trainer=deepspeed", "trainer.strategy.stage=3", "trainer.strategy.offload_optimizer=true")
     zero = instantiate_at(cfg.trainer.strategy, "trainer.strategy").config["zero_optimization"]
     assert zero["stage"] == 3 and zero["offload_optimizer"]["device"] == "cpu" and "offload_param" not in zero
-    with pytest.raises(ValueError, match=r"trainer.strategy: stage: expected 1, 2 or 3 \(ZeRO stage\), got 4"):
+    with pytest.raises(ValueError, match=r"trainer.strategy.stage: expected 1, 2 or 3 \(ZeRO stage\), got 4"):
         instantiate_at(compose_root("trainer=deepspeed", "trainer.strategy.stage=4").trainer.strategy,
                        "trainer.strategy")
 
