@@ -24,6 +24,9 @@ import httpx
 from lanevil_train.results_log import ResultsLog
 
 RETRY_STATUSES = frozenset({408, 409, 429}) | frozenset(range(500, 600))
+# Said with a 401 or 403 when no key was sent (api_key_env null).
+NO_KEY_HINT = (" (no API key was sent: api_key_env is null; name the environment variable that holds the key, e.g. "
+               "api_key_env=OPENAI_API_KEY)")
 
 
 class EndpointError(RuntimeError):
@@ -133,6 +136,7 @@ class ChatClient:
         key = api_key(api_key_env)
         if key is not None:
             headers["Authorization"] = f"Bearer {key}"
+        self.sends_key = key is not None
         self._http = httpx.Client(headers=headers, timeout=httpx.Timeout(float(timeout_s)),
                                   limits=httpx.Limits(max_connections=concurrency,
                                                       max_keepalive_connections=concurrency))
@@ -169,8 +173,9 @@ class ChatClient:
                                             f"is not JSON: {response.text[:300]!r}") from None
                 message = _server_message(response)
                 if response.status_code not in RETRY_STATUSES:
+                    hint = NO_KEY_HINT if response.status_code in (401, 403) and not self.sends_key else ""
                     raise EndpointError(f"{where}: {self.url} refused the request with HTTP {response.status_code} "
-                                        f"(not retried): {message}")
+                                        f"(not retried): {message}{hint}")
                 last = f"HTTP {response.status_code}: {message}"
                 wait_s = retry_after_seconds(response)
             if attempt == self.max_retries:

@@ -111,8 +111,9 @@ def test_api_key_from_the_named_variable(start_server, monkeypatch):
     clip = make_clip(0)
     assert OpenAIVLM(server.url, "fake-vlm", api_key_env="LANEVIL_TEST_KEY").answer([clip], ["Q?"]) == \
         [expected_answer("Q?", clip)]
-    with pytest.raises(EndpointError, match="HTTP 401 .*missing or wrong API key"):  # no key: the server refuses
-        OpenAIVLM(server.url, "fake-vlm").answer([clip], ["Q?"])
+    with pytest.raises(EndpointError, match=r"HTTP 401 .*missing or wrong API key \(no API key was sent: "
+                                            r"api_key_env is null; name the environment variable"):
+        OpenAIVLM(server.url, "fake-vlm").answer([clip], ["Q?"])  # no key named: the server refuses, and why is said
     asked = server.stats()["chat_requests"]
     monkeypatch.delenv("LANEVIL_TEST_KEY")  # a key named but not set: said before any request, not as the 401
     with pytest.raises(ValueError, match=r"^api_key_env: the environment variable LANEVIL_TEST_KEY is not set; "
