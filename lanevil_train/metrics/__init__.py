@@ -18,6 +18,7 @@ _EXPORTS = {
     "culane_summary": "culane",
     "evaluate_culane_dirs": "culane_files",
     "evaluate_tusimple_files": "tusimple",
+    "tusimple_count_f1": "tusimple",
     "tusimple_image_scores": "tusimple",
     "tusimple_lane_scores": "tusimple",
     "tusimple_summary": "tusimple",

@@ -15,8 +15,10 @@ from typing import Callable, Sequence
 
 
 def _add_tusimple(subparsers: argparse._SubParsersAction) -> None:
-    """`tusimple`: the official TuSimple file-level evaluation (Accuracy, FP, FN, F1)."""
-    p = subparsers.add_parser("tusimple", help="TuSimple Accuracy/FP/FN/F1 of a JSON-lines prediction file")
+    """`tusimple`: the official TuSimple file-level evaluation (Accuracy, FP, FN, F1), plus the lane-count F1_count
+    and its TP/FP/FN lane counts (metrics/tusimple.py)."""
+    p = subparsers.add_parser("tusimple", help="TuSimple Accuracy/FP/FN/F1 (and the lane-count F1_count) of a "
+                                               "JSON-lines prediction file")
     p.add_argument("--pred", required=True, help="predictions, JSON lines {lanes, raw_file[, run_time]}")
     p.add_argument("--gt", required=True, help="ground truth, JSON lines {lanes, h_samples, raw_file}")
     p.add_argument("--pixel-thresh", type=float, default=20.0, help="pixel threshold (official: 20)")

@@ -16,6 +16,15 @@ machines. The official fit uses sklearn's LinearRegression; here the same least-
 is computed in closed form with numpy (equal up to float rounding). The file-level sum runs in the
 prediction file's order, as the official loop does, so equal per-image values give bit-equal means.
 
+F1_count (not official; beside the papers' F1): the papers' TuSimple F1 (CLRNet's, from the mean FP and FN
+rates with tp = 1 - FP) gives 2/3 to a model that predicts nothing (FP 0, FN 1 -> P 1, R 1/2). F1_count counts
+lanes instead. Per image, a predicted and a GT lane match under the official criterion (line accuracy >=
+pt_thresh, ``evaluate/lane.py`` lines 40-45); TP is the largest number of disjoint (pred, GT) matched pairs,
+FP = #pred - TP, FN = #gt - TP. Summed over images, F1_count = 2 TP / (2 TP + FP + FN) (= 2PR / (P + R)), 0 when
+TP = 0. TP equals the official ``matched`` unless one prediction is the match of several GT lanes (there the
+official fp goes negative; here the extra GT lanes are misses). Every lane counts: neither the "more than 4 GT
+lanes" forgiveness nor the "more than #gt + 2 predictions" penalty applies to the counts.
+
 This module needs numpy only (the ``tusimple`` command imports nothing else); the torchmetrics wrapper
 is ``wrappers.TuSimpleMetric``.
 """
@@ -32,6 +41,7 @@ import numpy as np
 from lanevil_train.lanes import lanes_to_rows
 
 __all__ = [
+    "tusimple_count_f1",
     "tusimple_image_scores",
     "tusimple_lane_scores",
     "tusimple_summary",
@@ -66,17 +76,8 @@ def _first_non_finite(values: np.ndarray) -> tuple[int, ...] | None:
     return tuple(int(i) for i in np.argwhere(~finite)[0])
 
 
-def tusimple_image_scores(
-    pred_rows: np.ndarray,
-    gt_rows: np.ndarray,
-    h_samples: np.ndarray,
-    pixel_thresh: float = 20,
-    pt_thresh: float = 0.85,
-) -> tuple[float, float, float]:
-    """(accuracy, fp, fn) of one image as LaneEval.bench computes them (without the run-time rule).
-
-    Rows are TuSimple rows: one x per h_sample, any x < 0 (TuSimple writes -2) meaning "no point".
-    """
+def _checked_rows(pred_rows, gt_rows, h_samples) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(pred (P, H), gt (G, H), ys (H,)) as float64 arrays; ValueError naming the bad input otherwise."""
     ys = np.asarray(h_samples, dtype=np.float64).reshape(-1)
     h = len(ys)
     pred = np.asarray(pred_rows, dtype=np.float64)
@@ -101,20 +102,43 @@ def tusimple_image_scores(
     if bad is not None:
         raise ValueError(f"h_samples: non-finite y ({ys[bad[0]]}) at index {bad[0]}; expected finite image rows "
                          f"in pixels")
-    n_pred, n_gt = pred.shape[0], gt.shape[0]
-    if n_gt + 2 < n_pred:
-        return 0.0, 0.0, 1.0
-    if n_gt > 0 and n_pred > 0:
-        if h == 0:
-            raise ValueError("h_samples is empty but the image has GT and predicted lanes")
-        thresh = pixel_thresh / np.cos(_lane_angles(gt, ys))  # (G,)
-        p = np.where(pred >= 0, pred, _INVALID_FILL)
-        g = np.where(gt >= 0, gt, _INVALID_FILL)
-        close = np.abs(p[None, :, :] - g[:, None, :]) < thresh[:, None, None]  # (G, P, H)
-        line_accs = close.sum(axis=2) / h  # (G, P)
-        max_acc = line_accs.max(axis=1)  # (G,)
-    else:
-        max_acc = np.zeros(n_gt)
+    return pred, gt, ys
+
+
+def _line_accuracies(pred: np.ndarray, gt: np.ndarray, ys: np.ndarray, pixel_thresh: float) -> np.ndarray:
+    """(G, P) official line_accuracy of every pred lane against every GT lane (empty when either side is)."""
+    n_pred, n_gt, h = pred.shape[0], gt.shape[0], len(ys)
+    if n_gt == 0 or n_pred == 0:
+        return np.zeros((n_gt, n_pred))
+    if h == 0:
+        raise ValueError("h_samples is empty but the image has GT and predicted lanes")
+    thresh = pixel_thresh / np.cos(_lane_angles(gt, ys))  # (G,)
+    p = np.where(pred >= 0, pred, _INVALID_FILL)
+    g = np.where(gt >= 0, gt, _INVALID_FILL)
+    close = np.abs(p[None, :, :] - g[:, None, :]) < thresh[:, None, None]  # (G, P, H)
+    return close.sum(axis=2) / h
+
+
+def _max_pairs(match: np.ndarray) -> int:
+    """Largest number of disjoint (GT, pred) pairs with match[g, p] True (augmenting paths; a few lanes)."""
+    owner = [-1] * match.shape[1]  # owner[p]: the GT lane pred p is paired with
+
+    def augment(g: int, seen: set[int]) -> bool:
+        for p in np.flatnonzero(match[g]).tolist():
+            if p not in seen:
+                seen.add(p)
+                if owner[p] < 0 or augment(owner[p], seen):
+                    owner[p] = g
+                    return True
+        return False
+
+    return sum(augment(g, set()) for g in range(match.shape[0]))
+
+
+def _official_scores(line_accs: np.ndarray, n_pred: int, pt_thresh: float) -> tuple[float, float, float]:
+    """LaneEval.bench's (accuracy, fp, fn) from the (G, P) line accuracies of an image not penalised."""
+    n_gt = line_accs.shape[0]
+    max_acc = line_accs.max(axis=1) if n_pred > 0 else np.zeros(n_gt)  # (G,)
     fn = float(np.count_nonzero(max_acc < pt_thresh))
     matched = n_gt - fn
     fp = n_pred - matched  # may go negative when several GT lanes match one pred (as official)
@@ -131,13 +155,46 @@ def tusimple_image_scores(
     return float(acc), float(fp_rate), float(fn_rate)
 
 
-def tusimple_summary(acc_sum: float, fp_sum: float, fn_sum: float, num_images: int) -> dict:
-    """Dataset scores: means of the per-image values plus F1 as CLRNet/LaneATT compute it.
+def tusimple_image_scores(
+    pred_rows: np.ndarray,
+    gt_rows: np.ndarray,
+    h_samples: np.ndarray,
+    pixel_thresh: float = 20,
+    pt_thresh: float = 0.85,
+    with_counts: bool = False,
+) -> tuple:
+    """(accuracy, fp, fn) of one image as LaneEval.bench computes them (without the run-time rule); with
+    ``with_counts`` also the lane counts (tp, fp_count, fn_count) of F1_count (module docstring), as ints.
 
-    F1 follows Turoad/CLRNet ``clrnet/utils/tusimple_metric.py`` (the convention papers report):
+    Rows are TuSimple rows: one x per h_sample, any x < 0 (TuSimple writes -2) meaning "no point".
+    """
+    pred, gt, ys = _checked_rows(pred_rows, gt_rows, h_samples)
+    n_pred, n_gt = pred.shape[0], gt.shape[0]
+    penalised = n_gt + 2 < n_pred  # official: scored (0, 0, 1) without matching
+    if penalised and not with_counts:
+        return 0.0, 0.0, 1.0
+    line_accs = _line_accuracies(pred, gt, ys, pixel_thresh)
+    scores = (0.0, 0.0, 1.0) if penalised else _official_scores(line_accs, n_pred, pt_thresh)
+    if not with_counts:
+        return scores
+    tp = _max_pairs(line_accs >= pt_thresh)
+    return scores + (tp, n_pred - tp, n_gt - tp)
+
+
+def tusimple_count_f1(tp: int, fp: int, fn: int) -> float:
+    """F1_count in [0, 1] from lane counts summed over images: 2 TP / (2 TP + FP + FN); 0 when TP = 0."""
+    return 2.0 * tp / (2.0 * tp + fp + fn) if tp > 0 else 0.0
+
+
+def tusimple_summary(acc_sum: float, fp_sum: float, fn_sum: float, num_images: int,
+                     counts: tuple[int, int, int] | None = None) -> dict:
+    """Dataset scores: means of the per-image values plus F1 as CLRNet/LaneATT compute it; with ``counts`` (TP,
+    FP, FN lanes summed over the images) also F1_count and the counts (TP_count, FP_count, FN_count).
+
+    F1 follows Turoad/CLRNet ``clrnet/utils/tusimple_metric.py`` lines 102-107 (the convention papers report):
     FP, FN = mean per-image rates; tp = 1 - FP; precision = tp / (tp + FP); recall = tp / (tp + FN);
     F1 = 2PR / (P + R). Where that script would divide by zero (FP = 1 and FN = 0, or P + R = 0)
-    F1 is 0 here.
+    F1 is 0 here. A model that predicts nothing gets F1 2/3 (FP 0, FN 1); its F1_count is 0.
     """
     if num_images <= 0:
         raise ValueError(f"num_images must be > 0 to summarise TuSimple scores, got {num_images}")
@@ -148,15 +205,20 @@ def tusimple_summary(acc_sum: float, fp_sum: float, fn_sum: float, num_images: i
     precision = tp / (tp + fp)  # tp + fp == 1
     recall = tp / (tp + fn) if (tp + fn) != 0 else 0.0
     f1 = 2 * precision * recall / (precision + recall) if (precision + recall) != 0 else 0.0
-    return {"Accuracy": float(acc), "FP": float(fp), "FN": float(fn), "F1": float(f1)}
+    out = {"Accuracy": float(acc), "FP": float(fp), "FN": float(fn), "F1": float(f1)}
+    if counts is not None:
+        tp_c, fp_c, fn_c = (int(c) for c in counts)
+        out.update(F1_count=tusimple_count_f1(tp_c, fp_c, fn_c), TP_count=tp_c, FP_count=fp_c, FN_count=fn_c)
+    return out
 
 
 def tusimple_lane_scores(pred_lanes: Sequence[np.ndarray], gt_lanes: Sequence[np.ndarray], h_samples: np.ndarray,
-                         pixel_thresh: float = 20.0, pt_thresh: float = 0.85) -> tuple[float, float, float]:
-    """(accuracy, fp, fn) of one image from lanes in pixels, sampled at its h_samples rows."""
+                         pixel_thresh: float = 20.0, pt_thresh: float = 0.85, with_counts: bool = False) -> tuple:
+    """(accuracy, fp, fn) of one image from lanes in pixels, sampled at its h_samples rows; with ``with_counts``
+    also (tp, fp_count, fn_count) lanes, as tusimple_image_scores."""
     ys = np.asarray(h_samples, dtype=np.float64).reshape(-1)
     return tusimple_image_scores(lanes_to_rows(list(pred_lanes), ys), lanes_to_rows(list(gt_lanes), ys), ys,
-                                 pixel_thresh, pt_thresh)
+                                 pixel_thresh, pt_thresh, with_counts)
 
 
 def _read_json_lines(path: Path, required: tuple[str, ...]) -> list[tuple[int, dict]]:
@@ -254,7 +316,8 @@ def evaluate_tusimple_files(
     """Official file-level evaluation (bench_one_submit): JSON-lines preds vs GT, keyed by raw_file.
 
     Every GT image needs exactly one prediction and every prediction a GT image (as officially).
-    ``run_time`` is accepted but ignored (no run-time penalty). Returns {"Accuracy","FP","FN","F1"}.
+    ``run_time`` is accepted but ignored (no run-time penalty). Returns {"Accuracy", "FP", "FN", "F1"} and the
+    lane counts' {"F1_count", "TP_count", "FP_count", "FN_count"} (tusimple_summary).
     """
     _check_thresholds(pixel_thresh, pt_thresh)
     pred_path, gt_path = Path(pred_path), Path(gt_path)
@@ -280,14 +343,16 @@ def evaluate_tusimple_files(
         if raw not in preds:
             raise ValueError(f"no prediction in {pred_path} for GT image raw_file {raw!r} ({gt_path}:{gt_line})")
     acc = fp = fn = 0.0
+    counts = [0, 0, 0]
     for raw, (pred_line, pred) in preds.items():  # prediction-file order: the official sums in this order
         gt_line, gt = gts[raw]
         ys = _h_samples(gt["h_samples"], gt_path, gt_line, raw)
         gt_rows = _lane_rows(gt["lanes"], ys, gt_path, gt_line, raw, pred=False)
         pred_rows = _lane_rows(pred["lanes"], ys, pred_path, pred_line, raw, pred=True)
-        a, p, n = tusimple_image_scores(pred_rows, gt_rows, ys, pixel_thresh, pt_thresh)
+        a, p, n, *lanes = tusimple_image_scores(pred_rows, gt_rows, ys, pixel_thresh, pt_thresh, with_counts=True)
         acc += a
         fp += p
         fn += n
-    return tusimple_summary(acc, fp, fn, len(gts))
+        counts = [c + k for c, k in zip(counts, lanes)]
+    return tusimple_summary(acc, fp, fn, len(gts), counts=tuple(counts))
 

@@ -17,6 +17,8 @@ from lanevil_train.metrics.tusimple import tusimple_lane_scores, tusimple_summar
 
 __all__ = ["TuSimpleMetric", "CULaneMetric"]
 
+_COUNT_STATES = ("tp_count", "fp_count", "fn_count")  # TuSimpleMetric's lane counts (F1_count)
+
 
 def _to_numpy(lane: object) -> object:
     """A tensor lane (on any device) as a numpy array; anything else unchanged."""
@@ -34,7 +36,8 @@ def _as_np_lane(lane: object) -> np.ndarray:
 
 
 class TuSimpleMetric(Metric):
-    """TuSimple Accuracy / FP / FN / F1 over decoded lanes (pixels); DDP-safe sum states.
+    """TuSimple Accuracy / FP / FN / F1 and the lane-count F1_count over decoded lanes (pixels); DDP-safe sum
+    states (the per-image sums and the TP / FP / FN lane counts, each summed over processes).
 
     Each image's lanes are sampled at its h_samples with ``lanes_to_rows`` (linear
     interpolation, -2 outside a lane's span); pass the GT file's h_samples to get the official
@@ -54,6 +57,8 @@ class TuSimpleMetric(Metric):
         self.pt_thresh = pt_thresh
         for name in ("acc_sum", "fp_sum", "fn_sum", "num_images"):
             self.add_state(name, default=torch.tensor(0.0, dtype=torch.float64), dist_reduce_fx="sum")
+        for name in _COUNT_STATES:  # F1_count's lanes: integers, so sums over processes are exact
+            self.add_state(name, default=torch.tensor(0, dtype=torch.long), dist_reduce_fx="sum")
 
     def update(
         self,
@@ -69,6 +74,7 @@ class TuSimpleMetric(Metric):
         if h_samples is not None and len(h_samples) != len(targets):
             raise ValueError(f"h_samples has {len(h_samples)} entries but targets has {len(targets)}")
         acc = fp = fn = 0.0
+        counts = [0, 0, 0]
         for i, (pred_lanes, gt_lanes) in enumerate(zip(preds, targets)):
             gts = [_as_np_lane(lane) for lane in gt_lanes]
             prs = [_as_np_lane(lane) for lane in pred_lanes]
@@ -76,21 +82,26 @@ class TuSimpleMetric(Metric):
                 ys = np.unique(np.concatenate([g[:, 1] for g in gts])) if gts else np.zeros(0)
             else:
                 ys = np.asarray(h_samples[i], dtype=np.float64).reshape(-1)
-            a, p, n = tusimple_lane_scores(prs, gts, ys, self.pixel_thresh, self.pt_thresh)
+            a, p, n, *lanes = tusimple_lane_scores(prs, gts, ys, self.pixel_thresh, self.pt_thresh, with_counts=True)
             acc += a
             fp += p
             fn += n
+            counts = [c + k for c, k in zip(counts, lanes)]
         self.acc_sum += acc
         self.fp_sum += fp
         self.fn_sum += fn
         self.num_images += len(targets)
+        for name, count in zip(_COUNT_STATES, counts):
+            setattr(self, name, getattr(self, name) + count)
 
     def compute(self) -> dict[str, torch.Tensor]:
-        """{"Accuracy", "FP", "FN", "F1"} as float64 scalar tensors."""
+        """{"Accuracy", "FP", "FN", "F1", "F1_count"} as float64 scalar tensors (tusimple_summary; the lane counts
+        stay in the states tp_count / fp_count / fn_count, out of the logged scores)."""
         out = tusimple_summary(
-            float(self.acc_sum), float(self.fp_sum), float(self.fn_sum), int(round(float(self.num_images)))
+            float(self.acc_sum), float(self.fp_sum), float(self.fn_sum), int(round(float(self.num_images))),
+            counts=tuple(int(getattr(self, name)) for name in _COUNT_STATES),
         )
-        return {k: torch.tensor(v, dtype=torch.float64) for k, v in out.items()}
+        return {k: torch.tensor(out[k], dtype=torch.float64) for k in ("Accuracy", "FP", "FN", "F1", "F1_count")}
 
 
 

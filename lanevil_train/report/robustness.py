@@ -1,10 +1,10 @@
 """Robustness tables from per-item records: the paper's Perturbed / Original / Gap layout and relative measures.
 
 Records and their conventions are described in report/records.py; the scores come from the records' spec
-(report/specs.py: TuSimple Accuracy and F1 for lane detectors). Every table takes a list of records (the spec
-is inferred) or a RecordSet. The paper's Average column is not the mean of its four category columns (e.g.
-LaneATT: 76.23, 73.18, 79.48, 71.33 -> 75.06, reported 73.53), so it is some weighted mean it does not define;
-ours, the mean of the category values, is stated and reproducible.
+(report/specs.py: TuSimple Accuracy, the papers' F1 and the lane-count F1_count for lane detectors). Every table
+takes a list of records (the spec is inferred) or a RecordSet. The paper's Average column is not the mean of its
+four category columns (e.g. LaneATT: 76.23, 73.18, 79.48, 71.33 -> 75.06, reported 73.53), so it is some weighted
+mean it does not define; ours, the mean of the category values, is stated and reproducible.
 """
 
 from __future__ import annotations

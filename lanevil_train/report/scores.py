@@ -1,5 +1,5 @@
 """Headline scores from per-item records: the spec's summary scores per (model, dataset, original|perturbed)
-group (TuSimple Accuracy/FP/FN/F1, and CULane F1 where counted, for lane detectors)."""
+group (TuSimple Accuracy/FP/FN/F1 and F1_count, and CULane F1 where counted, for lane detectors)."""
 
 from __future__ import annotations
 

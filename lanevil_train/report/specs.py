@@ -22,12 +22,19 @@ def _tusimple_f1(records: Sequence[dict]) -> float:
     return 100.0 * summary["F1"]
 
 
-def _culane_f1(records: Sequence[dict]) -> float:
-    """CULane F1 (%) from the summed per-image TP / FP / FN counts."""
-    if not records:
-        return NAN
-    tp, fp, fn = (sum(r[k] for r in records) for k in ("culane_tp", "culane_fp", "culane_fn"))
-    return 100.0 * 2 * tp / (2 * tp + fp + fn) if tp + fp + fn else 0.0
+def count_f1(tp_field: str, fp_field: str, fn_field: str):
+    """An aggregate: F1 (%) = 2 TP / (2 TP + FP + FN) of per-record counts summed over the records (0 when TP is 0,
+    NaN for no records); bootstrapped through its totals."""
+    fields = (tp_field, fp_field, fn_field)
+
+    def aggregate(records: Sequence[dict]) -> float:
+        if not records:
+            return NAN
+        return float(_count_f1_totals(np.array([sum(r[k] for r in records) for k in fields], dtype=np.float64)))
+
+    aggregate.__name__ = f"count_f1_{tp_field}"
+    aggregate.additive = Additive(lambda r: tuple(r[k] for k in fields), _count_f1_totals)
+    return aggregate
 
 
 def _tusimple_f1_totals(totals: np.ndarray) -> np.ndarray:
@@ -42,18 +49,22 @@ def _tusimple_f1_totals(totals: np.ndarray) -> np.ndarray:
     return np.where(n > 0, 100.0 * f1, np.nan)
 
 
-def _culane_f1_totals(totals: np.ndarray) -> np.ndarray:
-    """_culane_f1 of (tp, fp, fn) totals, vectorised."""
+def _count_f1_totals(totals: np.ndarray) -> np.ndarray:
+    """F1 (%) of (tp, fp, fn) totals, vectorised: 2 TP / (2 TP + FP + FN), 0 where TP is 0."""
     tp, fp, fn = totals[..., 0], totals[..., 1], totals[..., 2]
     with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(tp + fp + fn > 0, 100.0 * 2 * tp / (2 * tp + fp + fn), 0.0)
+        return np.where(tp > 0, 100.0 * 2 * tp / (2 * tp + fp + fn), 0.0)
 
 
 _tusimple_f1.additive = Additive(lambda r: (r["accuracy"], r["fp"], r["fn"], 1.0), _tusimple_f1_totals)
-_culane_f1.additive = Additive(lambda r: (r["culane_tp"], r["culane_fp"], r["culane_fn"]), _culane_f1_totals)
 
 ACCURACY = Score("Accuracy", mean_of("accuracy"))
 TUSIMPLE_F1 = Score("F1", _tusimple_f1)
+# TuSimple lanes counted (metrics/tusimple.py F1_count): a silent model reads 0 where the papers' F1 reads 66.7.
+# Records written before the counts existed lack the fields: the score is then left out of their tables.
+COUNT_FIELDS = ("tp_count", "fp_count", "fn_count")
+F1_COUNT = Score("F1_count", count_f1(*COUNT_FIELDS), needs=COUNT_FIELDS)
+_CULANE_FIELDS = ("culane_tp", "culane_fp", "culane_fn")
 
 # One record per scored image. Ranges of the official TuSimple per-image scores: accuracy and FN can exceed 1
 # with more than 4 GT lanes (with n > 4 lanes the worst lane / one miss is dropped but the sum is divided by 4:
@@ -62,12 +73,11 @@ TUSIMPLE_F1 = Score("F1", _tusimple_f1)
 LANE_SPEC = RecordSpec(
     name="lane",
     fields=(Field("accuracy", 0.0), Field("fp", -math.inf, 1.0), Field("fn", 0.0),
-            Field("culane_tp", 0.0, required=False), Field("culane_fp", 0.0, required=False),
-            Field("culane_fn", 0.0, required=False)),
-    scores=(ACCURACY, TUSIMPLE_F1),
+            *(Field(name, 0.0, required=False) for name in COUNT_FIELDS + _CULANE_FIELDS)),
+    scores=(ACCURACY, TUSIMPLE_F1, F1_COUNT),
     summary=(ACCURACY, Score("FP", mean_of("fp"), higher_is_better=False),
-             Score("FN", mean_of("fn"), higher_is_better=False), TUSIMPLE_F1,
-             Score("CULane_F1", _culane_f1, needs=("culane_tp", "culane_fp", "culane_fn"))),
+             Score("FN", mean_of("fn"), higher_is_better=False), TUSIMPLE_F1, F1_COUNT,
+             Score("CULane_F1", count_f1(*_CULANE_FIELDS), needs=_CULANE_FIELDS)),
 )
 
 

@@ -2,8 +2,9 @@
 task=evaluate, the robustness suites), and the Lightning callback that writes training's test records.
 
 A record (report/specs.py LANE_SPEC): {model, dataset, spec, key, case_id, image, illusion, category, severity,
-accuracy, fp, fn (TuSimple per image), culane_tp, culane_fp, culane_fn, num_pred, num_gt, pred_lanes,
-gt_lanes (integer [x, y] at the scoring rows)}; it streams to per_image.jsonl, which task=report reads.
+accuracy, fp, fn (TuSimple per image), tp_count, fp_count, fn_count (TuSimple lane counts, for F1_count),
+culane_tp, culane_fp, culane_fn, num_pred, num_gt, pred_lanes, gt_lanes (integer [x, y] at the scoring rows)};
+it streams to per_image.jsonl, which task=report reads.
 """
 
 from __future__ import annotations
@@ -34,14 +35,16 @@ def _compact(lanes: list[np.ndarray], rows: np.ndarray) -> list[list[list[int]]]
 
 def lane_record(pred: list[np.ndarray], gt: list[np.ndarray], meta: dict, keep_lanes: bool = True) -> dict:
     """The per-image record of predicted vs ground-truth lanes (original-image pixels) of the sample `meta`
-    describes: TuSimple accuracy/FP/FN at its h_samples and CULane TP/FP/FN (30 px lanes at 1640 px wide)."""
-    acc, fp, fn = tusimple_lane_scores(pred, gt, meta["h_samples"])
+    describes: TuSimple accuracy/FP/FN and lane counts (F1_count's TP/FP/FN) at its h_samples and CULane TP/FP/FN
+    (30 px lanes at 1640 px wide)."""
+    acc, fp, fn, tp_count, fp_count, fn_count = tusimple_lane_scores(pred, gt, meta["h_samples"], with_counts=True)
     width, height = int(meta["width"]), int(meta["height"])
     lane_width = max(1, round(30 * width / 1640))  # CULane draws 30 px lanes on 1640 px wide images
     tp, cfp, cfn = culane_image_counts(pred, gt, width=width, height=height, lane_width=lane_width)
     record = {"spec": LANE_SPEC.name, "key": meta.get("key", meta["case_id"]), "case_id": meta["case_id"],
               "image": meta.get("image_path"), "illusion": meta.get("illusion"), "category": meta.get("category"),
               "severity": int(meta.get("severity") or 0), "accuracy": acc, "fp": fp, "fn": fn,
+              "tp_count": tp_count, "fp_count": fp_count, "fn_count": fn_count,
               "culane_tp": int(tp), "culane_fp": int(cfp), "culane_fn": int(cfn),
               "num_pred": len(pred), "num_gt": len(gt)}
     if keep_lanes:

@@ -9,7 +9,9 @@ import pytest
 import torch
 
 from lanevil_train.lanes import TUSIMPLE_H_SAMPLES, rows_to_lane
-from lanevil_train.metrics import TuSimpleMetric, tusimple_image_scores, tusimple_summary
+from scipy.optimize import linear_sum_assignment
+
+from lanevil_train.metrics import TuSimpleMetric, tusimple_count_f1, tusimple_image_scores, tusimple_summary
 
 # --------------------------------------------------------------------------------------------
 # Reference: the official tusimple-benchmark evaluate/lane.py, step by step, in plain Python.
@@ -72,6 +74,16 @@ def ref_bench(pred: list[list[float]], gt: list[list[float]], y_samples: list[fl
         fp / len(pred) if len(pred) > 0 else 0.0,
         fn / max(min(len(gt), 4.0), 1.0),
     )
+
+
+def ref_counts(pred: list[list[float]], gt: list[list[float]], y_samples: list[float]) -> tuple[int, int, int]:
+    """F1_count's (TP, FP, FN) of one image: a (pred, GT) pair matches at the official line accuracy >= 0.85; TP is
+    a maximum one-to-one matching of such pairs (scipy's assignment on the 0/1 match matrix)."""
+    match = np.array([[ref_line_accuracy(p, g, 20 / math.cos(ref_get_angle(g, y_samples))) >= 0.85 for p in pred]
+                      for g in gt], dtype=float).reshape(len(gt), len(pred))
+    rows, cols = linear_sum_assignment(match, maximize=True)
+    tp = int(match[rows, cols].sum())
+    return tp, len(pred) - tp, len(gt) - tp
 
 
 def ref_dataset(images) -> dict:
@@ -155,11 +167,21 @@ def test_random_images_match_reference_per_image_and_dataset():
     rng = np.random.default_rng(1234)
     images = [random_image(rng) for _ in range(600)]
     acc = fp = fn = 0.0
+    same_matched = fewer = 0
     for preds, gts, ys in images:
         ours = tusimple_image_scores(as_array(preds, len(ys)), as_array(gts, len(ys)), ys)
         ref = ref_bench([list(p) for p in preds], [list(g) for g in gts], list(ys))
         assert ours == pytest.approx(ref, abs=1e-9), (preds, gts)
         acc, fp, fn = acc + ours[0], fp + ours[1], fn + ours[2]
+        both = tusimple_image_scores(as_array(preds, len(ys)), as_array(gts, len(ys)), ys, with_counts=True)
+        assert both[:3] == ours  # the counts change nothing of the official scores
+        counts = ref_counts([list(p) for p in preds], [list(g) for g in gts], list(ys))
+        assert both[3:] == counts and all(type(c) is int for c in both[3:])
+        if len(gts) + 2 >= len(preds) and len(gts) <= 4:  # no official penalty or forgiveness
+            official_matched = len(gts) - round(ours[2] * max(len(gts), 1))
+            assert counts[0] <= official_matched  # fewer only where one pred is the match of several GT lanes
+            same_matched += counts[0] == official_matched
+            fewer += counts[0] < official_matched
     ref = ref_dataset([([list(p) for p in pr], [list(g) for g in gt], list(ys)) for pr, gt, ys in images])
     ours = tusimple_summary(acc, fp, fn, len(images))
     for key in ("Accuracy", "FP", "FN", "F1"):
@@ -169,6 +191,7 @@ def test_random_images_match_reference_per_image_and_dataset():
     assert 0.2 < scores[:, 0].mean() < 0.9
     assert (scores[:, 2] == 1.0).sum() > 20 and (scores[:, 1] == 0.0).sum() > 20
     assert np.any((scores[:, 0] > 0) & (scores[:, 0] < 1))
+    assert same_matched > 200 and fewer < same_matched / 10, (same_matched, fewer)
 
 
 def test_hand_computed_image():
@@ -297,9 +320,14 @@ def test_metric_matches_reference_and_ddp_style_merge():
     whole.update(preds[:50], gts[:50], hs[:50])
     whole.update(preds[50:], gts[50:], hs[50:])
     out = whole.compute()
-    assert set(out) == {"Accuracy", "FP", "FN", "F1"}
-    for k in out:
+    assert set(out) == {"Accuracy", "FP", "FN", "F1", "F1_count"}
+    for k in ref:
         assert float(out[k]) == pytest.approx(ref[k], abs=1e-9)
+    tp, fp, fn = (sum(c) for c in zip(*(ref_counts([list(r) for r in pr], [list(r) for r in gt], list(ys))
+                                         for pr, gt, ys in images)))
+    assert (int(whole.tp_count), int(whole.fp_count), int(whole.fn_count)) == (tp, fp, fn)
+    assert float(out["F1_count"]) == pytest.approx(2 * tp / (2 * tp + fp + fn), abs=1e-12)
+    assert 0 < fp and 0 < fn and 0.3 < float(out["F1_count"]) < 0.95
 
     # two "ranks" on halves; a sum-reduction of their states equals the single instance
     a, b = TuSimpleMetric(), TuSimpleMetric()
@@ -307,7 +335,9 @@ def test_metric_matches_reference_and_ddp_style_merge():
     b.update(preds[70:], gts[70:], hs[70:])
     from torchmetrics.utilities.data import dim_zero_sum
 
-    assert a._reductions == {n: dim_zero_sum for n in ("acc_sum", "fp_sum", "fn_sum", "num_images")}
+    assert a._reductions == {n: dim_zero_sum for n in ("acc_sum", "fp_sum", "fn_sum", "num_images", "tp_count",
+                                                       "fp_count", "fn_count")}
+    assert a.tp_count.dtype == torch.long and 0 < int(a.tp_count) < tp  # each rank holds its own part
     for name, reduce_fx in a._reductions.items():  # what sync() does with the gathered states
         setattr(a, name, reduce_fx(torch.stack([getattr(a, name), getattr(b, name)])))
     merged = a.compute()
@@ -316,6 +346,7 @@ def test_metric_matches_reference_and_ddp_style_merge():
     d.update(preds[33:], gts[33:], hs[33:])
     c.merge_state(d)
     assert float(c.compute()["F1"]) == pytest.approx(float(out["F1"]), abs=1e-12)
+    assert float(c.compute()["F1_count"]) == float(out["F1_count"])
     for k in out:
         assert float(merged[k]) == pytest.approx(float(out[k]), abs=1e-12)
     assert float(a.num_images) == 120
@@ -367,3 +398,108 @@ def test_x_equal_zero_is_a_valid_point_in_the_angle_fit():
     expected = ref_bench([list(pred[0])], [list(gt[0])], list(ys))
     assert expected[0] == 1.0  # sanity: 22 px is a hit only because x=0 entered the fit
     assert tusimple_image_scores(pred, gt, ys) == pytest.approx(expected)
+
+
+# --------------------------------------------------------------------------------------------
+# F1_count: TP / FP / FN counted over lanes (not official; beside the papers' F1).
+# --------------------------------------------------------------------------------------------
+
+ROWS = np.arange(10, 210, 10.0)  # 20 rows
+
+
+def _vertical(*xs: float) -> np.ndarray:
+    """Vertical lanes at the given x over all 20 rows, as (L, 20) rows."""
+    return np.array([np.full(20, float(x)) for x in xs]).reshape(len(xs), 20)
+
+
+def _dataset(images) -> dict:
+    """tusimple_summary with counts of (pred rows, gt rows) images on ROWS."""
+    totals = np.zeros(6)
+    for pred, gt in images:
+        totals += tusimple_image_scores(pred, gt, ROWS, with_counts=True)
+    return tusimple_summary(*totals[:3], len(images), counts=tuple(int(c) for c in totals[3:]))
+
+
+def test_silent_model_reads_zero_while_the_papers_f1_reads_two_thirds():
+    gt = _vertical(100, 300, 500, 700)
+    out = _dataset([(_vertical(), gt), (_vertical(), gt[:2])])
+    assert out["F1"] == pytest.approx(2 / 3)  # FP 0, FN 1 -> tp 1, P 1, R 1/2 (CLRNet's formula)
+    assert (out["TP_count"], out["FP_count"], out["FN_count"]) == (0, 0, 6)
+    assert out["F1_count"] == 0.0
+
+
+def test_perfect_model_reads_one():
+    gt = _vertical(100, 300, 500, 700)
+    out = _dataset([(gt + 5, gt), (gt[:2] - 5, gt[:2])])
+    assert out["F1"] == 1.0 and out["F1_count"] == 1.0
+    assert (out["TP_count"], out["FP_count"], out["FN_count"]) == (6, 0, 0)
+
+
+def test_mixed_case_by_hand():
+    """Image 1: 2 GT, both found, plus a false positive; image 2: 2 GT, one found. Lanes: TP 3, FP 1, FN 1 ->
+    F1_count = 6 / 8 = 0.75 (the mean of per-image F1s would be (0.8 + 2/3) / 2). The papers' F1: FP (1/3 + 0) / 2
+    = 1/6, FN (0 + 1/2) / 2 = 1/4 -> tp 5/6, P 5/6, R 10/13 -> F1 0.8."""
+    gt = _vertical(100, 300)
+    out = _dataset([(_vertical(105, 290, 900), gt), (_vertical(110), gt)])
+    assert (out["TP_count"], out["FP_count"], out["FN_count"]) == (3, 1, 1)
+    assert out["F1_count"] == pytest.approx(0.75)
+    assert out["F1"] == pytest.approx(0.8)
+
+
+def test_counts_pair_lanes_one_to_one():
+    # GT 1 (x 100) matches preds A and B; GT 2 (x 160 on its last 4 rows) matches A only (A: 19/20, B: 16/20).
+    # Pairing GT 1 with A first would leave GT 2 unmatched; the largest matching pairs (1, B) and (2, A).
+    gt = _vertical(100, 100)
+    gt[1, 16:] = 160
+    a = np.full(20, 100.0)
+    a[17:] = 160
+    pred = np.stack([a, np.full(20, 100.0)])
+    assert tusimple_image_scores(pred, gt, ROWS, with_counts=True)[3:] == (2, 0, 0)
+    # one prediction is the only match of two GT lanes (short ones, mostly outside: their -2 rows agree):
+    # the official fp is 1 - 2 matched = -1; counted one-to-one, it is 1 TP and 1 FN
+    short = _vertical(-2, -2)
+    short[0, :2], short[1, :2] = 100, 112
+    one = _vertical(-2)
+    one[0, :2] = 106
+    assert tusimple_image_scores(one, short, ROWS, with_counts=True) == (1.0, -1.0, 0.0, 1, 0, 1)
+
+
+def test_counts_ignore_the_official_penalty_and_forgiveness():
+    gt = _vertical(100, 300)
+    five = _vertical(100, 300, 500, 700, 900)  # more than #gt + 2 predictions: officially (0, 0, 1)
+    assert tusimple_image_scores(five, gt, ROWS, with_counts=True) == (0.0, 0.0, 1.0, 2, 3, 0)
+    gt5 = _vertical(100, 300, 500, 700, 900)  # more than 4 GT lanes: officially one miss forgiven
+    assert tusimple_image_scores(gt5[:4], gt5, ROWS, with_counts=True) == (1.0, 0.0, 0.0, 4, 0, 1)
+
+
+def test_count_f1_formula():
+    assert tusimple_count_f1(3, 1, 1) == pytest.approx(0.75)
+    assert tusimple_count_f1(2, 0, 2) == pytest.approx(2 / 3)  # P 1, R 1/2
+    assert tusimple_count_f1(0, 0, 0) == 0.0 and tusimple_count_f1(0, 5, 3) == 0.0
+    assert "F1_count" not in tusimple_summary(1.0, 0.0, 0.0, 1)  # only with counts
+
+
+def test_metric_f1_count_silent_and_ddp_merge_of_counts():
+    """TuSimpleMetric from pixel lanes: a silent model's F1_count 0 (F1 2/3); two ranks' count states summed (as
+    DDP's sync does) equal one pass."""
+    lane = lambda x: np.stack([np.full(20, float(x)), ROWS], 1)  # noqa: E731
+    gts = [[lane(100), lane(300)], [lane(100), lane(300)], [lane(500)]]
+    preds = [[lane(105), lane(290), lane(900)], [lane(110)], [lane(505)]]  # TP 4, FP 1, FN 1
+    silent = TuSimpleMetric()
+    silent.update([[] for _ in gts], gts, ROWS)
+    out = silent.compute()
+    assert float(out["F1"]) == pytest.approx(2 / 3) and float(out["F1_count"]) == 0.0
+    one = TuSimpleMetric()
+    one.update(preds, gts, ROWS)
+    ranks = [TuSimpleMetric(), TuSimpleMetric()]
+    ranks[0].update(preds[:1], gts[:1], ROWS)
+    ranks[1].update(preds[1:], gts[1:], ROWS)
+    assert int(ranks[0].tp_count) == 2 and int(ranks[1].tp_count) == 2
+    merged = ranks[0]
+    for name, reduce_fx in ranks[0]._reductions.items():  # what sync() does with the gathered states
+        setattr(merged, name, reduce_fx(torch.stack([getattr(r, name) for r in ranks])))
+    whole, parts = one.compute(), merged.compute()
+    assert (int(one.tp_count), int(one.fp_count), int(one.fn_count)) == (4, 1, 1)
+    assert (int(merged.tp_count), int(merged.fp_count), int(merged.fn_count)) == (4, 1, 1)
+    assert float(whole["F1_count"]) == pytest.approx(0.8)
+    assert {k: float(v) for k, v in parts.items()} == {k: float(v) for k, v in whole.items()}

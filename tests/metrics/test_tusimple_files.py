@@ -23,9 +23,14 @@ def _write_lines(path: Path, objs) -> Path:
     return path
 
 
+EXPECTED = {"Accuracy": 0.75, "FP": 0.25, "FN": 0.25, "F1": 0.75,
+            "F1_count": 0.75, "TP_count": 3, "FP_count": 1, "FN_count": 1}
+
+
 def _two_images(tmp_path: Path) -> tuple[Path, Path]:
     """Image a: 2 GT, 2 good preds -> (1, 0, 0). Image b: 2 GT, one good + one far pred ->
-    acc 0.5, fp 1/2, fn 1/2. Means: Accuracy .75, FP .25, FN .25; F1 = .75 (P = R = .75)."""
+    acc 0.5, fp 1/2, fn 1/2. Means: Accuracy .75, FP .25, FN .25; F1 = .75 (P = R = .75).
+    Lanes: TP 2 + 1, FP 0 + 1, FN 0 + 1 -> F1_count = 6 / 8 = .75."""
     pred, gt = _two_image_objects()
     return _write_lines(tmp_path / "pred.json", pred), _write_lines(tmp_path / "gt.json", gt)
 
@@ -48,14 +53,25 @@ def _two_image_objects() -> tuple[list[dict], list[dict]]:
 def test_file_level_hand_computed(tmp_path):
     pred, gt = _two_images(tmp_path)
     out = evaluate_tusimple_files(pred, gt)
-    assert out == pytest.approx({"Accuracy": 0.75, "FP": 0.25, "FN": 0.25, "F1": 0.75})
+    assert out == pytest.approx(EXPECTED)
 
 
 def test_cli_main_prints_json(tmp_path, capsys):
     pred, gt = _two_images(tmp_path)
     assert main(["tusimple", "--pred", str(pred), "--gt", str(gt)]) == 0
     printed = json.loads(capsys.readouterr().out)
-    assert printed == pytest.approx({"Accuracy": 0.75, "FP": 0.25, "FN": 0.25, "F1": 0.75})
+    assert printed == pytest.approx(EXPECTED)
+
+
+def test_cli_silent_model_f1_count_zero(tmp_path, capsys):
+    """A prediction file with no lanes: the papers' F1 reads 2/3 (FP 0, FN 1), the command's F1_count 0."""
+    _, gt = _two_image_objects()
+    silent = [{"lanes": [], "raw_file": g["raw_file"]} for g in gt]
+    pred_path, gt_path = _write_lines(tmp_path / "silent.json", silent), _write_lines(tmp_path / "gt.json", gt)
+    assert main(["tusimple", "--pred", str(pred_path), "--gt", str(gt_path)]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert printed == pytest.approx({"Accuracy": 0.0, "FP": 0.0, "FN": 1.0, "F1": 2 / 3,
+                                     "F1_count": 0.0, "TP_count": 0, "FP_count": 0, "FN_count": 4})
 
 
 def test_cli_subprocess(tmp_path):
@@ -65,7 +81,7 @@ def test_cli_subprocess(tmp_path):
         cwd=REPO, capture_output=True, text=True, timeout=120,
     )
     assert res.returncode == 0, res.stderr
-    assert json.loads(res.stdout) == pytest.approx({"Accuracy": 0.75, "FP": 0.25, "FN": 0.25, "F1": 0.75})
+    assert json.loads(res.stdout) == pytest.approx(EXPECTED)
 
 
 def test_cli_bad_input_exit_code_and_message(tmp_path, capsys):
@@ -108,7 +124,10 @@ def test_metric_equals_file_level(tmp_path):
     metric.update(preds[:25], gts[:25], [ys] * 25)
     metric.update(preds[25:], gts[25:], ys)  # one array for the whole batch
     out = {k: float(v) for k, v in metric.compute().items()}
-    assert out == pytest.approx(file_out, abs=1e-12)
+    assert set(out) == {"Accuracy", "FP", "FN", "F1", "F1_count"}
+    assert out == pytest.approx({k: file_out[k] for k in out}, abs=1e-12)
+    counts = (int(metric.tp_count), int(metric.fp_count), int(metric.fn_count))
+    assert counts == (file_out["TP_count"], file_out["FP_count"], file_out["FN_count"]) and min(counts) > 0
     # h_samples=None uses only the rows some GT lane covers: rows where every GT lane is -2
     # drop out of the per-lane denominator, so it is NOT the official score here
     guessed = TuSimpleMetric()

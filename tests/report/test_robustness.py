@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 
+import numpy as np
 import pytest
 
 from lanevil_train.report.records import validate_records as validate_with_spec
@@ -178,3 +179,40 @@ def test_write_report_files(tmp_path):
     assert paths["gap_heatmap"].stat().st_size > 5000
     assert "worst_cases" not in paths  # the fixture has no images
     assert not math.isnan(saved[1]["average/F1/Gap"])
+
+
+def test_f1_count_columns_beside_the_papers_f1():
+    """F1_count from the records' lane counts (TP/FP/FN summed over the group) in every table, beside F1.
+    Shadow: c1 silent (0 of 2 lanes), c2 1 of 2 -> TP 1, FP 0, FN 3 -> 2 / 5 = 40 (the papers' F1 from
+    FP 0, FN .75: 72.73); Original c1 2 of 2, c2 1 of 2 + 1 FP -> TP 3, FP 1, FN 1 -> 6 / 8 = 75."""
+    def counted(case, sev, acc, fp, fn, counts, illusion=None):
+        return {**rec("A", case, sev, acc, fp, fn, illusion), **dict(zip(("tp_count", "fp_count", "fn_count"),
+                                                                         counts))}
+
+    recs = [counted("c1", 0, 1.0, 0.0, 0.0, (2, 0, 0)), counted("c2", 0, 0.5, 0.5, 0.5, (1, 1, 1)),
+            counted("c1", 1, 0.0, 0.0, 1.0, (0, 0, 2), FS), counted("c2", 1, 0.5, 0.0, 0.5, (1, 0, 1), FS)]
+    row = main_table(recs)[0]
+    assert row["shadow/F1_count/Perturbed"] == pytest.approx(40.0)
+    assert row["shadow/F1_count/Original"] == pytest.approx(75.0)
+    assert row["shadow/F1_count/Gap"] == pytest.approx(-35.0)
+    assert row["average/F1_count/Gap"] == pytest.approx(-35.0)
+    assert row["shadow/F1/Perturbed"] == pytest.approx(f1(0.0, 0.75))  # 72.73: the silent image reads well
+    assert list(row)[1:10] == [f"shadow/{s}/{k}" for s in ("Accuracy", "F1", "F1_count")
+                               for k in ("Perturbed", "Original", "Gap")]
+    assert type_table(recs)[0]["F1_count/Perturbed"] == pytest.approx(40.0)
+    sev = severity_table(recs)[0]
+    assert sev["F1_count"] == pytest.approx(40.0) and sev["F1_count/Original"] == pytest.approx(75.0)
+    from lanevil_train.report.scores import summary_rows
+
+    rows = {r["images_kind"]: r for r in summary_rows(recs)}
+    assert list(rows["original"])[3:9] == ["images", "Accuracy", "FP", "FN", "F1", "F1_count"]
+    assert rows["original"]["F1_count"] == pytest.approx(75.0) and rows["perturbed"]["F1_count"] == pytest.approx(40.0)
+    # the bootstrap (report/intervals.py) resamples it through its summed parts: the same value
+    from lanevil_train.report.specs import F1_COUNT
+
+    additive = F1_COUNT.aggregate.additive
+    pert = [r for r in recs if r["severity"]]
+    assert float(additive.combine(np.sum([additive.parts(r) for r in pert], axis=0))) == pytest.approx(40.0)
+    # records written before the counts existed: no F1_count column, the other columns unchanged
+    assert not any("F1_count" in k for k in main_table(RECORDS)[0])
+    assert "F1_count" not in summary_rows(RECORDS)[0]

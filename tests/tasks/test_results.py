@@ -44,3 +44,23 @@ def test_a_bad_record_is_named_by_its_file_and_line(tmp_path):
     _write(tmp_path / "b.jsonl", [{**r, "model": "m2"} for r in bad])
     with pytest.raises(ValueError, match=rf"^{tmp_path / 'b.jsonl'}:2: fn must be a number in \[0.0, inf\], got -0.5$"):
         write_results([tmp_path / "a.jsonl", tmp_path / "b.jsonl"], tmp_path / "out")
+
+
+def test_test_scores_show_f1_count_where_a_silent_model_reads_zero(tmp_path):
+    """A model that finds nothing: the papers' F1 (CLRNet's, tp = 1 - FP) reads 66.67, F1_count 0; the records
+    carry the lane counts it is summed from."""
+    four = [_lane(100.0 + 300 * k) for k in range(4)]
+    silent = [_record(k, [], four) for k in range(2)]
+    assert [(r["tp_count"], r["fp_count"], r["fn_count"]) for r in silent] == [(0, 0, 4)] * 2
+    _write(tmp_path / "per_image.jsonl", silent)
+    write_results([tmp_path / "per_image.jsonl"], tmp_path / "out")
+    row = json.loads((tmp_path / "out" / "test_scores.json").read_text())[0]
+    assert row["F1"] == pytest.approx(200 / 3) and row["F1_count"] == 0.0
+    # one image all found, one with 3 of 4 and a false positive: TP 7, FP 1, FN 1 -> 14 / 16
+    found = [_record(0, four, four), _record(1, four[:3] + [_lane(1250.0)], four)]
+    assert (found[1]["tp_count"], found[1]["fp_count"], found[1]["fn_count"]) == (3, 1, 1)
+    _write(tmp_path / "per_image.jsonl", found)
+    write_results([tmp_path / "per_image.jsonl"], tmp_path / "out")
+    row = json.loads((tmp_path / "out" / "test_scores.json").read_text())[0]
+    assert row["F1_count"] == pytest.approx(100 * 14 / 16)
+    assert "F1_count" in (tmp_path / "out" / "test_scores.md").read_text()
