@@ -15,9 +15,10 @@ group (each illusion category, the average of the categories, the clean original
 A case is (dataset, case_id): every image of a simulated scene (its original and all its perturbed variants), or
 every answer about a clip, are resampled together. With few seeds the seed level of the bootstrap under-covers (with
 n seeds its variance is (n - 1) / n of the usual estimate): 3 seeds are the least that say anything.
-Scores with an `additive` form (report/records.py: means, TuSimple F1, CULane F1, judge scores) are resampled as
-matrix products; others (the corpus-level Language score) are re-aggregated per replicate, which is slower: they get
-the first SLOW_REPLICATES replicates only (a VLM compare's Language score costs about 12 ms a replicate and group).
+Scores with an `additive` form (report/records.py: means, TuSimple F1 and F1_count, CULane F1, judge scores) are
+resampled as matrix products; others (the corpus-level Language score) are re-aggregated per replicate, which is
+slower: they get the first SLOW_REPLICATES replicates only (a VLM compare's Language score costs about 12 ms a
+replicate and group).
 """
 
 from __future__ import annotations
