@@ -7,6 +7,8 @@ by the same TuSimple metric for every family. The head contract is models/head.p
 
 from __future__ import annotations
 
+from fnmatch import fnmatchcase
+
 import numpy as np
 import pytorch_lightning as pl
 import torch
@@ -32,12 +34,15 @@ class LaneDetector(pl.LightningModule):
     `optimizer` is a callable params -> optimizer (a `_partial_` config, e.g. torch.optim.AdamW with its lr),
     `scheduler` one (optimizer, total_steps) -> LR scheduler stepped every optimizer step, or None for a
     constant rate. The optimizer's rate is the one at `reference_batch_size`, scaled to the run's global batch by
-    `lr_scaling` (models/schedules.py).
+    `lr_scaling` (models/schedules.py). `lr_multipliers` ({pattern: factor}, fnmatch patterns over the parameter
+    names, the first match wins, others 1) give parts of the network their own rate, as DETR's backbone at 0.1x;
+    `gradient_clip_norm` clips the total gradient norm (DETR's 0.1) unless the trainer's gradient_clip_val is set.
     """
 
     def __init__(self, backbone: nn.Module, head: nn.Module, neck: nn.Module | None = None, optimizer=None,
                  scheduler=cosine, reference_batch_size: int | None = None, lr_scaling: str = "none",
-                 decode: dict | None = None, crop_top: float = 0.0):
+                 decode: dict | None = None, crop_top: float = 0.0, lr_multipliers: dict | None = None,
+                 gradient_clip_norm: float | None = None):
         super().__init__()
         self.backbone = backbone
         self.neck = neck
@@ -46,6 +51,10 @@ class LaneDetector(pl.LightningModule):
         self.scheduler_factory = scheduler
         self.reference_batch_size = reference_batch_size
         self.lr_scaling = lr_scaling
+        self.lr_multipliers = check_lr_multipliers(self, dict(lr_multipliers or {}))
+        if gradient_clip_norm is not None and not gradient_clip_norm > 0:
+            raise ValueError(f"gradient_clip_norm: expected null or a positive maximum norm, got {gradient_clip_norm!r}")
+        self.gradient_clip_norm = gradient_clip_norm
         self.decode_kwargs = dict(decode or {})
         check_decode_options(head, self.decode_kwargs, "model.decode")
         self.crop_top = crop_top  # fraction of the original height cut before resizing (data.crop_top)
@@ -144,8 +153,18 @@ class LaneDetector(pl.LightningModule):
             raise ValueError("LaneDetector: the global batch size needs the datamodule's batch_size (data.batch_size)")
         return int(loader_batch) * trainer.world_size * trainer.accumulate_grad_batches
 
+    def parameter_groups(self) -> list[dict]:
+        """The trainable parameters in one group per rate multiplier (`lr_multipliers`), each with its `lr_factor`."""
+        groups: dict[float, list] = {}
+        for name, parameter in self.named_parameters():
+            if parameter.requires_grad:
+                groups.setdefault(lr_factor(name, self.lr_multipliers), []).append(parameter)
+        return [{"params": params, "lr_factor": factor} for factor, params in groups.items()]
+
     def configure_optimizers(self):
-        optimizer = self.optimizer_factory(self.parameters())
+        optimizer = self.optimizer_factory(self.parameter_groups())
+        for group in optimizer.param_groups:
+            group["lr"] *= group["lr_factor"]
         if self.lr_scaling != "none" and self.reference_batch_size:
             batch = self.global_batch_size()
             for group in optimizer.param_groups:
@@ -155,6 +174,31 @@ class LaneDetector(pl.LightningModule):
         total = max(int(self.trainer.estimated_stepping_batches), 1)
         schedule = self.scheduler_factory(optimizer, total)
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": schedule, "interval": "step"}}
+
+
+    def configure_gradient_clipping(self, optimizer, gradient_clip_val=None, gradient_clip_algorithm=None) -> None:
+        if gradient_clip_val is None and self.gradient_clip_norm is not None:
+            gradient_clip_val, gradient_clip_algorithm = self.gradient_clip_norm, "norm"
+        self.clip_gradients(optimizer, gradient_clip_val=gradient_clip_val,
+                            gradient_clip_algorithm=gradient_clip_algorithm)
+
+
+def lr_factor(name: str, multipliers: dict[str, float]) -> float:
+    """The rate multiplier of a parameter: the first pattern its name matches, else 1."""
+    return next((float(factor) for pattern, factor in multipliers.items() if fnmatchcase(name, pattern)), 1.0)
+
+
+def check_lr_multipliers(model: nn.Module, multipliers: dict) -> dict[str, float]:
+    """Each pattern must name some parameter (a typo would silently train at the full rate) and its factor be >= 0."""
+    names = [name for name, _ in model.named_parameters()]
+    for pattern, factor in multipliers.items():
+        if not isinstance(factor, (int, float)) or isinstance(factor, bool) or factor < 0:
+            raise ValueError(f"lr_multipliers.{pattern}: expected a rate factor >= 0, got {factor!r}")
+        if not any(fnmatchcase(name, pattern) for name in names):
+            roots = sorted({name.split(".")[0] + ".*" for name in names})
+            raise ValueError(f"lr_multipliers: the pattern {pattern!r} names no parameter; parameter names start with "
+                             f"{', '.join(roots)} (e.g. {names[0]})")
+    return {str(k): float(v) for k, v in multipliers.items()}
 
 
 def _original_size(meta: dict) -> tuple[int, int]:

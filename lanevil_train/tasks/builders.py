@@ -14,6 +14,7 @@ from omegaconf import DictConfig, OmegaConf
 from lanevil_train.checkpoints import AtomicCheckpointIO
 from lanevil_train.data.datamodule import LaneDataModule
 from lanevil_train.data.datasets import EmptySplitError
+from lanevil_train.data.normalization import DEFAULT_NORMALIZATION, Normalization, normalization, spec_normalization
 from lanevil_train.errors import prefixed
 from lanevil_train.models.backbones import indices_for_strides
 from lanevil_train.models.detector import LaneDetector
@@ -24,10 +25,13 @@ MODEL_KEYS = ("model", "backbone")
 
 
 def model_config(cfg: DictConfig) -> dict:
-    """The network-defining part of cfg, as a plain dict (model, backbone, input size)."""
+    """The network-defining part of cfg, as a plain dict (model, backbone, input size, crop, normalisation)."""
     out = {key: OmegaConf.to_container(cfg[key], resolve=True) for key in MODEL_KEYS}
     out["input_size"] = list(cfg.data.input_size)
     out["crop_top"] = float(cfg.data.get("crop_top", 0.0))
+    # the input normalisation preset (data/normalization.py): the weights only mean something under it
+    out["normalize"] = str(cfg.data.get("normalize") or DEFAULT_NORMALIZATION)
+    normalization(out["normalize"])
     return out
 
 
@@ -96,7 +100,8 @@ def build_model(spec: dict) -> LaneDetector:
     detector = LaneDetector(backbone, head, neck=neck, optimizer=optimizer, scheduler=scheduler,
                             reference_batch_size=model.get("reference_batch_size"),
                             lr_scaling=model.get("lr_scaling", "none"), decode=model.get("decode"),
-                            crop_top=spec.get("crop_top", 0.0))
+                            crop_top=spec.get("crop_top", 0.0), lr_multipliers=model.get("lr_multipliers"),
+                            gradient_clip_norm=model.get("gradient_clip_norm"))
     detector.build_config = spec
     return detector
 
@@ -130,17 +135,45 @@ def build_defense(cfg: DictConfig) -> dict:
     if unknown:
         raise ValueError(f"defense={defense.name}: unknown keys {sorted(unknown)}; a defense config has "
                          f"name, transforms, mixer and callback")
-    transforms = [instantiate_at(node, f"defense.transforms[{i}]") for i, node in enumerate(defense.get("transforms") or [])]
+    preset = normalization(str(cfg.data.get("normalize") or DEFAULT_NORMALIZATION))
+    transforms = [instantiate_at(node, f"defense.transforms[{i}]", **_normalization_arguments(node, preset))
+                  for i, node in enumerate(defense.get("transforms") or [])]
     mixer = instantiate_at(defense.mixer, "defense.mixer") if defense.get("mixer") is not None else None
-    callback = instantiate_at(defense.callback, "defense.callback") if defense.get("callback") is not None else None
+    callback = None
+    if defense.get("callback") is not None:
+        extra = _normalization_arguments(defense.callback, preset)
+        callback = instantiate_at(defense.callback, "defense.callback", **extra)
     return {"transforms": transforms, "mixer": mixer, "callback": callback}
+
+
+def _normalization_arguments(node, preset: Normalization) -> dict:
+    """What a defense working on pixels must know of the input normalisation, unless its config says it: cutout's
+    fill is the preset's mean colour (0 after normalising, as DeVries & Taylor's holes), PGD's mean and std put its
+    [0, 1]-pixel eps-ball and valid range into the tensor's units."""
+    from hydra.utils import get_class
+
+    from lanevil_train.callbacks import PGDAdversarialTraining
+    from lanevil_train.data.defenses import LaneCutout
+
+    try:
+        target = get_class(node._target_)
+    except Exception:  # noqa: BLE001 - instantiate_at reports a bad target, naming its key
+        return {}
+    if not isinstance(target, type):
+        return {}
+    if issubclass(target, LaneCutout) and "fill" not in node:
+        return {"fill": preset.mean_colour()}
+    if issubclass(target, PGDAdversarialTraining) and not {"mean", "std"} & set(node):
+        mean, std = preset.pixel_mean_std()
+        return {"mean": mean, "std": std}
+    return {}
 
 
 def build_datamodule(cfg: DictConfig, splits: tuple[str, ...], model: LaneDetector,
                      defense: dict | None = None) -> LaneDataModule:
     """The datamodule with only the named splits instantiated (reading a split can be slow).
 
-    The input geometry (size, top crop) and target encoder come from the model, so a checkpoint
+    The input geometry (size, top crop), normalisation and target encoder come from the model, so a checkpoint
     is always fed what it was trained on; a defense's transforms and mixer act on the train split.
     """
     defense = defense or {}
@@ -156,7 +189,8 @@ def build_datamodule(cfg: DictConfig, splits: tuple[str, ...], model: LaneDetect
     return LaneDataModule(sets["train"], sets["val"], sets["test"], input_size=tuple(spec["input_size"]),
                           batch_size=cfg.data.batch_size, num_workers=cfg.data.num_workers,
                           augment=cfg.data.augment, encode=model.head.encode, crop_top=spec.get("crop_top", 0.0),
-                          train_transforms=transforms, train_mixer=defense.get("mixer"))
+                          train_transforms=transforms, train_mixer=defense.get("mixer"),
+                          normalize=spec_normalization(spec))
 
 
 def build_callbacks(cfg: DictConfig) -> list[pl.Callback]:

@@ -25,6 +25,7 @@ from typing import Any, Callable
 from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
 
+from lanevil_train.data.normalization import NORMALIZATIONS
 from lanevil_train.illusions import ILLUSIONS, SEVERITIES
 from lanevil_train.lanes import SLOT_ASSIGNMENTS
 from lanevil_train.models.backbones import OUTPUT_STRIDES, indices_for_strides, stage_strides
@@ -347,6 +348,15 @@ def mapping_of(keys: tuple[str, ...]) -> Rule:
     return Rule(f"a mapping with the keys {', '.join(keys)}", test)
 
 
+def rate_factors() -> Rule:
+    def test(v):
+        if not isinstance(v, dict):
+            return ""
+        bad = [f"{k}: {f!r}" for k, f in v.items() if isinstance(f, bool) or not isinstance(f, (int, float)) or f < 0]
+        return f"factors must be numbers >= 0 ({', '.join(bad)})" if bad else None
+    return Rule("a mapping {parameter name pattern: rate factor >= 0}, e.g. {'backbone.*': 0.1}", test)
+
+
 def _for_splits(key: str, rule: Rule) -> dict[str, Rule]:
     """The same rule for data.train.<key>, data.val.<key> and data.test.<key>."""
     return {f"data.{split}.{key}": rule for split in SPLITS}
@@ -363,6 +373,7 @@ RULES: dict[str, Rule] = {
     "data.root": existing_dir("dataset directory"),
     "data.input_size": int_pair(16),
     "data.crop_top": number(0, 1, high_open=True),
+    "data.normalize": one_of(*NORMALIZATIONS),
     "data.batch_size": integer(1),
     "data.num_workers": integer(0),
     "data.augment": boolean(),
@@ -496,6 +507,8 @@ RULES: dict[str, Rule] = {
     "model.scheduler": null_or(target_node()),
     "model.reference_batch_size": null_or(integer(1)),
     "model.lr_scaling": one_of(*LR_SCALINGS),
+    "model.lr_multipliers": null_or(rate_factors()),
+    "model.gradient_clip_norm": null_or(number(0, low_open=True)),
     "model.decode.conf_threshold": number(0, 1),
     "model.decode.nms_threshold": number(0),
     "model.decode.nms_topk": null_or(integer(1)),

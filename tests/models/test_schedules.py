@@ -87,3 +87,31 @@ def test_optimizer_and_schedule_configs_new_and_old():
     assert isinstance(opt, torch.optim.Adam) and opt.param_groups[0]["lr"] == 1e-3
     assert make_schedule(opt, 10).lr_lambdas[0](10) == pytest.approx(0.0)
     assert _optimizer_and_schedule({"optimizer": {"lr": 1e-3}, "scheduler": "none"})[1] is None
+
+
+def test_lr_multipliers_give_parts_of_the_network_their_own_rate():
+    backbone = torch.nn.Conv2d(3, 8, 1)
+    head = LaneATTHead([8], [32], (64, 96), anchor_feat_channels=2, lateral_n=2, bottom_n=2)
+    model = LaneDetector(backbone, head, optimizer=lambda p: torch.optim.AdamW(p, lr=1e-4), scheduler=None,
+                         lr_multipliers={"backbone.*": 0.1, "head.cls_layer.weight": 0.0})
+    optimizer = model.configure_optimizers()
+    rate = {id(p): group["lr"] for group in optimizer.param_groups for p in group["params"]}
+    assert rate[id(backbone.weight)] == pytest.approx(1e-5) and rate[id(backbone.bias)] == pytest.approx(1e-5)
+    assert rate[id(head.cls_layer.weight)] == 0.0 and rate[id(head.cls_layer.bias)] == pytest.approx(1e-4)
+    assert len(rate) == sum(1 for p in model.parameters() if p.requires_grad)  # every parameter, once
+    with pytest.raises(ValueError, match=r"the pattern 'bakbone\.\*' names no parameter; .*backbone\.\*"):
+        LaneDetector(backbone, head, lr_multipliers={"bakbone.*": 0.1})
+    with pytest.raises(ValueError, match=r"lr_multipliers.backbone.\*: expected a rate factor >= 0, got -1"):
+        LaneDetector(backbone, head, lr_multipliers={"backbone.*": -1})
+
+
+def test_gradient_clip_norm_applies_unless_the_trainer_sets_its_own(monkeypatch):
+    model = _detector(gradient_clip_norm=0.1)
+    calls = []
+    monkeypatch.setattr(model, "clip_gradients", lambda optimizer, gradient_clip_val, gradient_clip_algorithm:
+                        calls.append((gradient_clip_val, gradient_clip_algorithm)))
+    model.configure_gradient_clipping(None, None, None)  # trainer.gradient_clip_val null: the family's clipping
+    model.configure_gradient_clipping(None, 5.0, "value")  # the trainer's own setting wins
+    assert calls == [(0.1, "norm"), (5.0, "value")]
+    with pytest.raises(ValueError, match="gradient_clip_norm: expected null or a positive maximum norm, got 0"):
+        _detector(gradient_clip_norm=0)
