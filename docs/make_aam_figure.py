@@ -20,14 +20,15 @@ from matplotlib.patches import Rectangle  # noqa: E402
 
 from aam_step import observed_step  # noqa: E402  (docs/, beside this script)
 from lanevil_train.callbacks.regions import HAA, LAA, extract_regions  # noqa: E402
-from lanevil_train.data.transforms import IMAGENET_MEAN, IMAGENET_STD  # noqa: E402
+from lanevil_train.data.normalization import unnormalize_image  # noqa: E402
 from lanevil_train.tasks.builders import build_datamodule, build_defense, build_model, model_config  # noqa: E402
 
 COLOURS = {HAA: "red", LAA: "deepskyblue"}
 
 
-def to_rgb(image: torch.Tensor) -> np.ndarray:
-    return np.clip(image.permute(1, 2, 0).numpy() * IMAGENET_STD + IMAGENET_MEAN, 0, 1)
+def to_rgb(image: torch.Tensor, normalize: str = "imagenet") -> np.ndarray:
+    """A network input back as an RGB image in [0, 1] (the quickstart's model trains on `imagenet` inputs)."""
+    return np.clip(unnormalize_image(image.numpy(), normalize), 0, 1)
 
 
 def main() -> None:

@@ -71,6 +71,7 @@ class DetectorPolicy:
     """A lane detector's lanes, through pure pursuit. `model` is a LaneDetector (eval mode, on its device)."""
 
     def __init__(self, model, controller: PurePursuit | None = None, name: str = "detector"):
+        from lanevil_train.data.normalization import spec_normalization
         from lanevil_train.data.transforms import LaneSampleProcessor
 
         self.model = model.eval()
@@ -79,7 +80,7 @@ class DetectorPolicy:
             raise ValueError(f"{name}: the checkpoint records no input_size (build config {sorted(spec)}); "
                              f"it was not written by this project's task=train")
         self.processor = LaneSampleProcessor(tuple(spec["input_size"]), augment=False,
-                                             crop_top=spec.get("crop_top", 0.0))
+                                             crop_top=spec.get("crop_top", 0.0), normalize=spec_normalization(spec))
         self.controller = controller or PurePursuit()
         self.name = name
 

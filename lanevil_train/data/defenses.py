@@ -13,9 +13,12 @@ from typing import Any, Sequence
 import albumentations as A
 import numpy as np
 
-# ImageNet mean in uint8 RGB: a hole of this colour is exactly 0 after `normalize_image`,
-# which is what DeVries & Taylor's cutout does on normalised inputs.
-IMAGENET_MEAN_UINT8 = (124, 116, 104)
+from lanevil_train.data.normalization import NORMALIZATIONS
+
+# ImageNet mean in uint8 RGB: a hole of this colour is 0 (within half a grey level) after the `imagenet`
+# normalisation, which is what DeVries & Taylor's cutout does on normalised inputs. Under another preset the
+# defense's fill is that preset's mean colour (tasks/builders.build_defense), so the meaning stays.
+IMAGENET_MEAN_UINT8 = NORMALIZATIONS["imagenet"].mean_colour()
 
 
 def _is_number(value: Any) -> bool:
@@ -43,7 +46,8 @@ class LaneCutout(A.ImageOnlyTransform):
     default KeypointParams(remove_invisible=True)), which would delete lane points whose
     paint is merely hidden; this transform only touches the image, so the lane labels stay.
     `hole_height`/`hole_width` are fractions of the image side; holes lie fully inside the image
-    and may overlap. `fill` is one grey level or an RGB triple (default: the ImageNet mean).
+    and may overlap. `fill` is one grey level or an RGB triple (default: the ImageNet mean; task=train passes the
+    mean colour of data.normalize's preset, Normalization.mean_colour, unless the config sets a fill).
     """
 
     def __init__(self, num_holes: Sequence[int] | int = (1, 3), hole_height: Sequence[float] | float = (0.1, 0.3),

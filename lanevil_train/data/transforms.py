@@ -20,10 +20,8 @@ import albumentations as A
 import cv2
 import numpy as np
 
+from lanevil_train.data.normalization import DEFAULT_NORMALIZATION, normalization, normalize_image
 from lanevil_train.lanes import as_lane
-
-IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
-IMAGENET_STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)
 
 
 def build_pipeline(input_size: tuple[int, int], augment: bool, extra: list | None = None) -> A.Compose:
@@ -114,13 +112,6 @@ def apply_pipeline(pipeline: A.Compose, image: np.ndarray, lanes: list[np.ndarra
     return out["image"], moved
 
 
-def normalize_image(image: np.ndarray) -> np.ndarray:
-    """uint8 HxWx3 RGB -> float32 3xHxW, ImageNet-normalised (what the timm backbones expect)."""
-    x = image.astype(np.float32) / 255.0
-    x = (x - IMAGENET_MEAN) / IMAGENET_STD
-    return np.ascontiguousarray(x.transpose(2, 0, 1))
-
-
 def crop_rows(crop_top: float, height: int) -> int:
     """Rows cut from the top of an image of this height (the sky, which holds no lane)."""
     if not 0.0 <= crop_top < 1.0:
@@ -142,22 +133,26 @@ class LaneSampleProcessor:
     `encode` is the detector family's own target encoder (lanes in input pixels, meta -> a dict of fixed-shape
     arrays),
     passed in by the task so data/ never imports models/. `crop_top` is the fraction of the image
-    height cut from the top before anything else (as CLRNet's and UFLD's cut_height).
+    height cut from the top before anything else (as CLRNet's and UFLD's cut_height). `normalize` names the
+    input normalisation preset (data/normalization.py: the model's build config records the one it trained with).
     """
 
     def __init__(self, input_size: tuple[int, int], augment: bool, encode: Callable | None = None,
-                 extra_transforms: list | None = None, crop_top: float = 0.0):
+                 extra_transforms: list | None = None, crop_top: float = 0.0,
+                 normalize: str = DEFAULT_NORMALIZATION):
         self.input_size = tuple(input_size)
         self.pipeline = build_pipeline(self.input_size, augment, extra_transforms)
         self.encode = encode
         crop_rows(crop_top, 1)  # validate now, not in a data worker
         self.crop_top = crop_top
+        normalization(normalize)  # validate now too
+        self.normalize = normalize
 
     def __call__(self, sample: dict) -> dict:
         image, lanes = crop_top_rows(sample["image"], sample["lanes"], crop_rows(self.crop_top, sample["image"].shape[0]))
         image, lanes = apply_pipeline(self.pipeline, image, lanes)
         item = {
-            "image": normalize_image(image),
+            "image": normalize_image(image, self.normalize),
             "lanes": sample["lanes"],  # ground truth in the original image, for scoring
             "input_lanes": lanes,
             "meta": sample["meta"],

@@ -2,8 +2,8 @@
 the ONNX model back as a detector whose network runs in onnxruntime (task=evaluate task.onnx=model.onnx).
 
 Decoding stays in Python (the family head's decode), so an ONNX model and its PyTorch checkpoint give the same
-scores through the same code. The model's build config (family, backbone, input size, crop, decoding) travels in
-the ONNX file's metadata, as it does in a Lightning checkpoint.
+scores through the same code. The model's build config (family, backbone, input size, crop, input normalisation,
+decoding) travels in the ONNX file's metadata, as it does in a Lightning checkpoint.
 
     python -m lanevil_train task=export ckpt_path=last.ckpt task.out=model.onnx
     python -m lanevil_train task=export model=clrnet task.out=clrnet.onnx        # random weights

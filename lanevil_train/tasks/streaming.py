@@ -15,6 +15,7 @@ from torch.utils.data import DataLoader, Dataset, Subset
 
 from lanevil_train.data.datamodule import ProcessedDataset, collate_lanes
 from lanevil_train.data.formats.atomic import atomic_write_text
+from lanevil_train.data.normalization import DEFAULT_NORMALIZATION, spec_normalization
 from lanevil_train.data.transforms import LaneSampleProcessor
 from lanevil_train.models.detector import LaneDetector
 from lanevil_train.progress import progress_counter
@@ -36,7 +37,7 @@ def stream_evaluate(model: LaneDetector, dataset: Dataset, out_path: str | Path,
     todo = [i for i in range(len(dataset)) if dataset.item_key(i) not in done]
     spec = model.build_config or {}
     processor = LaneSampleProcessor(tuple(spec.get("input_size", dataset[0]["image"].shape[:2])), augment=False,
-                                    crop_top=spec.get("crop_top", 0.0))
+                                    crop_top=spec.get("crop_top", 0.0), normalize=spec_normalization(spec))
     loader = DataLoader(ProcessedDataset(Subset(dataset, todo), processor), batch_size=batch_size,
                         shuffle=False, num_workers=num_workers, collate_fn=collate_lanes)
     bar = progress_counter(len(dataset), len(dataset) - len(todo), "evaluate", "img", progress)
@@ -54,7 +55,8 @@ def stream_evaluate(model: LaneDetector, dataset: Dataset, out_path: str | Path,
 
 
 def run_identity(model: LaneDetector, label: dict) -> dict:
-    """What makes two evaluations the same: the label, the network's weights (a hash), input geometry, decoding."""
+    """What makes two evaluations the same: the label, the network's weights (a hash), input geometry and
+    normalisation, decoding."""
     weights = getattr(model, "weights_sha256", None)  # an ONNX model's: its file's hash (tasks/export.py)
     if weights is None:
         digest = hashlib.sha256()
@@ -63,8 +65,11 @@ def run_identity(model: LaneDetector, label: dict) -> dict:
             digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
         weights = digest.hexdigest()
     spec = model.build_config or {}
+    # the normalisation only when not the default, so the identities written before it was recorded still match
+    normalize = spec_normalization(spec)
     return {**{k: str(v) for k, v in label.items()}, "weights_sha256": weights,
             "input_size": list(spec.get("input_size", [])), "crop_top": spec.get("crop_top", 0.0),
+            **({"normalize": normalize} if normalize != DEFAULT_NORMALIZATION else {}),
             "decode": {k: v for k, v in sorted(model.decode_kwargs.items())}}
 
 

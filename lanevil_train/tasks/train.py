@@ -10,6 +10,7 @@ from omegaconf import DictConfig
 
 from lanevil_train.checkpoints import load_weights
 from lanevil_train.data.formats.atomic import remove_temporaries
+from lanevil_train.data.normalization import spec_normalization
 from lanevil_train.tasks.builders import (build_callbacks, build_datamodule, build_defense, build_model, build_trainer,
                                           is_vlm, model_config, output_dir)
 from lanevil_train.tasks.evaluate import stream_dataset, test_dataset
@@ -59,8 +60,10 @@ def train(cfg: DictConfig) -> float | None:
 
 
 # The parts of a checkpoint's network spec that a resumed run must share: the weights fit either way, but
-# the same weights fed another input geometry (size, top crop) would silently learn something else.
-RESUME_KEYS = (("input_size",), ("crop_top",), ("backbone", "name"), ("backbone", "out_indices"), ("model", "head"))
+# the same weights fed another input geometry (size, top crop) or normalisation would silently learn something else.
+RESUME_KEYS = (("input_size",), ("crop_top",), ("normalize",), ("backbone", "name"), ("backbone", "out_indices"),
+               ("model", "head"))
+DATA_KEYS = ("input_size", "crop_top", "normalize")  # named data.<key> in the messages
 
 
 def check_same_network(checkpoint: dict, spec: dict, path) -> None:
@@ -74,9 +77,10 @@ def check_same_network(checkpoint: dict, spec: dict, path) -> None:
             tree = tree.get(key) if isinstance(tree, dict) else None
         return list(tree) if isinstance(tree, tuple) else tree
 
+    saved = {**saved, "normalize": spec_normalization(saved)}  # checkpoints older than the key: imagenet
     changed = [(".".join(k), at(saved, k), at(spec, k)) for k in RESUME_KEYS if at(saved, k) != at(spec, k)]
     if changed:
-        differences = "; ".join(f"{'data.' if key in ('input_size', 'crop_top') else ''}{key} was {old!r}, now "
+        differences = "; ".join(f"{'data.' if key in DATA_KEYS else ''}{key} was {old!r}, now "
                                 f"{new!r}" for key, old, new in changed)
         raise ValueError(f"ckpt_path={path}: resuming needs the network the checkpoint was trained with, and this "
                          f"config differs ({differences}); set those back, or start a new run from its weights with "
