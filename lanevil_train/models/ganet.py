@@ -1,21 +1,24 @@
 """GANet head (Wang et al., "A Keypoint-based Global Association Network for Lane Detection", CVPR 2022).
 
-Lanes as keypoints: on the finest FPN level (stride 8 in the paper) a keypoint heatmap (1 channel, sigmoid), the
-sub-cell error of each keypoint (2 channels) and, the paper's global association, every keypoint's offset to its
-lane's start point (2 channels); decoding groups the keypoints by the start points they point at
-(ganet_codec). The Lane-aware Feature Aggregator (LFA) feeds the heatmap branch: at each location it predicts
-K points (offsets in feature cells), reads the features there and aggregates them (the official's deformable
-1-D convolution: sum_k W_k f(p_k)); an auxiliary loss pulls the K points onto the ground-truth lane. As the
-official (``dcn_only_cls``), the offset and error branches read the features without the LFA.
+Lanes as keypoints: on the stride-8 level a keypoint heatmap (1 channel, sigmoid), the sub-cell error of each
+keypoint (2 channels) and, the paper's global association, every keypoint's offset to its lane's start point
+(2 channels); decoding groups the keypoints by the start points they point at (ganet_codec).
+
+The head reads the backbone's C3, C4, C5 and builds GANet's own neck (ganet_neck, the official DeformFPN): two
+self-attention layers with sine position embeddings on C5, which then replaces C5; 1x1 laterals and the top-down
+sum; the Lane-aware Feature Aggregator (LFA) on the finest merged lateral, then a 3x3 conv, for the heatmap
+branch; the offset and error branches read the merged lateral itself (the official ``dcn_only_cls``). The LFA
+predicts K points per location, reads the features there and aggregates them (the official's deformable 1-D
+convolution: sum_k W_k f(p_k)); an auxiliary loss pulls the K points onto the ground-truth lane.
 
 Where this differs from the official, and why:
-- the self-attention the official puts on the backbone's last stage before its FPN (two attention layers with a
-  sine position embedding, replacing C5) lives here, with the shared FPN neck, on the FPN's coarsest output: one
-  attention layer (conv, query/key/value, a zero-initialised residual weight, conv; no position embedding) whose
-  output is upsampled and added to the finest level (``top_attention``; the official's top-down path does that
-  addition in its FPN);
 - the LFA's deformable convolution is grid_sample (models/sampling) at the predicted points of a 1x1 projection
-  per point, summed: the same function (sampling is linear), exportable to ONNX;
+  per point, summed: the same function (sampling is linear), exportable to ONNX; its point output starts small
+  (normal, std 0.01) instead of xavier, so the first points lie near their location;
+- the position embedding is computed for the C5 map's actual size (the official builds it once for its
+  configured 320x800 input: the same values there);
+- the official's 3x3 output convs of the stride-16 and stride-32 levels, whose outputs nothing reads, are left
+  out;
 - per-image loss normalisation (ganet_loss) and the decoding's nearest-centre assignment (ganet_codec).
 """
 
@@ -23,20 +26,14 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from lanevil_train.models.ganet_codec import decode_lanes, encode_targets, heatmap_size
 from lanevil_train.models.ganet_loss import heatmap_focal_loss, lfa_loss, masked_l1
+from lanevil_train.models.ganet_neck import GANetNeck
 from lanevil_train.models.head import LaneHead
-from lanevil_train.models.sampling import sample_at
 
-HEATMAP_BIAS = -2.19  # CenterNet's initial heatmap bias (sigmoid 0.1)
-
-
-def _conv_relu(c_in: int, c_out: int, n: int) -> nn.Sequential:
-    return nn.Sequential(*[m for i in range(n) for m in (nn.Conv2d(c_in if i == 0 else c_out, c_out, 3, padding=1),
-                                                         nn.ReLU(inplace=True))])
+HEATMAP_BIAS = -2.19  # CenterNet's initial heatmap bias (sigmoid 0.1), the official CtnetHead's
 
 
 def _branch(c_in: int, hidden: int, out: int) -> nn.Sequential:
@@ -44,75 +41,9 @@ def _branch(c_in: int, hidden: int, out: int) -> nn.Sequential:
     return nn.Sequential(nn.Conv2d(c_in, hidden, 3, padding=1), nn.ReLU(inplace=True), nn.Conv2d(hidden, out, 1))
 
 
-class SelfAttention(nn.Module):
-    """The official AttentionLayer: conv-BN-ReLU, attention of every position over all (query/key at C / ratio
-    channels), gamma * attended + input (gamma starts at 0), conv-BN-ReLU."""
-
-    def __init__(self, c_in: int, c_out: int, ratio: int = 4) -> None:
-        super().__init__()
-        self.pre = nn.Sequential(nn.Conv2d(c_in, c_out, 3, padding=1, bias=False), nn.BatchNorm2d(c_out), nn.ReLU())
-        self.query = nn.Conv2d(c_out, c_out // ratio, 1)
-        self.key = nn.Conv2d(c_out, c_out // ratio, 1)
-        self.value = nn.Conv2d(c_out, c_out, 1)
-        self.gamma = nn.Parameter(torch.zeros(1))
-        self.post = nn.Sequential(nn.Conv2d(c_out, c_out, 3, padding=1, bias=False), nn.BatchNorm2d(c_out), nn.ReLU())
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        x = self.pre(x)
-        b, c, h, w = x.shape
-        q = self.query(x).flatten(2).transpose(1, 2)  # (B, N, C')
-        k = self.key(x).flatten(2)  # (B, C', N)
-        attn = torch.softmax(torch.bmm(q, k), dim=-1)  # (B, N, N): each query over the keys
-        out = torch.bmm(self.value(x).flatten(2), attn.transpose(1, 2)).reshape(b, c, h, w)
-        return self.post(self.gamma * out + x)
-
-
-class LaneAwareAggregator(nn.Module):
-    """The LFA (the official LanePointsConv): a point branch (convs, 3x3 conv, ReLU, 1x1 conv) predicts K points
-    per location as (dx, dy) offsets in feature cells from it; a feature branch (convs) is read at those points
-    and aggregated, sum_k W_k f(p_k) + b, then ReLU. The points used for sampling pass only gradient_mul of their
-    gradient (the official 0.1); the auxiliary loss acts on the points themselves."""
-
-    def __init__(self, channels: int, feat_channels: int, num_points: int, stacked_convs: int,
-                 gradient_mul: float) -> None:
-        super().__init__()
-        self.num_points = num_points
-        self.gradient_mul = gradient_mul
-        self.feat_convs = _conv_relu(channels, feat_channels, stacked_convs)
-        self.point_convs = _conv_relu(channels, feat_channels, stacked_convs)
-        self.point_out = nn.Sequential(nn.Conv2d(feat_channels, channels, 3, padding=1), nn.ReLU(inplace=True),
-                                       nn.Conv2d(channels, 2 * num_points, 1))
-        # W_k for every point k at once: sampling commutes with a 1x1 conv, so project first, then sample
-        self.project = nn.Conv2d(feat_channels, num_points * channels, 1, bias=False)
-        self.bias = nn.Parameter(torch.zeros(channels))
-        nn.init.normal_(self.point_out[-1].weight, std=0.01)
-        nn.init.zeros_(self.point_out[-1].bias)
-
-    @staticmethod
-    def sample(fmap: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
-        """fmap (B, C, h, w) read at K points per location, points (B, 2K, h, w) offsets (dx, dy) in cells ->
-        (B, C, K, h, w); zero offsets read the location itself, points off the map read zeros."""
-        b, k2, h, w = points.shape
-        pts = points.reshape(b, k2 // 2, 2, h, w)
-        xs = pts[:, :, 0] + torch.arange(w, device=points.device, dtype=points.dtype)
-        ys = pts[:, :, 1] + torch.arange(h, device=points.device, dtype=points.dtype)[:, None]
-        return sample_at(fmap, xs, ys, (h, w))
-
-    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Aggregated features (B, C, h, w) and the predicted points (B, 2K, h, w)."""
-        points = self.point_out(self.point_convs(x))
-        used = (1 - self.gradient_mul) * points.detach() + self.gradient_mul * points
-        proj = self.project(self.feat_convs(x))  # (B, K * C, h, w)
-        b, _, h, w = proj.shape
-        k, c = self.num_points, proj.shape[1] // self.num_points
-        sampled = self.sample(proj.reshape(b * k, c, h, w), used.reshape(b * k, 2, h, w))  # (B*K, C, 1, h, w)
-        out = sampled.reshape(b, k, c, h, w).sum(1) + self.bias[:, None, None]
-        return F.relu(out), points
-
-
 class GANetHead(LaneHead):
-    """GANet on the first (finest) of the feature maps it is given (the stride-8 FPN level in the paper); the
-    coarsest one feeds the top self-attention."""
+    """GANet on the backbone's maps, finest first (C3, C4, C5 in the paper): its neck (ganet_neck) merges them
+    top-down onto the finest one, whose stride is the heatmap's (8 in the paper)."""
 
     def __init__(
         self,
@@ -120,6 +51,7 @@ class GANetHead(LaneHead):
         in_strides: list[int],
         image_size: tuple[int, int],
         max_lanes: int = 4,
+        fpn_channels: int = 64,
         head_channels: int = 64,
         lfa_channels: int = 256,
         lfa_convs: int = 3,
@@ -129,6 +61,7 @@ class GANetHead(LaneHead):
         points_per_lane: int = 45,
         radius: int = 2,
         top_attention: bool = True,
+        attention_layers: int = 2,
         attention_ratio: int = 4,
         heatmap_loss_weight: float = 1.0,
         error_loss_weight: float = 1.0,
@@ -138,7 +71,8 @@ class GANetHead(LaneHead):
         reference_width: float = 800.0,
     ) -> None:
         super().__init__(in_channels, in_strides, image_size)
-        for name, value, low in (("max_lanes", max_lanes, 1), ("head_channels", head_channels, 1),
+        for name, value, low in (("max_lanes", max_lanes, 1), ("fpn_channels", fpn_channels, 2),
+                                 ("attention_layers", attention_layers, 1), ("head_channels", head_channels, 1),
                                  ("lfa_channels", lfa_channels, 1), ("lfa_convs", lfa_convs, 0),
                                  ("lfa_points", lfa_points, 1), ("points_per_lane", points_per_lane, 2),
                                  ("radius", radius, 0), ("attention_ratio", attention_ratio, 1)):
@@ -158,9 +92,13 @@ class GANetHead(LaneHead):
         for name, value in weights.items():
             if value < 0:
                 raise ValueError(f"GANetHead: {name} must be >= 0, got {value}")
-        channels = self.in_channels[0]
+        channels = int(fpn_channels)
+        if top_attention and channels % 2:
+            raise ValueError(f"GANetHead: fpn_channels must be even with top_attention (the sine position "
+                             f"embedding gives half its channels to y, half to x), got {channels}")
         if top_attention and channels // attention_ratio < 1:
-            raise ValueError(f"GANetHead: attention_ratio {attention_ratio} leaves no query channels of {channels}")
+            raise ValueError(f"GANetHead: attention_ratio {attention_ratio} leaves no query channels of "
+                             f"fpn_channels {channels}")
         self.max_lanes = int(max_lanes)
         self.stride = self.in_strides[0]
         self.fmap_size = heatmap_size(self.image_size, self.stride)
@@ -168,29 +106,27 @@ class GANetHead(LaneHead):
         self.lfa_beta = float(lfa_beta)
         self.threshold_scale = self.image_size[1] / float(reference_width)
         self.weights = {k.removesuffix("_loss_weight"): float(v) for k, v in weights.items()}
-        self.attention = SelfAttention(self.in_channels[-1], channels, attention_ratio) if top_attention else None
-        self.lfa = LaneAwareAggregator(channels, lfa_channels, lfa_points, lfa_convs, lfa_gradient_mul)
+        self.neck = GANetNeck(self.in_channels, channels, int(attention_layers) if top_attention else 0,
+                              int(attention_ratio), int(lfa_channels), int(lfa_convs), int(lfa_points),
+                              float(lfa_gradient_mul))
         self.heatmap_head = _branch(channels, head_channels, 1)
         self.offset_head = _branch(channels, head_channels, 2)
         self.error_head = _branch(channels, head_channels, 2)
+        # the official CtnetHead: the heatmap's last bias -2.19; every bias of the other branches zero
         nn.init.constant_(self.heatmap_head[-1].bias, HEATMAP_BIAS)
         for branch in (self.offset_head, self.error_head):
-            nn.init.zeros_(branch[-1].bias)
+            for conv in (branch[0], branch[-1]):
+                nn.init.zeros_(conv.bias)
 
     # ------------------------------------------------------------------ forward
     def forward(self, features: list[torch.Tensor]) -> dict[str, torch.Tensor]:
         """heatmap (B, 1, h, w) in [0, 1]; offsets (B, 2, h, w) to the start point and error (B, 2, h, w), in
         heatmap cells (x, y); in training also lfa_points (B, 2K, h, w), the LFA's point offsets."""
-        hf, wf = self.fmap_size
-        # zero-pad then crop to the expected size (a backbone that floors odd sizes); no shape-dependent branch
-        x = F.pad(features[0], (0, wf, 0, hf))[:, :, :hf, :wf]
-        if self.attention is not None:
-            x = x + F.interpolate(self.attention(features[-1]), size=(hf, wf), mode="nearest")
-        aggregated, points = self.lfa(x)
-        raw = {"heatmap": torch.sigmoid(self.heatmap_head(aggregated)), "offsets": self.offset_head(x),
-               "error": self.error_head(x)}
+        neck = self.neck(features, self.fmap_size)
+        raw = {"heatmap": torch.sigmoid(self.heatmap_head(neck["features"])),
+               "offsets": self.offset_head(neck["lateral"]), "error": self.error_head(neck["lateral"])}
         if self.training:
-            raw["lfa_points"] = points
+            raw["lfa_points"] = neck["points"]
         return raw
 
     # ------------------------------------------------------------------ targets
