@@ -179,10 +179,11 @@ def build_datamodule(cfg: DictConfig, splits: tuple[str, ...], model: LaneDetect
     defense = defense or {}
     # data.train_transforms: the user's own training-set transforms (e.g. illusions in the training scenes,
     # as the paper's LanEvil training set has), applied before the defense's
-    transforms = [instantiate_at(node, f"data.train_transforms[{i}]")
+    spec = model.build_config
+    preset = normalization(spec_normalization(spec))
+    transforms = [instantiate_at(node, f"data.train_transforms[{i}]", **_normalization_arguments(node, preset))
                   for i, node in enumerate(cfg.data.get("train_transforms") or [])]
     transforms += list(defense.get("transforms") or [])
-    spec = model.build_config
     # every split the run uses is read (labels parsed, image files checked) here, before any training step
     sets = {split: build_split(cfg, split) if split in splits and cfg.data.get(split) is not None else None
             for split in ("train", "val", "test")}

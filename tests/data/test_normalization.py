@@ -184,3 +184,17 @@ def test_the_closed_loop_feeds_a_detector_its_own_normalisation(monkeypatch):
     image = np.random.default_rng(2).integers(0, 256, (64, 160, 3), dtype=np.uint8)
     DetectorPolicy(model).lanes(image)
     np.testing.assert_array_equal(seen[0][0].numpy(), normalize_image(image, "ganet"))
+
+
+def test_a_cutout_among_data_train_transforms_fills_with_the_models_mean_colour(hydra_conf):
+    from hydra import compose
+
+    from lanevil_train.tasks.builders import build_datamodule, model_config
+    from tests.tasks.cli_helpers import TINY
+
+    cfg = compose(config_name="config", overrides=[*TINY, "data.normalize=laneatt",
+                                                   "data.train_transforms=[{_target_: lanevil_train.data.defenses"
+                                                   ".LaneCutout}]"])
+    datamodule = build_datamodule(cfg, ("train",), build_model(model_config(cfg)))
+    (cutout,) = [t for t in datamodule.train_processor.pipeline.transforms if type(t).__name__ == "LaneCutout"]
+    assert cutout.cutout_fill == (0.0, 0.0, 0.0)  # BGR / 255: black is 0
