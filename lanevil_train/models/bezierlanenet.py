@@ -15,8 +15,11 @@ position, zero outside, times its mask, then one matrix product with the kernel)
 offsets follow mmcv's layout (channel 2k the y and 2k + 1 the x offset of tap k, row-major taps, then 9 mask
 channels) and start at zero as the official. The segmentation logits are computed only in training mode (so export
 sees the same keys as eval), and its loss is zero when they are absent. A backbone map that is not ``channels``
-wide (ResNet-50's 1024) goes through a 1x1 conv + BN + ReLU first (the official's optional "reducer"). The paper's
-10x lower rate for the offset convolution is not expressible by a ``_partial_`` optimizer and is left out.
+wide (ResNet-50's 1024) goes through a 1x1 conv + BN + ReLU first (the official's optional "reducer"). The
+official trains the offset convolution (``conv_offset``: offsets and masks) at 0.1x the rate; the family config
+gives it through model.lr_multipliers. The local-maximum window of the matching and the decoding is by default
+(``"auto"``) the official 9 scaled to the query count (bezierlanenet_loss.scaled_window): 9 would let at most 4
+lanes survive among the 20 queries of a 320 px input.
 Targets, matching and loss: bezierlanenet_loss.
 """
 
@@ -32,9 +35,11 @@ from torch import nn
 from lanevil_train.lanes import as_lane
 from lanevil_train.models.bezier import x_at_rows
 from lanevil_train.models.bezierlanenet_loss import (
+    AUTO,
     bezier_losses,
     encode_targets,
     local_maximum,
+    resolve_window,
 )
 from lanevil_train.models.head import LaneHead
 from lanevil_train.models.sampling import sample_at
@@ -122,7 +127,7 @@ class BezierLaneNetHead(LaneHead):
                  max_lanes: int = 4, channels: int = 256, dilations: tuple[int, ...] = (4, 8),
                  dilated_mid_channels: int = 64, projection_layers: int = 2, projection_kernel: int = 3,
                  seg_mid_channels: int = 64, seg_downsample: int = 4, seg_line_width: float = 0.01,
-                 num_sample_points: int = 100, match_alpha: float = 0.8, match_window: int = 9,
+                 num_sample_points: int = 100, match_alpha: float = 0.8, match_window: int | str = AUTO,
                  label_weight: float = 0.1, curve_weight: float = 1.0, seg_weight: float = 0.75,
                  negative_weight: float = 0.4, seg_negative_weight: float = 0.4) -> None:
         super().__init__(in_channels, in_strides, image_size)
@@ -131,14 +136,11 @@ class BezierLaneNetHead(LaneHead):
         for name, value, low in (("max_lanes", max_lanes, 1), ("channels", channels, 1),
                                  ("dilated_mid_channels", dilated_mid_channels, 1),
                                  ("projection_layers", projection_layers, 0), ("seg_mid_channels", seg_mid_channels, 1),
-                                 ("seg_downsample", seg_downsample, 1), ("num_sample_points", num_sample_points, 2),
-                                 ("match_window", match_window, 0)):
+                                 ("seg_downsample", seg_downsample, 1), ("num_sample_points", num_sample_points, 2)):
             if int(value) != value or value < low:
                 raise ValueError(f"BezierLaneNetHead: {name} must be an integer >= {low}, got {value!r}")
         if projection_kernel < 1 or projection_kernel % 2 == 0:
             raise ValueError(f"BezierLaneNetHead: projection_kernel must be odd and positive, got {projection_kernel}")
-        if match_window % 2 == 0 and match_window != 0:
-            raise ValueError(f"BezierLaneNetHead: match_window must be odd (or 0: off), got {match_window}")
         if any(int(d) != d or d < 1 for d in dilations):
             raise ValueError(f"BezierLaneNetHead: dilations must be positive integers, got {list(dilations)}")
         if queries < max_lanes:
@@ -156,7 +158,8 @@ class BezierLaneNetHead(LaneHead):
             raise ValueError("BezierLaneNetHead: label_weight, curve_weight and seg_weight must be >= 0")
         self.max_lanes, self.num_queries = int(max_lanes), queries
         self.seg_downsample, self.seg_line_width = int(seg_downsample), float(seg_line_width)
-        self.num_sample_points, self.match_alpha, self.match_window = int(num_sample_points), match_alpha, match_window
+        self.match_window = resolve_window(match_window, queries, "BezierLaneNetHead: match_window")
+        self.num_sample_points, self.match_alpha = int(num_sample_points), match_alpha
         self.weights = {"label": label_weight, "curve": curve_weight, "seg": seg_weight}
         self.negative_weight, self.seg_negative_weight = negative_weight, seg_negative_weight
 
@@ -208,14 +211,16 @@ class BezierLaneNetHead(LaneHead):
                 "curve_loss": parts["curve"].mean(), "seg_loss": parts["seg"].mean()}
 
     # ------------------------------------------------------------------ decode
-    def decode(self, raw: dict, conf_threshold: float = 0.5, local_maximum_window: int = 9,
+    def decode(self, raw: dict, conf_threshold: float = 0.5, local_maximum_window: int | str = AUTO,
                max_lanes: int | None = None) -> list[list[np.ndarray]]:
         """Per image: the queries whose existence probability exceeds conf_threshold and is the maximum of its
-        local_maximum_window queries (0: off), at most max_lanes of them (the most confident; None: all), each
+        local_maximum_window queries (0: off; "auto": the official 9 scaled to the query count, as the matching's),
+        at most max_lanes of them (the most confident; None: all), each
         curve read at every pixel row it spans (ROW_TOLERANCE), inside the image; lanes y descending, left to
         right."""
         prob = raw["logits"].detach().float().sigmoid()
-        keep = (prob > conf_threshold) & local_maximum(prob, int(local_maximum_window))
+        window = resolve_window(local_maximum_window, prob.shape[1], "decode: local_maximum_window")
+        keep = (prob > conf_threshold) & local_maximum(prob, window)
         curves = raw["curves"].detach().double().cpu().numpy()
         h, w = self.image_size
         scale = np.array([w, h], dtype=np.float64)

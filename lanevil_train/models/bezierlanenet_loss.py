@@ -15,13 +15,17 @@ Matching (per image, exact Hungarian by models.matching): the official maximises
 ``local_max(p) * p ** (1 - alpha) * (1 - L1 / n) ** alpha`` over the pairs (p the existence probability, L1 the
 summed |dx| + |dy| between the 100 points sampled on the predicted and the target curve, n = 100, the second factor
 clamped to [0, 1], local_max 1 where the query is the maximum of its window of k = 9 queries); the cost here is its
-negative. Loss: BCE on the existence logits (positives weight 1, negatives 0.4: the official's pos_weight 1 / 0.4
+negative. The window: the official k = 9 (matching) and local_maximum_window_size = 9 (decoding) are set for its 40
+(TuSimple, 640 px) and 50 (CULane, 800 px) queries; `scaled_window` keeps the fraction of the query row it covers
+for narrower inputs (two lanes survive only (k + 1) / 2 queries apart: 9 keeps at most 4 of 20 queries' lanes). Loss: BCE on the existence logits (positives weight 1, negatives 0.4: the official's pos_weight 1 / 0.4
 divided back), L1 between the matched curves' sampled points (summed over x and y, over the matched lanes x 100 of
 the whole batch), BCE of the auxiliary segmentation (weights 1 / 0.4 likewise, logits bilinearly resized to the
 mask), weighted 0.1, 1 and 0.75 as the official config.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 import torch
@@ -31,6 +35,11 @@ from lanevil_train.models.bezier import fit_bezier, sample_bezier, sub_curve
 from lanevil_train.models.matching import match_batch
 
 NUM_CONTROL_POINTS = 4
+# The official local-maximum window and the fewest queries it is used with (pytorch-auto-drive configs/lane_detection/
+# bezierlanenet/resnet18_tusimple_aug1b.py: local_maximum_window_size=9 at input 360x640, stride 16: 40 queries;
+# the CULane configs: the same 9 at 800 px, 50 queries; common/optims/matchingloss_bezier.py: k=9).
+OFFICIAL_WINDOW, OFFICIAL_QUERIES = 9, 40
+AUTO = "auto"
 
 
 # ---------------------------------------------------------------------------------------------- targets
@@ -98,6 +107,27 @@ def encode_targets(lanes: list[np.ndarray], image_size: tuple[int, int], max_lan
 
 
 # ---------------------------------------------------------------------------------------------- matching
+def scaled_window(num_queries: int) -> int:
+    """The local-maximum window for `num_queries` queries: 9 x Q / 40 (the official window's share of the query
+    row) to the nearest odd number, at least 1 and at most the official 9 (which the official keeps at 50 queries
+    too): 9 at 40 or more queries, 5 at 20 (320 px), 3 at 10."""
+    share = OFFICIAL_WINDOW * num_queries / OFFICIAL_QUERIES
+    nearest_odd = 2 * math.floor((share - 1) / 2 + 0.5) + 1
+    return int(min(OFFICIAL_WINDOW, max(1, nearest_odd)))
+
+
+def resolve_window(window, num_queries: int, key: str) -> int:
+    """An int window as given (0: off; else odd), or "auto": `scaled_window(num_queries)`; a ValueError naming
+    `key` otherwise."""
+    if window == AUTO:
+        return scaled_window(num_queries)
+    if isinstance(window, bool) or not isinstance(window, (int, float)) or int(window) != window or window < 0 \
+            or (window % 2 == 0 and window != 0):
+        raise ValueError(f"{key} must be \"auto\" (scaled to the {num_queries} queries: {scaled_window(num_queries)}),"
+                         f" 0 (off) or an odd positive integer, got {window!r}")
+    return int(window)
+
+
 def local_maximum(prob: torch.Tensor, window: int) -> torch.Tensor:
     """(B, Q) bool: query q is the maximum of the `window` queries centred on it, ties going to the leftmost (the
     official's max_pool1d(return_indices) == index test), so a plateau keeps one query. window 0 keeps all."""
@@ -184,4 +214,4 @@ def bezier_losses(raw: dict[str, torch.Tensor], targets: dict[str, torch.Tensor]
 
 
 __all__ = ["assign", "bezier_losses", "encode_targets", "fit_lane", "lane_mask", "local_maximum",
-           "matching_cost", "sample_points"]
+           "matching_cost", "resolve_window", "sample_points", "scaled_window"]

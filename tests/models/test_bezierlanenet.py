@@ -1,11 +1,13 @@
 """BezierLaneNet: Bezier maths, target round trip, Hungarian matching, flip fusion, local maxima, training, decode."""
 
 import itertools
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+from hydra import compose
 
 from lanevil_train.models.backbones import build_backbone
 from lanevil_train.models.bezier import (
@@ -27,9 +29,13 @@ from lanevil_train.models.bezierlanenet_loss import (
     fit_lane,
     local_maximum,
     matching_cost,
+    resolve_window,
     sample_points,
+    scaled_window,
 )
+from lanevil_train.tasks.builders import build_model, model_config
 
+from ._head_overfit import head_only_fit
 from ._lanes_fixture import assert_lanes_inside, assert_round_trip, synthetic_lanes, train_steps
 
 SMALL = {"channels": 32, "dilated_mid_channels": 8, "seg_mid_channels": 8}  # a cheap head for CPU tests
@@ -168,6 +174,72 @@ def test_local_maximum_window():
     torch.testing.assert_close(local_maximum(q, 9), idx[:, 0] == torch.arange(40))
 
 
+def test_window_scales_with_the_query_count():
+    # the official 9 at its 40 (TuSimple 640 px) and 50 (CULane 800 px) queries; 9 x Q / 40 to the nearest odd below
+    assert [scaled_window(q) for q in (40, 50, 80)] == [9, 9, 9]
+    assert [scaled_window(q) for q in (36, 30, 24, 20, 16, 10, 6)] == [9, 7, 5, 5, 3, 3, 1]
+    assert resolve_window("auto", 20, "k") == 5 and resolve_window(9, 20, "k") == 9 and resolve_window(0, 20, "k") == 0
+    for bad in (4, -1, "nine", 2.5):
+        with pytest.raises(ValueError, match="match_window must be"):
+            resolve_window(bad, 20, "model.head.match_window")
+    assert _head((128, 320)).match_window == 5
+    with pytest.raises(ValueError, match="match_window must be"):
+        _head((128, 320), match_window="wide")
+
+
+def _six_lanes(image_size: tuple[int, int]) -> list[np.ndarray]:
+    """Six straight lanes from the bottom edge (55 px apart) to a vanishing point above the image centre."""
+    h, w = image_size
+    ys = np.linspace(h - 1, 0.3 * h, 30)
+    t = (h - 1 - ys) / (h - 1)
+    return [np.stack([xb + (w / 2 - xb) * t, ys], axis=1) for xb in np.linspace(20.0, w - 25.0, 6)]
+
+
+@pytest.mark.usefixtures("hydra_conf")
+def test_six_separated_lanes_survive_the_local_maximum_at_the_quickstart_size():
+    cfg = compose(config_name="config", overrides=["experiment=quickstart_bezierlanenet"])
+    torch.manual_seed(0)
+    model = build_model(model_config(cfg))
+    head = model.head
+    assert head.num_queries == 20 and cfg.data.max_lanes == 6 and head.match_window == 5
+    gts = [_six_lanes(head.image_size)]
+    targets = _stack([head.encode(gt) for gt in gts])
+    # one confident query per lane, 3 apart (lanes 55 px apart at the bottom, 16 px a query), each with a weaker
+    # duplicate beside it (above the threshold) that the local maximum must drop
+    raw = _perfect_raw(head, {k: v.numpy() for k, v in targets.items()}, spacing=3)
+    queries = 1 + 3 * torch.arange(6)
+    raw["logits"][0, queries] = torch.logit(torch.tensor([0.90, 0.97, 0.92, 0.95, 0.91, 0.96]))
+    raw["logits"][0, queries + 1] = torch.logit(torch.tensor(0.7))
+    decoded = head.decode(raw, **model.decode_kwargs)
+    assert_round_trip(decoded, gts, head.image_size)  # all 6, each where its lane is
+    assert len(head.decode(raw, local_maximum_window=0)[0]) == 12  # without the window the duplicates stay
+    assert len(head.decode(raw, local_maximum_window=9)[0]) == 3  # the old window: 0.97, 0.95, 0.96 (at most 4)
+    # the matching's prior: each target goes to its own confident query with the scaled window, not with 9
+    _, qi, ti = assign(raw["logits"], raw["curves"], targets["control_points"], targets["lane_valid"],
+                       window=head.match_window)
+    assert qi[torch.argsort(ti)].tolist() == queries.tolist()
+    _, qi9, ti9 = assign(raw["logits"], raw["curves"], targets["control_points"], targets["lane_valid"], window=9)
+    assert qi9[torch.argsort(ti9)].tolist() != queries.tolist()
+
+
+@pytest.mark.usefixtures("hydra_conf")
+def test_deformable_offsets_train_at_a_tenth_of_the_rate():
+    cfg = compose(config_name="config", overrides=["model=bezierlanenet", "backbone=resnet18",
+                                                   "data.input_size=[64,160]"])
+    model = build_model(model_config(cfg))
+    model._trainer = SimpleNamespace(world_size=1, accumulate_grad_batches=1, estimated_stepping_batches=10,
+                                     datamodule=SimpleNamespace(batch_size=20))  # the official batch: rate 6e-4
+    optimizer = model.configure_optimizers()["optimizer"]
+    names = {id(p): n for n, p in model.named_parameters()}
+    rates = {names[id(p)]: group["lr"] for group in optimizer.param_groups for p in group["params"]}
+    assert len(rates) == len(names)
+    slow = sorted(n for n, r in rates.items() if r == pytest.approx(6e-5))
+    # the official group: every parameter whose name holds "conv_offset" (the offsets' and masks' conv)
+    assert slow == ["head.fusion.proj2_conv.conv_offset.bias", "head.fusion.proj2_conv.conv_offset.weight"]
+    assert all(r == pytest.approx(6e-4) for n, r in rates.items() if n not in slow)
+    assert rates["head.fusion.proj2_conv.weight"] == pytest.approx(6e-4)  # the deformable kernel itself: full rate
+
+
 # ---------------------------------------------------------------------------------------------- matching
 def _brute_force(cost: torch.Tensor) -> tuple[list[int], float]:
     q, t = cost.shape
@@ -218,8 +290,9 @@ def test_loss_terms_follow_the_official_normalisation():
     gen = torch.Generator().manual_seed(0)
     raw = {"logits": torch.randn(2, 16, generator=gen), "curves": torch.rand(2, 16, 4, 2, generator=gen),
            "seg_logits": torch.randn(2, 1, 6, 16, generator=gen)}
-    parts = bezier_losses(raw, targets)
-    bi, qi, ti = assign(raw["logits"], raw["curves"], targets["control_points"], targets["lane_valid"])
+    assert head.match_window == 3  # 16 queries: 9 x 16 / 40 = 3.6, the nearest odd 3
+    parts = bezier_losses(raw, targets, window=head.match_window)
+    bi, qi, ti = assign(raw["logits"], raw["curves"], targets["control_points"], targets["lane_valid"], window=3)
     assert len(bi) == 5
     l1 = (sample_points(raw["curves"][bi, qi], 100) - sample_points(targets["control_points"][bi, ti], 100)).abs()
     assert parts["curve"].mean().item() == pytest.approx(l1.sum().item() / (5 * 100), rel=1e-5)
