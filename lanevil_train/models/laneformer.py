@@ -1,29 +1,43 @@
 """LaneFormer head (Han et al., "Laneformer: Object-aware Row-Column Transformers for Lane Detection", AAAI 2022).
 
-A DETR-style lane detector on the backbone's last (stride-32) feature map, projected to ``d_model`` channels:
+A DETR-style lane detector on the backbone's last (stride-32) feature map, projected to ``d_model`` channels.
+There is no official code; what the paper says (arXiv 2203.09830: the abstract, Fig. 2 and its caption): the
+encoder runs row attention on the row features Hr and column attention on the column features Hc, "added up with
+the pixel-to-Bbox attention performed on Hf, Zb and Zr as memory input for decoder"; the abstract calls the pixel
+part "deformable pixel-wise self-attention", the detected boxes' embeddings (Zb) added to its keys and their
+ROI-aligned features (Zr) to its values. Here:
 
-- the encoder's row-column attention. As the paper: the map is cut into its rows, each row flattened (its W
-  positions x d channels) and projected by an fc layer to one d-dim *row token*; the same for the columns
-  (*column tokens*). Row tokens attend to each other (row self-attention: a row gathers the nearby rows, where
-  the same lane continues), column tokens to each other (column self-attention), each with 1-D sine positional
-  encodings of its index, in ``num_encoder_layers`` post-norm transformer layers per branch. The two outputs
-  are broadcast back over the map and added: memory[i, j] = row_out[i] + col_out[j]
-  (``row_column="lines"``, the default). ``row_column="axial"`` is the other reading (axial attention): every
-  position is a token that attends to the positions of its own row (row branch) and of its own column (column
-  branch), the two outputs added.
+- the row branch. As the paper: the map is cut into its rows, each row flattened (its W positions x d
+  channels) and projected by an fc layer to one d-dim *row token*; row tokens attend to each other (a row
+  gathers the nearby rows, where the same lane continues) with 1-D sine encodings of the row index, in
+  ``num_encoder_layers`` post-norm transformer layers. The column branch: the same over the columns.
+  Each branch's output is broadcast back over the map (``row_column="lines"``, the default).
+  ``row_column="axial"`` is the other reading (axial attention): every position is a token that attends to the
+  positions of its own row (row branch) and of its own column (column branch).
+- the pixel-wise branch (``pixel_attention``): every position of the map (Hf) a token attending to every other
+  position, with DETR's 2-D sine encodings, ``num_encoder_layers`` layers: the paper's pixel-to-box attention
+  without the boxes (no Zb keys, no Zr values), and dense instead of deformable (a stride-32 map has 250
+  positions at 320x800, 40 at 128x320: dense attention is cheap there and needs no custom sampling op).
+- the memory: the branches' outputs added, memory[i, j] = row[i] + col[j] + pixel[i, j].
 - the decoder: ``num_queries`` learned lane queries (DETR: a zero target plus the learned query embedding as
   the positional part), each layer self-attention among the queries, cross-attention to the memory (keys
-  carrying 2-D sine encodings), an FFN; a final LayerNorm shared by every layer's output.
-- per query and decoder layer: 2 logits (background, lane) and the paper's lane: start y, end y (sigmoid,
-  fractions of the height) and x at ``num_points`` fixed rows (fractions of the width, not bounded: a lane may
-  leave the image). The loss (laneformer_loss) runs on the last layer and, as DETR's auxiliary decoding losses,
-  on every earlier one (``aux_loss``); those outputs are returned in training mode only.
+  carrying 2-D sine encodings), an FFN; a final LayerNorm shared by every layer's output. The transformer's
+  matrices start Xavier-uniform as DETR's (facebookresearch/detr models/transformer.py, _reset_parameters).
+- per query and decoder layer: 2 logits (background, lane) and the paper's lane: start y, end y (fractions
+  of the height through a sigmoid stretched over [-Y_MARGIN, 1 + Y_MARGIN] of the height, so that a lane
+  starting on the bottom row, the usual case, is a target the sigmoid reaches: 0.917, not its asymptote 1)
+  and x at ``num_points`` fixed rows (fractions of the width, not bounded: a lane may leave the image). The
+  loss (laneformer_loss) runs on the last layer and, as DETR's auxiliary decoding losses, on every earlier one
+  (``aux_loss``); those outputs are returned in training mode only.
 
-Left out: the object-aware part (person and vehicle boxes from an external detector as extra keys, their ROI
-features as extra values, in the encoder's pixel-to-box and the decoder's query-to-box attention) -- it needs
-a detector the project does not have; and the encoder's deformable pixel-wise self-attention that the paper's
-abstract couples with row-column attention (the row and column branches stand alone here). Both are additive
-branches in the paper, so the rest of the network is as described.
+Left out: the object-aware part (person and vehicle boxes from an external detector as extra keys and values,
+in the encoder's pixel-to-box and the decoder's query-to-box attention) -- it needs a detector the project does
+not have; both are additive to attention the network keeps, so the rest of the network is as described.
+
+Training follows DETR (the paper builds on it; conf/model/laneformer.yaml): AdamW 1e-4, backbone 1e-5
+(``model.lr_multipliers``), weight decay 1e-4, total gradient norm clipped at 0.1 (``model.gradient_clip_norm``).
+A single large rate for the whole network with no clipping makes every query on every image predict the same
+lane within ~10 steps (issue 32); tests/models/test_laneformer.py checks the recipe keeps them apart.
 """
 
 from __future__ import annotations
@@ -41,6 +55,21 @@ from lanevil_train.models.laneformer_loss import assemble_lane, encode_lanes, se
 
 ROW_COLUMN_MODES = ("lines", "axial")
 _PARTS = ("start_y", "end_y", "xs")
+# start y and end y: sigmoid(z) stretched over [-Y_MARGIN, 1 + Y_MARGIN] of the height. A plain sigmoid would
+# need z = +inf for the many lanes that start on the bottom row (y = 1): the L1 loss would push those logits
+# up without end while the sigmoid's slope vanishes; with the margin that target is sigmoid(z) = 0.917, z = 2.4.
+Y_MARGIN = 0.1
+
+
+def y_from_logit(z: torch.Tensor) -> torch.Tensor:
+    """A start / end y logit -> the y as a fraction of the height (in [-Y_MARGIN, 1 + Y_MARGIN])."""
+    return torch.sigmoid(z) * (1 + 2 * Y_MARGIN) - Y_MARGIN
+
+
+def y_to_logit(y: float) -> float:
+    """The logit whose ``y_from_logit`` is y (a fraction of the height strictly inside the stretched range)."""
+    s = (y + Y_MARGIN) / (1 + 2 * Y_MARGIN)
+    return math.log(s / (1 - s))
 
 
 def sine_encoding(n: int, dim: int) -> torch.Tensor:
@@ -91,16 +120,25 @@ class DecoderLayer(nn.Module):
         return self.cross(tgt, query_pos, memory, mem_pos)
 
 
-class RowColumnEncoder(nn.Module):
-    """The row and column self-attention branches over a (B, d, Hf, Wf) map -> memory (B, Hf * Wf, d).
+def sine_encoding_2d(hf: int, wf: int, dim: int) -> torch.Tensor:
+    """(hf * wf, dim) DETR's 2-D sine encodings of a map's positions, row-major: half the channels encode the row
+    index, half the column index."""
+    half = dim // 2
+    return torch.cat([sine_encoding(hf, half)[:, None, :].expand(hf, wf, half),
+                      sine_encoding(wf, half)[None, :, :].expand(hf, wf, half)], dim=-1).reshape(hf * wf, dim)
 
-    ``mode="lines"`` (the paper): one token per row (its Wf x d values through an fc layer) and per column; the
-    tokens of a branch attend to each other. ``mode="axial"``: every position is a token attending within its
-    row (row branch) or its column (column branch). ``branches(x)`` gives the two outputs before they are
-    added, each (B, Hf, Wf, d)."""
+
+class RowColumnEncoder(nn.Module):
+    """The encoder's branches over a (B, d, Hf, Wf) map -> memory (B, Hf * Wf, d), their outputs added.
+
+    Row and column branches: ``mode="lines"`` (the paper): one token per row (its Wf x d values through an fc
+    layer) and per column; the tokens of a branch attend to each other. ``mode="axial"``: every position is a
+    token attending within its row (row branch) or its column (column branch). The pixel branch (``pixel``):
+    every position a token attending to every position. ``branches(x)`` gives the outputs before they are
+    added, each (B, Hf, Wf, d), the pixel one last when present."""
 
     def __init__(self, d_model: int, nhead: int, num_layers: int, dim_feedforward: int, dropout: float,
-                 fmap_size: tuple[int, int], mode: str) -> None:
+                 fmap_size: tuple[int, int], mode: str, pixel: bool = True) -> None:
         super().__init__()
         hf, wf = fmap_size
         self.mode, self.fmap_size = mode, (hf, wf)
@@ -112,12 +150,15 @@ class RowColumnEncoder(nn.Module):
             row_pos, col_pos = sine_encoding(wf, d_model), sine_encoding(hf, d_model)  # the position inside it
         self.register_buffer("row_pos", row_pos[None], persistent=False)
         self.register_buffer("col_pos", col_pos[None], persistent=False)
-        self.row_layers = nn.ModuleList(AttentionLayer(d_model, nhead, dim_feedforward, dropout)
-                                        for _ in range(num_layers))
-        self.col_layers = nn.ModuleList(AttentionLayer(d_model, nhead, dim_feedforward, dropout)
-                                        for _ in range(num_layers))
 
-    def branches(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        def layers():
+            return nn.ModuleList(AttentionLayer(d_model, nhead, dim_feedforward, dropout) for _ in range(num_layers))
+
+        self.row_layers, self.col_layers = layers(), layers()
+        self.pixel_layers = layers() if pixel else None
+        self.register_buffer("pixel_pos", sine_encoding_2d(hf, wf, d_model)[None], persistent=False)
+
+    def branches(self, x: torch.Tensor) -> tuple[torch.Tensor, ...]:
         b, d, hf, wf = x.shape
         grid = x.permute(0, 2, 3, 1)  # (B, Hf, Wf, d)
         if self.mode == "lines":
@@ -131,12 +172,18 @@ class RowColumnEncoder(nn.Module):
         for layer in self.col_layers:
             cols = layer(cols, self.col_pos)
         if self.mode == "lines":
-            return rows[:, :, None, :].expand(b, hf, wf, d), cols[:, None, :, :].expand(b, hf, wf, d)
-        return rows.reshape(b, hf, wf, d), cols.reshape(b, wf, hf, d).transpose(1, 2)
+            out = [rows[:, :, None, :].expand(b, hf, wf, d), cols[:, None, :, :].expand(b, hf, wf, d)]
+        else:
+            out = [rows.reshape(b, hf, wf, d), cols.reshape(b, wf, hf, d).transpose(1, 2)]
+        if self.pixel_layers is not None:
+            pixels = grid.reshape(b, hf * wf, d)
+            for layer in self.pixel_layers:
+                pixels = layer(pixels, self.pixel_pos)
+            out.append(pixels.reshape(b, hf, wf, d))
+        return tuple(out)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        rows, cols = self.branches(x)
-        return (rows + cols).reshape(x.shape[0], -1, x.shape[1])
+        return sum(self.branches(x)).reshape(x.shape[0], -1, x.shape[1])
 
 
 class LaneFormerHead(LaneHead):
@@ -159,6 +206,7 @@ class LaneFormerHead(LaneHead):
         num_points: int = 72,
         max_lanes: int = 6,
         row_column: str = "lines",
+        pixel_attention: bool = True,
         cls_weight: float = 1.0,
         x_weight: float = 5.0,
         y_weight: float = 5.0,
@@ -183,6 +231,8 @@ class LaneFormerHead(LaneHead):
             raise ValueError(f"{name}: row_column={row_column!r}: expected one of {', '.join(ROW_COLUMN_MODES)}")
         if not 0.0 <= dropout < 1.0:
             raise ValueError(f"{name}: dropout={dropout} must be in [0, 1)")
+        if not isinstance(pixel_attention, bool):
+            raise ValueError(f"{name}: pixel_attention={pixel_attention!r} must be true or false")
         for key, value in (("cls_weight", cls_weight), ("x_weight", x_weight), ("y_weight", y_weight),
                            ("eos_coef", eos_coef)):
             if not value >= 0:
@@ -197,15 +247,18 @@ class LaneFormerHead(LaneHead):
 
         self.input_proj = nn.Conv2d(self.in_channels[-1], d_model, kernel_size=1)
         self.encoder = RowColumnEncoder(d_model, nhead, num_encoder_layers, dim_feedforward, dropout,
-                                        self.fmap_size, row_column)
+                                        self.fmap_size, row_column, pixel=bool(pixel_attention))
         hf, wf = self.fmap_size
-        half = d_model // 2  # DETR's 2-D encoding: half the channels for the row index, half for the column
-        mem_pos = torch.cat([sine_encoding(hf, half)[:, None, :].expand(hf, wf, half),
-                             sine_encoding(wf, half)[None, :, :].expand(hf, wf, half)], dim=-1)
-        self.register_buffer("mem_pos", mem_pos.reshape(1, hf * wf, d_model), persistent=False)
+        self.register_buffer("mem_pos", sine_encoding_2d(hf, wf, d_model)[None], persistent=False)
         self.query_embed = nn.Embedding(num_queries, d_model)
         self.decoder = nn.ModuleList(DecoderLayer(d_model, nhead, dim_feedforward, dropout)
                                      for _ in range(num_decoder_layers))
+        # DETR's transformer init: every matrix of the encoder and decoder Xavier-uniform (models/transformer.py,
+        # Transformer._reset_parameters); the fc layers making row / column tokens are part of the encoder
+        for module in (self.encoder, self.decoder):
+            for weight in module.parameters():
+                if weight.dim() > 1:
+                    nn.init.xavier_uniform_(weight)
         self.decoder_norm = nn.LayerNorm(d_model)
         self.cls_layer = nn.Linear(d_model, 2)
         self.reg_layer = nn.Sequential(nn.Linear(d_model, d_model), nn.ReLU(inplace=True),
@@ -216,7 +269,7 @@ class LaneFormerHead(LaneHead):
         nn.init.normal_(last.weight, 0.0, 0.01)
         with torch.no_grad():
             last.bias.zero_()
-            last.bias[0], last.bias[1] = math.log(0.9 / 0.1), math.log(0.4 / 0.6)
+            last.bias[0], last.bias[1] = y_to_logit(0.9), y_to_logit(0.4)
             last.bias[2:] = 0.5
 
     # ------------------------------------------------------------------ forward
@@ -230,11 +283,12 @@ class LaneFormerHead(LaneHead):
 
     def _predict(self, hidden: torch.Tensor) -> dict[str, torch.Tensor]:
         reg = self.reg_layer(hidden)
-        return {"cls_logits": self.cls_layer(hidden), "start_y": torch.sigmoid(reg[..., 0]),
-                "end_y": torch.sigmoid(reg[..., 1]), "xs": reg[..., 2:]}
+        return {"cls_logits": self.cls_layer(hidden), "start_y": y_from_logit(reg[..., 0]),
+                "end_y": y_from_logit(reg[..., 1]), "xs": reg[..., 2:]}
 
     def forward(self, features: list[torch.Tensor]) -> dict[str, torch.Tensor]:
-        """Raw outputs: cls_logits (B, Q, 2), start_y and end_y (B, Q) as fractions of the height, xs (B, Q, N)
+        """Raw outputs: cls_logits (B, Q, 2), start_y and end_y (B, Q) as fractions of the height (in
+        [-Y_MARGIN, 1 + Y_MARGIN]; decoding clips them to the image), xs (B, Q, N)
         as fractions of the width at the rows ``self.row_ys``; in training mode (with aux_loss and more than
         one decoder layer) also aux_<key> (B, L-1, ...) of the earlier decoder layers."""
         memory = self.memory(features)

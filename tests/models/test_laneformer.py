@@ -5,9 +5,11 @@ import pytest
 import torch
 
 from lanevil_train.models.backbones import build_backbone
-from lanevil_train.models.laneformer import LaneFormerHead
+from lanevil_train.models.laneformer import Y_MARGIN, LaneFormerHead, y_from_logit, y_to_logit
 from lanevil_train.models.laneformer_loss import assign, encode_lanes, matching_cost
+from lanevil_train.tasks.builders import build_model, model_config
 
+from ._head_overfit import _batch, _config, _optimizer, head_only_fit
 from ._lanes_fixture import assert_lanes_inside, assert_round_trip, synthetic_lanes, train_steps
 
 SMALL = {"d_model": 16, "nhead": 2, "num_encoder_layers": 1, "num_decoder_layers": 2, "dim_feedforward": 32,
@@ -130,20 +132,22 @@ def test_decode_drops_background_queries_and_rows_outside_start_end():
 
 
 def _perturbed(encoder, x, i, j):
+    """Which positions of each branch's output change when the input at (i, j) does: (Hf, Wf) masks of the row,
+    column (and pixel) branches, then the row and column outputs after the change."""
     with torch.no_grad():
-        rows0, cols0 = encoder.branches(x)
+        before = encoder.branches(x)
         x2 = x.clone()
         x2[:, :, i, j] += 1.0
-        rows1, cols1 = encoder.branches(x2)
-    changed = lambda a, b: (a - b).abs().amax(dim=(0, 3)) > 1e-6  # (Hf, Wf)
-    return changed(rows0, rows1), changed(cols0, cols1), rows1, cols1
+        after = encoder.branches(x2)
+    changed = [(a - b).abs().amax(dim=(0, 3)) > 1e-6 for a, b in zip(before, after)]  # each (Hf, Wf)
+    return (*changed[:2], after[0], after[1], *changed[2:])
 
 
 def test_axial_row_attention_mixes_within_rows_and_column_attention_within_columns():
     torch.manual_seed(0)
     head = LaneFormerHead(8, 32, (128, 192), row_column="axial", **SMALL).eval()
     x = torch.randn(2, 16, 4, 6)
-    row_changed, col_changed, _, _ = _perturbed(head.encoder, x, 1, 2)
+    row_changed, col_changed, _, _, _ = _perturbed(head.encoder, x, 1, 2)
     want_row = torch.zeros(4, 6, dtype=torch.bool)
     want_row[1] = True  # every position of row 1 (its row attention saw the change), nothing else
     want_col = torch.zeros(4, 6, dtype=torch.bool)
@@ -156,17 +160,115 @@ def test_paper_row_and_column_tokens():
     x = torch.randn(2, 16, 4, 6)
     # without encoder layers a row token is a function of its own row only, a column token of its own column
     bare = LaneFormerHead(8, 32, (128, 192), **{**SMALL, "num_encoder_layers": 0}).eval()
-    row_changed, col_changed, rows, cols = _perturbed(bare.encoder, x, 1, 2)
+    row_changed, col_changed, rows, cols, _ = _perturbed(bare.encoder, x, 1, 2)
     assert torch.equal(row_changed, torch.zeros(4, 6, dtype=torch.bool).index_fill_(0, torch.tensor([1]), True))
     assert torch.equal(col_changed, torch.zeros(4, 6, dtype=torch.bool).index_fill_(1, torch.tensor([2]), True))
     # row self-attention then mixes the rows (a row gathers the other rows), column attention the columns;
     # each branch stays one value per row (broadcast over the columns) / per column
     head = LaneFormerHead(8, 32, (128, 192), **SMALL).eval()
-    row_changed, col_changed, rows, cols = _perturbed(head.encoder, x, 1, 2)
+    row_changed, col_changed, rows, cols, _ = _perturbed(head.encoder, x, 1, 2)
     assert row_changed.all() and col_changed.all()
     torch.testing.assert_close(rows, rows[:, :, :1].expand_as(rows))
     torch.testing.assert_close(cols, cols[:, :1].expand_as(cols))
     assert head.encoder.row_proj.in_features == 6 * 16 and head.encoder.col_proj.in_features == 4 * 16
+
+
+def test_pixel_branch_attends_over_every_position_and_the_memory_adds_the_branches():
+    torch.manual_seed(0)
+    x = torch.randn(2, 16, 4, 6)
+    # without encoder layers the pixel branch is the map itself (each position its own token)
+    bare = LaneFormerHead(8, 32, (128, 192), **{**SMALL, "num_encoder_layers": 0}).eval()
+    *_, pixel_changed = _perturbed(bare.encoder, x, 1, 2)
+    assert torch.equal(pixel_changed, torch.zeros(4, 6, dtype=torch.bool).index_put_((torch.tensor([1]),
+                                                                                        torch.tensor([2])),
+                                                                                       torch.tensor(True)))
+    torch.testing.assert_close(bare.encoder.branches(x)[2], x.permute(0, 2, 3, 1))
+    # with a layer every position gathers every other one (not only its row and column, as the other branches)
+    head = LaneFormerHead(8, 32, (128, 192), **SMALL).eval()
+    *_, pixel_changed = _perturbed(head.encoder, x, 1, 2)
+    assert pixel_changed.all()
+    with torch.no_grad():
+        rows, cols, pixels = head.encoder.branches(x)
+        torch.testing.assert_close(head.encoder(x), (rows + cols + pixels).reshape(2, 24, 16))
+    # the branch can be switched off: two branches, no pixel-attention weights
+    off = LaneFormerHead(8, 32, (128, 192), pixel_attention=False, **SMALL).eval()
+    assert len(off.encoder.branches(x)) == 2 and off.encoder.pixel_layers is None
+    assert not any("pixel" in name for name, _ in off.named_parameters())
+    n_layer = sum(p.numel() for p in head.encoder.pixel_layers.parameters())
+    assert sum(p.numel() for p in head.parameters()) - sum(p.numel() for p in off.parameters()) == n_layer > 0
+
+
+def test_start_and_end_y_targets_are_reached_inside_the_sigmoid():
+    """Most lanes start on the bottom row (start y = 1): a plain sigmoid reaches that only at an infinite logit,
+    where its slope and the L1 loss's gradient vanish. The head's stretched sigmoid reaches it at a moderate logit."""
+    rng = np.random.default_rng(4)
+    image_size = (128, 320)
+    head = LaneFormerHead(8, 32, image_size, num_queries=6, max_lanes=6, **SMALL)
+    targets = np.concatenate([head.encode(synthetic_lanes(rng, image_size, 4, curved=bool(i % 2)))["lanes"]
+                              for i in range(8)])
+    starts, ends = targets[targets[:, 0] > 0, 1], targets[targets[:, 0] > 0, 2]
+    assert (starts == 1.0).sum() >= 16 and ends.min() < 0.5  # bottom-row starts: the case that saturated
+    ys = np.concatenate([starts, ends, [0.0, 1.0]])
+    sig = (ys + Y_MARGIN) / (1 + 2 * Y_MARGIN)  # the sigmoid value the head needs for each target
+    assert sig.min() >= 0.08 and sig.max() <= 0.92
+    logits = torch.tensor([y_to_logit(float(y)) for y in ys], requires_grad=True)
+    assert logits.abs().max() < 2.5
+    out = y_from_logit(logits)
+    torch.testing.assert_close(out.detach(), torch.tensor(ys, dtype=torch.float32), atol=1e-6, rtol=0)
+    (slope,) = torch.autograd.grad(out.sum(), logits)
+    assert slope.min() > 0.08  # the L1 loss's gradient reaches the logit at every target
+    # the head's own outputs: a bias at those logits gives exactly the bottom row and the top row
+    with torch.no_grad():
+        head.reg_layer[-1].weight.zero_()
+        head.reg_layer[-1].bias[0], head.reg_layer[-1].bias[1] = y_to_logit(1.0), y_to_logit(0.0)
+        raw = head.eval()([torch.randn(1, 8, 4, 10)])
+    torch.testing.assert_close(raw["start_y"], torch.ones(1, 6), atol=1e-6, rtol=0)
+    torch.testing.assert_close(raw["end_y"], torch.zeros(1, 6), atol=1e-6, rtol=0)
+
+
+def test_head_only_fit_reaches_the_scenes(one_thread):
+    """The head alone on 8 simulated scenes with the family's recipe at the quickstart's rate (1e-3 at batch 16:
+    5e-4 here, gradient norm clipped at 0.1, 100 warm-up steps) for 200 steps. Before issue 32 (one rate, no
+    clipping, no warm-up, a plain sigmoid, no pixel branch) every query gave the same lane: 0 % here."""
+    out = head_only_fit("laneformer", ["model.optimizer.lr=1e-3", "model.head.dropout=0"], steps=200)
+    assert out["accuracy"] >= 90 and out["fn"] <= 10 and out["fp"] <= 10, out
+
+
+def _output_spread(overrides: list[str], steps: int = 10) -> tuple[float, float]:
+    """The quickstart network (backbone and head, its rates at its batch of 8) trained `steps` steps on 4
+    simulated scenes at 64x160; then the std of the predicted x (px) across the images for each query, and
+    across the queries for each image, each averaged."""
+    size = (64, 160)
+    cfg = _config(["experiment=quickstart_laneformer", f"data.input_size=[{size[0]},{size[1]}]", *overrides])
+    torch.manual_seed(0)
+    model = build_model(model_config(cfg))
+    batch = _batch(cfg, model, 4, size)
+    optimizer, schedule = _optimizer(model, 1000, cfg.data.batch_size, None)
+    for _ in range(steps):
+        model.train()
+        loss = model.head.loss(model(batch["images"]), batch["targets"])["loss"]
+        optimizer.zero_grad()
+        loss.backward()
+        if model.gradient_clip_norm is not None:
+            torch.nn.utils.clip_grad_norm_(model.parameters(), model.gradient_clip_norm)
+        optimizer.step()
+        schedule.step()
+    model.eval()
+    with torch.no_grad():
+        xs = model(batch["images"])["xs"] * (size[1] - 1)  # (B, Q, N)
+    return xs.std(0).mean().item(), xs.std(1).mean().item()
+
+
+def test_the_recipe_keeps_queries_and_images_apart(one_thread):
+    """Issue 32: at one rate of 5e-4 for backbone and transformer, no clipping, no warm-up, every query on every
+    image collapses to one lane within ~10 steps. The family's recipe (backbone 0.1x, clipping 0.1, a warm-up,
+    shortened here to the test's length) at the same head rate keeps the outputs apart."""
+    across_images, across_queries = _output_spread(["model.scheduler.warmup_steps=5"])
+    assert across_images > 0.5 and across_queries > 0.1, (across_images, across_queries)
+    # the same criterion fails the single-rate training the quickstart had (~0.09 px and ~0.005 px here)
+    single = _output_spread(["~model.lr_multipliers", "model.gradient_clip_norm=null",
+                             "model.scheduler.warmup_steps=0"])
+    assert single[0] < 0.5 and single[1] < 0.1, single
 
 
 @pytest.mark.parametrize("seed", range(4))
@@ -220,6 +322,7 @@ def test_loss_does_not_depend_on_the_order_of_the_lanes():
     ({"num_decoder_layers": 0}, "num_decoder_layers"),
     ({"eos_coef": -1.0}, "eos_coef"),
     ({"dropout": 1.0}, "dropout"),
+    ({"pixel_attention": "yes"}, "pixel_attention"),
 ])
 def test_bad_arguments_are_named(kwargs, match):
     with pytest.raises(ValueError, match=match):
