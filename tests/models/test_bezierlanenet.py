@@ -398,3 +398,12 @@ def test_decoded_lanes_lie_inside_the_image():
     with torch.no_grad():
         out = head.eval()([torch.randn(2, 32, 6, 16, generator=gen)])
     assert len(head.decode(out, conf_threshold=0.01)) == 2
+
+
+def test_head_only_overfit_keeps_the_lanes(one_thread):
+    # the head fitted alone (random frozen ResNet-18) to 8 simulated scenes of 3 to 6 lanes at 112x320 (20 queries):
+    # measured 79.8 % accuracy, FN 28.1 %; the old window of 9 without the offsets' 0.1x rate (match_window=9,
+    # local_maximum_window=9, lr_multipliers=null) decodes 2 lanes per image: 66.7 %, FN 49.0 % (61.5 / 49.0 at
+    # 100 steps, 68.3 / 49.0 at 200)
+    out = head_only_fit("bezierlanenet", scenes=8, steps=150)
+    assert out["accuracy"] >= 75.0 and out["fn"] <= 40.0, out
