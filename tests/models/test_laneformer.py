@@ -228,9 +228,10 @@ def test_start_and_end_y_targets_are_reached_inside_the_sigmoid():
 
 def test_head_only_fit_reaches_the_scenes(one_thread):
     """The head alone on 8 simulated scenes with the family's recipe at the quickstart's rate (1e-3 at batch 16:
-    5e-4 here, gradient norm clipped at 0.1, 100 warm-up steps) for 200 steps. Before issue 32 (one rate, no
-    clipping, no warm-up, a plain sigmoid, no pixel branch) every query gave the same lane: 0 % here."""
-    out = head_only_fit("laneformer", ["model.optimizer.lr=1e-3", "model.head.dropout=0"], steps=200)
+    5e-4 here, gradient norm clipped at 0.1, 100 warm-up steps) for 150 steps: ~103 % (TuSimple's accuracy divides
+    by min(4, lanes), so scenes of 5 or 6 lanes can exceed 100). Before issue 32 (one rate, no clipping, no
+    warm-up) the queries collapsed to one lane: 0 % at 200 steps; without clipping and warm-up, 63 %."""
+    out = head_only_fit("laneformer", ["model.optimizer.lr=1e-3", "model.head.dropout=0"], steps=150)
     assert out["accuracy"] >= 90 and out["fn"] <= 10 and out["fp"] <= 10, out
 
 
@@ -262,7 +263,9 @@ def _output_spread(overrides: list[str], steps: int = 10) -> tuple[float, float]
 def test_the_recipe_keeps_queries_and_images_apart(one_thread):
     """Issue 32: at one rate of 5e-4 for backbone and transformer, no clipping, no warm-up, every query on every
     image collapses to one lane within ~10 steps. The family's recipe (backbone 0.1x, clipping 0.1, a warm-up,
-    shortened here to the test's length) at the same head rate keeps the outputs apart."""
+    shortened here to the test's length) at the same head rate keeps the outputs apart: ~1.2 px across images and
+    ~0.23 px across queries after 10 steps (without the clipping: 0.32 and 0.026; one rate with clipping: 0.10 and
+    0.006)."""
     across_images, across_queries = _output_spread(["model.scheduler.warmup_steps=5"])
     assert across_images > 0.5 and across_queries > 0.1, (across_images, across_queries)
     # the same criterion fails the single-rate training the quickstart had (~0.09 px and ~0.005 px here)
