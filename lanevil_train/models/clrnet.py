@@ -2,15 +2,20 @@
 
 Learnable straight-line priors (start_y, start_x, theta; clrnet_priors) are refined over the FPN levels from
 the coarsest to the finest: at each stage, ROIGather samples the stage's feature map along every prior line
-(grid_sample at 36 of the 72 rows), mixes it with the ROI features of the earlier stages, reduces it with an
-fc layer and lets it attend to the whole (resized) feature map; shared fc layers then classify each prior
-(2 logits) and regress start_y, start_x, theta, the length and 72 x offsets. A stage's refined line (without
-the offsets, detached) is the next stage's prior. The loss (clrnet_loss) is computed on every stage's
+(grid_sample at 36 of the 72 rows, laid out top row first as the official), mixes it with the ROI features of
+the earlier stages, reduces it with an fc layer and lets it attend to the whole (resized) feature map; shared
+fc layers then classify each prior (2 logits) and regress start_y, start_x, theta, the length and 72 x offsets.
+A stage's refined line (without the offsets, detached) is the next stage's prior. The loss (clrnet_loss) is computed on every stage's
 predictions, with a dynamic assignment of predictions to lanes; NMS lives in ``decode`` only.
 
-Left out: the auxiliary segmentation loss of the official (optional in the paper's ablation; it would need
-lane masks as targets). Distances the official gives in pixels at its 800 px wide input (the Line IoU radius
-15, the NMS threshold 50, the start_x loss) are scaled to the input width by W / reference_width.
+The official training's auxiliary segmentation loss is an option (``seg_loss_weight`` > 0; the official
+weight is 1.0): a 1x1 convolution (after dropout 0.1) over the refined levels resized to the finest one and
+concatenated, upsampled to the input, trained by a cross-entropy with the background weighted 0.4 against
+lane masks drawn per lane slot (scnn_codec, as CULane's labels). It runs in training only, so decoding and
+export never see it; with the weight 0 the decoder is not built.
+
+Distances the official gives in pixels at its 800 px wide input (the Line IoU radius 15, the NMS threshold 50,
+the start_x loss) are scaled to the input width by W / reference_width.
 """
 
 from __future__ import annotations
@@ -29,7 +34,7 @@ from lanevil_train.models.clrnet_codec import (
     encode_lanes,
     start_rows,
 )
-from lanevil_train.models.clrnet_loss import clrnet_losses
+from lanevil_train.models.clrnet_loss import clrnet_losses, segmentation_loss
 from lanevil_train.models.clrnet_priors import (
     init_prior_embeddings,
     line_xs,
@@ -38,6 +43,8 @@ from lanevil_train.models.clrnet_priors import (
     sample_indices,
 )
 from lanevil_train.models.head import LaneHead
+from lanevil_train.models.scnn_codec import draw_width
+from lanevil_train.models.scnn_codec import encode_lanes as encode_masks
 
 
 def _conv_bn_relu(c_in: int, c_out: int, kernel, padding) -> nn.Sequential:
@@ -105,7 +112,9 @@ class CLRNetHead(LaneHead):
                  num_points: int = 72, num_priors: int = 192, refine_layers: int = 3, sample_points: int = 36,
                  fc_hidden_dim: int = 64, num_fc: int = 2, max_lanes: int = 4, reference_width: float = 800.0,
                  iou_radius: float = 15.0, cls_loss_weight: float = 2.0, xyt_loss_weight: float = 0.2,
-                 iou_loss_weight: float = 2.0, focal_alpha: float = 0.25, focal_gamma: float = 2.0) -> None:
+                 iou_loss_weight: float = 2.0, focal_alpha: float = 0.25, focal_gamma: float = 2.0,
+                 seg_loss_weight: float = 0.0, seg_background_weight: float = 0.4, seg_lane_width: float = 16.0,
+                 seg_reference_width: float = 1640.0) -> None:
         super().__init__(in_channels, in_strides, image_size)
         h, w = self.image_size
         if refine_layers < 1 or refine_layers > len(self.in_channels):
@@ -125,12 +134,22 @@ class CLRNetHead(LaneHead):
                              f"{reference_width}, {iou_radius}")
         if num_fc < 0:
             raise ValueError(f"CLRNetHead: num_fc must be >= 0, got {num_fc}")
+        if seg_loss_weight < 0:
+            raise ValueError(f"CLRNetHead: seg_loss_weight must be >= 0 (0: no auxiliary segmentation), got "
+                             f"{seg_loss_weight}")
+        if seg_background_weight <= 0:
+            raise ValueError(f"CLRNetHead: seg_background_weight must be > 0, got {seg_background_weight}")
+        if seg_lane_width <= 0 or seg_reference_width <= 0:
+            raise ValueError(f"CLRNetHead: seg_lane_width ({seg_lane_width}) and seg_reference_width "
+                             f"({seg_reference_width}) must be > 0")
         self.n_points, self.n_strips = num_points, num_points - 1
         self.num_priors, self.refine_layers, self.max_lanes = num_priors, refine_layers, max_lanes
         self.width_scale = w / reference_width
         self.iou_radius = iou_radius * self.width_scale
         self.weights = {"cls": cls_loss_weight, "xytl": xyt_loss_weight, "iou": iou_loss_weight}
         self.focal_alpha, self.focal_gamma = focal_alpha, focal_gamma
+        self.seg_loss_weight, self.seg_background_weight = float(seg_loss_weight), float(seg_background_weight)
+        self.seg_line_width = draw_width(seg_lane_width, seg_reference_width, w)  # drawn mask width, input px
         self.row_ys = row_ys(h, num_points).double().numpy()
 
         self.prior_embeddings = nn.Parameter(init_prior_embeddings(num_priors))  # validates num_priors
@@ -148,6 +167,11 @@ class CLRNetHead(LaneHead):
         for layer in (self.cls_layer, self.reg_layer):
             nn.init.normal_(layer.weight, 0.0, 1e-3)
             nn.init.normal_(layer.bias, 0.0, 1e-3)
+        # the official SegDecoder: background + one class per lane slot, over the refined levels concatenated
+        self.seg_decoder = None
+        if self.seg_loss_weight > 0:
+            self.seg_decoder = nn.Sequential(nn.Dropout2d(0.1),
+                                             nn.Conv2d(fc_hidden_dim * refine_layers, max_lanes + 1, 1))
 
     # ------------------------------------------------------------------ forward
     def _pool(self, fmap: torch.Tensor, xs: torch.Tensor) -> torch.Tensor:
@@ -174,18 +198,34 @@ class CLRNetHead(LaneHead):
             out_lines.append(torch.cat([refined, reg[..., 3:4]], dim=-1))
             out_xs.append((line + reg[..., 4:]) * (w - 1))
             lines, xs = refined.detach(), line.detach()  # the next stage's priors
-        return {"cls_logits": torch.stack(out_cls, 1), "lines": torch.stack(out_lines, 1),
-                "xs": torch.stack(out_xs, 1)}
+        out = {"cls_logits": torch.stack(out_cls, 1), "lines": torch.stack(out_lines, 1),
+               "xs": torch.stack(out_xs, 1)}
+        if self.training and self.seg_decoder is not None:
+            out["seg"] = self._segment(levels)
+        return out
+
+    def _segment(self, levels: list[torch.Tensor]) -> torch.Tensor:
+        """The auxiliary segmentation logits (B, max_lanes + 1, H, W): the levels (coarsest first) resized to the
+        finest one's size, concatenated in that order, through the decoder, upsampled to the input size."""
+        size = levels[-1].shape[-2:]
+        stacked = torch.cat([F.interpolate(f, size=size, mode="bilinear", align_corners=False) for f in levels], 1)
+        return F.interpolate(self.seg_decoder(stacked), size=self.image_size, mode="bilinear", align_corners=False)
 
     # ------------------------------------------------------------------ targets
     def encode(self, lanes: list[np.ndarray], meta: dict | None = None) -> dict[str, np.ndarray]:
         """GT lanes (input pixels) -> {"lanes": float32 (max_lanes, 5 + S)} [valid, start_y, start_x, theta,
-        length, xs] (clrnet_codec)."""
-        return {"lanes": encode_lanes(lanes, self.image_size, self.n_points, self.max_lanes)}
+        length, xs] (clrnet_codec); with the auxiliary segmentation also "seg": uint8 (H, W), 0 background and
+        1 + slot on each lane's drawn line (slots as CULane's labels: scnn_codec, "ego")."""
+        out = {"lanes": encode_lanes(lanes, self.image_size, self.n_points, self.max_lanes)}
+        if self.seg_decoder is not None:
+            out["seg"] = encode_masks(lanes, self.image_size, self.max_lanes, self.seg_line_width)["seg"]
+        return out
 
     def loss(self, raw: dict, targets: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """The official loss on every stage's predictions, averaged over the stages: w_cls focal + w_xyt
-        smooth-L1 of (start_y, start_x, theta, length) + w_iou (1 - Line IoU); parts logged unweighted."""
+        smooth-L1 of (start_y, start_x, theta, length) + w_iou (1 - Line IoU); plus, in training with the
+        auxiliary segmentation, w_seg x its cross-entropy (once, not per stage, as the official); parts logged
+        unweighted."""
         xs = raw["xs"]
         b, r, p, s = xs.shape
         t = targets["lanes"].to(xs.device).float()
@@ -198,8 +238,16 @@ class CLRNetHead(LaneHead):
                               self.focal_alpha, self.focal_gamma, meta=TARGET_META)
         per_stage = {k: parts[k].reshape(b, r).mean(1) for k in self.weights}  # (B,) each, over the stages
         per_sample = sum(self.weights[k] * v for k, v in per_stage.items())
-        return {"loss": per_sample.mean(), "per_sample": per_sample, "cls_loss": per_stage["cls"].mean(),
-                "xytl_loss": per_stage["xytl"].mean(), "iou_loss": per_stage["iou"].mean()}
+        out = {"cls_loss": per_stage["cls"].mean(), "xytl_loss": per_stage["xytl"].mean(),
+               "iou_loss": per_stage["iou"].mean()}
+        if "seg" in raw and self.seg_loss_weight > 0:  # training outputs only (forward in train mode)
+            if "seg" not in targets:
+                raise ValueError("CLRNetHead.loss: the auxiliary segmentation (model.head.seg_loss_weight > 0) needs "
+                                 "targets['seg'] from this head's encode")
+            seg = segmentation_loss(raw["seg"], targets["seg"].to(xs.device), self.seg_background_weight)
+            per_sample = per_sample + self.seg_loss_weight * seg
+            out["seg_loss"] = seg.mean()
+        return {"loss": per_sample.mean(), "per_sample": per_sample, **out}
 
     # ------------------------------------------------------------------ decode
     def decode(self, raw: dict, conf_threshold: float = 0.4, nms_threshold: float = 50.0,

@@ -122,3 +122,22 @@ def clrnet_losses(cls_logits: torch.Tensor, lines: torch.Tensor, xs: torch.Tenso
     liou = 1.0 - line_iou(xs, matched[..., meta:], w, radius)
     iou = (liou * pos).sum(1) / n_pos.clamp(min=1)
     return {"cls": cls, "xytl": xytl, "iou": iou, "pos": pos}
+
+
+IGNORE_LABEL = 255  # the official's ignore_label: pixels of this class take no part in the segmentation loss
+
+
+def segmentation_loss(logits: torch.Tensor, target: torch.Tensor, background_weight: float) -> torch.Tensor:
+    """The official auxiliary segmentation loss, per image (N,): cross-entropy of the class logits (N, K, H, W)
+    against the class map (N, H, W) (0 background, 1.. lane slots, IGNORE_LABEL ignored), each pixel weighted by
+    its true class's weight (background_weight for class 0, 1 for the lanes), divided by the sum of those weights:
+    torch's NLLLoss(weight) mean, as the official, over each image instead of the whole batch (the per-image
+    losses the detector needs; the same for a batch of one). An image with no counted pixel gives 0."""
+    k = logits.shape[1]
+    weight = torch.ones(k, device=logits.device, dtype=torch.float32)
+    weight[0] = background_weight
+    target = target.long()
+    nll = F.cross_entropy(logits.float(), target, weight=weight, ignore_index=IGNORE_LABEL, reduction="none")
+    counted = target != IGNORE_LABEL
+    pixel_weight = torch.where(counted, weight[target.clamp(0, k - 1)], torch.zeros_like(nll))
+    return nll.flatten(1).sum(1) / pixel_weight.flatten(1).sum(1).clamp(min=1e-9)

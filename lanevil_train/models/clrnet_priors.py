@@ -65,7 +65,12 @@ def line_xs(lines: torch.Tensor, fractions: torch.Tensor, image_size: tuple[int,
 
 
 def sample_indices(n_points: int, sample_points: int) -> torch.Tensor:
-    """The rows (of n_points) at which ROI features are sampled: sample_points evenly spread, bottom first."""
+    """The rows (of n_points, row 0 the bottom) at which ROI features are sampled, in the order the features are
+    laid out: sample_points rows evenly spread (floor of linspace(0, 1) x (n_points - 1)), TOP FIRST.
+
+    The official chooses the rows bottom first (``sample_x_indexs``) and then flips both the sampled y
+    (``prior_feat_ys``) and the prior xs before grid_sample, so feature 0 is the top row; the (9, 1) convolutions
+    and the fc layer over the flattened points see that order (and official weights expect it)."""
     if not 2 <= sample_points <= n_points:
         raise ValueError(f"sample_points must be in [2, num_points={n_points}], got {sample_points}")
-    return (torch.linspace(0.0, 1.0, sample_points) * (n_points - 1)).long()
+    return (torch.linspace(0.0, 1.0, sample_points) * (n_points - 1)).long().flip(0)

@@ -11,13 +11,14 @@ plus 0.1 x the binary cross-entropy of the existence (the official training). Tw
 mean is taken per image (the official one pools the batch), so ``per_sample`` is each image's own loss and
 ``loss`` their mean; the BCE is computed from the logits (the same value as sigmoid + BCE, stable in fp16).
 
-Message passing: the map is cut into slices (rows for SCNN_D / SCNN_U, columns for SCNN_R / SCNN_L); in
-each direction, slice by slice in order, a slice adds ReLU(conv(previous slice, already updated)), the
-convolution a C x C kernel of width 9 across the slice, without bias (the official model), so information
-travels the whole map in four sequential passes. The feature map is cropped (after a 1-cell zero pad: VGG
+Message passing (pytorch-auto-drive's SpatialConv): the map is cut into slices (rows for SCNN_D / SCNN_U,
+columns for SCNN_R / SCNN_L); in each direction, slice by slice in order, a slice adds ReLU(conv(previous
+slice, already updated)), the convolution a C x C kernel of width 9 across the slice, with a bias, so
+information travels the whole map in four sequential passes. As the official, the up and left passes stop one
+slice short: they start from the last row / column and update down to the second one, leaving row 0 and
+column 0 as the down and right passes left them. The feature map is cropped (after a 1-cell zero pad: VGG
 floors odd sizes where ResNets round up) to the size fixed by ``image_size`` and the stride, so the loops
-have static bounds that tracing and ONNX export unroll (2 x 35 + 2 x 99 slice steps at 288x800). The up
-and left passes update every slice down to the first one, as the paper's formula (some ports stop one short).
+have static bounds that tracing and ONNX export unroll (35 + 34 + 99 + 98 slice steps at 288x800).
 
 Targets, slots and post-processing: see ``models/scnn_codec.py``.
 """
@@ -44,27 +45,30 @@ class SpatialMessagePassing(nn.Module):
     """SCNN's sequential slice-by-slice convolutions, in the order down, up, right, left.
 
     ``conv_d`` / ``conv_u`` are (1 x k) convolutions applied to a row (1 x W slice), ``conv_r`` / ``conv_l``
-    (k x 1) ones applied to a column. Weights start at N(0, 2 / (k C^2 5)), the official initialisation
-    (small, so the sums over 36 or 100 slices start near the identity)."""
+    (k x 1) ones applied to a column, each with a bias (torch's default init). Weights start uniform in +-sqrt(2 /
+    (k C 5)), the official's: MSRA's variance over 5 (the SCNN author's advice for stable sums over 36 or 100
+    slices), as a uniform bound."""
 
     def __init__(self, channels: int, kernel_size: int = 9) -> None:
         super().__init__()
         if kernel_size < 1 or kernel_size % 2 == 0:
             raise ValueError(f"SpatialMessagePassing: kernel_size must be a positive odd number, got {kernel_size}")
         k, pad = kernel_size, kernel_size // 2
-        self.conv_d = nn.Conv2d(channels, channels, (1, k), padding=(0, pad), bias=False)
-        self.conv_u = nn.Conv2d(channels, channels, (1, k), padding=(0, pad), bias=False)
-        self.conv_r = nn.Conv2d(channels, channels, (k, 1), padding=(pad, 0), bias=False)
-        self.conv_l = nn.Conv2d(channels, channels, (k, 1), padding=(pad, 0), bias=False)
-        std = math.sqrt(2.0 / (k * channels * channels * 5))
+        self.conv_d = nn.Conv2d(channels, channels, (1, k), padding=(0, pad))
+        self.conv_u = nn.Conv2d(channels, channels, (1, k), padding=(0, pad))
+        self.conv_r = nn.Conv2d(channels, channels, (k, 1), padding=(pad, 0))
+        self.conv_l = nn.Conv2d(channels, channels, (k, 1), padding=(pad, 0))
+        bound = math.sqrt(2.0 / (k * channels * 5))
         for conv in (self.conv_d, self.conv_u, self.conv_r, self.conv_l):
-            nn.init.normal_(conv.weight, 0.0, std)
+            nn.init.uniform_(conv.weight, -bound, bound)
 
     @staticmethod
     def _pass(slices: list[torch.Tensor], conv: nn.Module, reverse: bool) -> list[torch.Tensor]:
-        """One direction: slice i += relu(conv(slice i-1, already updated)), from the first slice on."""
+        """One direction: slice i += relu(conv(slice i-1, already updated)) in pass order, the pass's first slice
+        unchanged; a reverse (up, left) pass also leaves its last one, slice 0 of the map, unchanged (the
+        official's loops ``range(H - 2, 0, -1)``)."""
         out = list(slices[::-1] if reverse else slices)
-        for i in range(1, len(out)):
+        for i in range(1, len(out) - 1 if reverse else len(out)):
             out[i] = out[i] + F.relu(conv(out[i - 1]))
         return out[::-1] if reverse else out
 

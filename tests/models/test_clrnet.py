@@ -15,10 +15,12 @@ from lanevil_train.models.clrnet_codec import (
     encode_lanes,
 )
 from lanevil_train.models.clrnet_loss import (
+    IGNORE_LABEL,
     assign,
     clrnet_losses,
     line_iou,
     pairwise_line_iou,
+    segmentation_loss,
 )
 from lanevil_train.models.clrnet_priors import (
     init_prior_embeddings,
@@ -276,6 +278,7 @@ def test_refinement_runs_coarse_to_fine_each_stage_from_the_previous_one():
     fractions = row_fractions(72)
     priors = line_xs(head.prior_embeddings.detach()[None], fractions, size)
     torch.testing.assert_close(seen[0][1][..., 0], priors[..., head.sample_index].expand(2, -1, -1) * 2 - 1)
+    torch.testing.assert_close(seen[0][1][..., 1], 1 - 2 * fractions[head.sample_index].expand(2, 32, -1))
     for stage in (1, 2):  # stage s samples along stage s-1's refined line (without its offsets)
         prev = line_xs(raw["lines"][:, stage - 1, :, :3].detach(), fractions, size)
         torch.testing.assert_close(seen[stage][1][..., 0], prev[..., head.sample_index] * 2 - 1)
@@ -346,3 +349,103 @@ def test_constructor_checks_name_the_argument():
     head = _head((64, 160), refine_layers=2)  # fewer stages read the last maps
     raw = head([torch.randn(1, 16, 8, 20), torch.randn(1, 16, 4, 10), torch.randn(1, 16, 2, 5)])
     assert raw["xs"].shape == (1, 2, 32, 72)
+
+
+# ---------------------------------------------------------------------------------------------- sampling order
+def test_prior_features_are_sampled_top_row_first_as_the_official():
+    """The official (clr_head.py:44-48, 208): sample_x_indexs = long(linspace(0, 1, 36) x 71) bottom first, then
+    prior_feat_ys and the prior xs flipped, so the ROI's point 0 reads the top row. Feature maps whose channel 0
+    holds y / (H - 1) and channel 1 x / (W - 1) show which point each sampled feature came from."""
+    torch.manual_seed(0)
+    size = (64, 160)
+    head = _head(size, channels=2, num_priors=32, sample_points=36)
+    want_rows = (torch.linspace(0, 1, 36) * 71).long().flip(0)  # of the 72 rows, row 0 the bottom
+    assert want_rows[0] == 71 and want_rows[-1] == 0
+    torch.testing.assert_close(head.sample_index, want_rows)
+    feats = []
+    for h, w in ((8, 20), (4, 10), (2, 5)):
+        yy, xx = torch.meshgrid(torch.linspace(0, 1, h), torch.linspace(0, 1, w), indexing="ij")
+        feats.append(torch.stack([yy, xx])[None])
+    pooled = []
+    transform = head.roi_gather.transform
+    head.roi_gather.transform = lambda roi, stage: (pooled.append(roi), transform(roi, stage))[1]
+    head.eval()(feats)
+    roi = pooled[0][0]  # stage 0 (the coarsest map, 2x5): (C, Ns, P)
+    # where a prior's point lies inside the image (outside, grid_sample reads zeros): grid_sample is exact on a
+    # bilinear ramp, so channel 0 is the y fraction of the point read and channel 1 its x fraction
+    xs = line_xs(head.prior_embeddings.detach(), row_fractions(72), size)[:, want_rows].T  # (Ns, P)
+    inside = (xs >= 0) & (xs <= 1)
+    assert inside[0].sum() >= 4 and inside[-1].sum() >= 4 and inside.sum() > 100
+    torch.testing.assert_close(roi[0][0][inside[0]], torch.zeros(int(inside[0].sum())))  # point 0: the top row
+    torch.testing.assert_close(roi[0][-1][inside[-1]], torch.ones(int(inside[-1].sum())))  # the last: the bottom
+    want_y = (1 - row_fractions(72)[want_rows])[:, None].expand_as(xs)
+    torch.testing.assert_close(roi[0][inside], want_y[inside], atol=1e-5, rtol=0)
+    torch.testing.assert_close(roi[1][inside], xs[inside], atol=1e-5, rtol=0)  # x on that same row
+
+
+# ---------------------------------------------------------------------------------------------- auxiliary seg
+def test_segmentation_loss_hand_computed_with_background_weight():
+    # image 0: a background pixel with uniform logits (-log 1/3), a lane-2 pixel with probability 2/4 (-log 1/2),
+    # an ignored pixel; weighted mean (0.4 log 3 + 1 log 2) / (0.4 + 1). Image 1: background only, p = 3/5.
+    logits = torch.tensor([[[0.0, 0.0, 5.0]], [[0.0, 0.0, -5.0]], [[0.0, math.log(2.0), 1.0]]])  # (K=3, 1, 3)
+    logits = torch.stack([logits, torch.log(torch.tensor([3.0, 1.0, 1.0]))[:, None, None].expand(3, 1, 3)])
+    target = torch.tensor([[[0, 2, IGNORE_LABEL]], [[0, 0, 0]]])
+    got = segmentation_loss(logits, target, background_weight=0.4)
+    want = torch.tensor([(0.4 * math.log(3.0) + math.log(2.0)) / 1.4, math.log(5.0 / 3.0)])
+    torch.testing.assert_close(got, want)
+    # one image: the official's NLLLoss(weight=[0.4, 1, 1], ignore_index=255) of the log-softmax
+    official = torch.nn.NLLLoss(weight=torch.tensor([0.4, 1.0, 1.0]), ignore_index=255)
+    torch.testing.assert_close(got[0], official(torch.log_softmax(logits[:1], 1), target[:1]))
+
+
+def test_auxiliary_segmentation_is_an_option_trained_only():
+    torch.manual_seed(0)
+    size = (64, 160)
+    feats = [torch.randn(2, 16, 8, 20), torch.randn(2, 16, 4, 10), torch.randn(2, 16, 2, 5)]
+    off = _head(size)
+    assert off.seg_decoder is None and "seg" not in off.train()(feats) and "seg" not in off.encode([])
+    head = _head(size, seg_loss_weight=1.0)
+    conv = head.seg_decoder[1]
+    assert conv.in_channels == 3 * 16 and conv.out_channels == head.max_lanes + 1 == 5
+    seen = {}
+    conv.register_forward_pre_hook(lambda m, i: seen.__setitem__("in", i[0]))
+    raw = head.train()(feats)
+    assert raw["seg"].shape == (2, 5, *size)
+    # the refined levels coarsest first, each resized to the finest one (8 x 20), concatenated
+    coarse = torch.nn.functional.interpolate(feats[2], size=(8, 20), mode="bilinear", align_corners=False)
+    assert not torch.equal(seen["in"][:, :16], torch.zeros_like(coarse))  # dropout keeps most channels
+    kept = seen["in"][:, :16].flatten(2).abs().sum(-1) > 0
+    torch.testing.assert_close(seen["in"][:, :16][kept], coarse[kept] / 0.9)  # Dropout2d(0.1) scales by 1 / 0.9
+    kept = seen["in"][:, 32:].flatten(2).abs().sum(-1) > 0
+    torch.testing.assert_close(seen["in"][:, 32:][kept], feats[0][kept] / 0.9)
+    assert set(head.eval()(feats)) == {"cls_logits", "lines", "xs"}  # never at inference or export
+
+    rng = np.random.default_rng(2)
+    lanes = [synthetic_lanes(rng, size, 3, curved=True), []]
+    enc = [head.encode(ln) for ln in lanes]
+    targets = {k: torch.from_numpy(np.stack([e[k] for e in enc])) for k in ("lanes", "seg")}
+    assert targets["seg"].shape == (2, *size) and targets["seg"].dtype == torch.uint8
+    assert set(np.unique(enc[0]["seg"])) == {0, 1, 2, 3} and not enc[1]["seg"].any()
+    assert head.seg_line_width == round(16 * 160 / 1640)
+    raw = {k: v.detach() for k, v in head.train()(feats).items()}
+    out = head.loss(raw, targets)
+    seg = segmentation_loss(raw["seg"], targets["seg"], 0.4)
+    torch.testing.assert_close(out["seg_loss"], seg.mean())
+    base = off.loss({k: raw[k] for k in ("cls_logits", "lines", "xs")}, {"lanes": targets["lanes"]})
+    torch.testing.assert_close(out["per_sample"], base["per_sample"] + seg)  # weight 1.0, once (not per stage)
+    with pytest.raises(ValueError, match="targets\\['seg'\\]"):
+        head.loss(raw, {"lanes": targets["lanes"]})
+    with pytest.raises(ValueError, match="seg_loss_weight"):
+        _head(size, seg_loss_weight=-1.0)
+
+
+@pytest.mark.usefixtures("hydra_conf")
+def test_paper_config_turns_the_auxiliary_segmentation_on_the_quickstart_off():
+    from hydra import compose
+
+    paper = compose(config_name="config", overrides=["experiment=paper_clrnet"]).model.head
+    assert paper.seg_loss_weight == 1.0 and paper.seg_background_weight == 0.4
+    quick = compose(config_name="config", overrides=["experiment=quickstart_clrnet"]).model.head
+    assert quick.seg_loss_weight == 0.0
+    assert compose(config_name="config", overrides=["model=clrnet"]).model.head.seg_loss_weight == 0.0
+

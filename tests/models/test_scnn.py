@@ -27,6 +27,7 @@ def _zero_mp(channels: int = 1, k: int = 3) -> SpatialMessagePassing:
     with torch.no_grad():
         for conv in (mp.conv_d, mp.conv_u, mp.conv_r, mp.conv_l):
             conv.weight.zero_()
+            conv.bias.zero_()
     return mp
 
 
@@ -50,9 +51,10 @@ def test_down_pass_updates_each_row_from_the_updated_row_above():
 
 def test_each_direction_runs_from_its_own_side():
     x = torch.zeros(1, 1, 4, 4)
-    x[0, 0, 1, 2] = 1.0  # one active cell; identity kernels carry it slice to slice
-    for name, want_rows, want_cols in (("conv_d", [1, 2, 3], [2]), ("conv_u", [0, 1], [2]),
-                                       ("conv_r", [1], [2, 3]), ("conv_l", [1], [0, 1, 2])):
+    x[0, 0, 2, 2] = 1.0  # one active cell; identity kernels carry it slice to slice
+    # up and left stop at row / column 1: row 0 and column 0 stay as they were (the official's loops)
+    for name, want_rows, want_cols in (("conv_d", [2, 3], [2]), ("conv_u", [1, 2], [2]),
+                                       ("conv_r", [2], [2, 3]), ("conv_l", [2], [1, 2])):
         mp = _zero_mp()
         with torch.no_grad():
             w = getattr(mp, name).weight
@@ -63,8 +65,9 @@ def test_each_direction_runs_from_its_own_side():
         torch.testing.assert_close(out, want, msg=name)
 
 
-def _reference(x: np.ndarray, kernels: dict, order: str) -> np.ndarray:
-    """Plain loops: for each direction in `order`, slice i += relu(kernel * slice i-1 (updated))."""
+def _reference(x: np.ndarray, kernels: dict, biases: dict, order: str) -> np.ndarray:
+    """Plain loops: for each direction in `order`, slice i += relu(kernel * slice i-1 (updated) + bias); up and
+    left leave slice 0 as it is."""
     x = x.copy()
     c, h, w = x.shape
     for d in order:
@@ -72,11 +75,11 @@ def _reference(x: np.ndarray, kernels: dict, order: str) -> np.ndarray:
         p = k.shape[-1] // 2
         vertical = d in "DU"
         n = h if vertical else w
-        idx = list(range(n)) if d in "DR" else list(range(n))[::-1]
+        idx = list(range(n)) if d in "DR" else list(range(1, n))[::-1]
         for prev, cur in itertools.pairwise(idx):
             src = x[:, prev, :] if vertical else x[:, :, prev]
             length = src.shape[1]
-            msg = np.zeros_like(src)
+            msg = np.zeros_like(src) + biases[d][:, None]
             for o in range(c):
                 for j in range(length):
                     for t in range(k.shape[-1]):
@@ -90,21 +93,62 @@ def _reference(x: np.ndarray, kernels: dict, order: str) -> np.ndarray:
     return x
 
 
+def test_up_and_left_passes_leave_the_first_slice_unchanged_down_and_right_reach_the_last():
+    """pytorch-auto-drive's SpatialConv (utils/models/common_models/plugins/spatial_conv.py:79-92): down
+    range(1, H), up range(H - 2, 0, -1), right range(1, W), left range(W - 2, 0, -1)."""
+    ones = torch.ones(1, 1, 4, 5)
+    for name, dim in (("conv_d", 2), ("conv_u", 2), ("conv_r", 3), ("conv_l", 3)):
+        mp = _zero_mp()
+        with torch.no_grad():
+            getattr(mp, name).weight.view(-1)[1] = 1.0  # identity: slice += relu(previous slice)
+        out = mp(ones)[0, 0]
+        profile = out.mean(dim=1 if dim == 2 else 0)  # one value per row (dim 2) or column (dim 3)
+        n = profile.numel()
+        if name in ("conv_d", "conv_r"):  # 1, 2, 3, ...: every slice after the first adds the running sum
+            want = torch.arange(1.0, n + 1)
+        else:  # from the last slice back: n-1 -> 1, 2, ..., n - 1, and slice 0 keeps its 1 (not n)
+            want = torch.cat([torch.ones(1), torch.arange(n - 1.0, 0.0, -1.0)])
+        torch.testing.assert_close(profile, want, msg=name)
+        assert torch.all(out == profile[:, None] if dim == 2 else out == profile[None, :]), name
+
+
+def test_message_passing_convolutions_have_a_bias_that_acts_and_the_official_init():
+    torch.manual_seed(0)
+    mp = SpatialMessagePassing(16, 9)
+    bound = math.sqrt(2.0 / (16 * 9 * 5))  # uniform in +-sqrt(2 / (C k 5)) (spatial_conv.py:22-28)
+    for conv in (mp.conv_d, mp.conv_u, mp.conv_r, mp.conv_l):
+        assert conv.bias is not None and conv.bias.shape == (16,) and conv.bias.abs().sum() > 0
+        assert conv.weight.abs().max() <= bound and conv.weight.abs().max() > 0.95 * bound
+        assert conv.weight.std().item() == pytest.approx(bound / math.sqrt(3), rel=0.1)
+    assert conv.kernel_size == (9, 1) and mp.conv_d.kernel_size == (1, 9)
+    mp = _zero_mp()
+    with torch.no_grad():
+        mp.conv_d.bias.fill_(0.5)  # zero weights: each updated row adds relu(0.5)
+    out = mp(torch.zeros(1, 1, 4, 3))[0, 0]
+    torch.testing.assert_close(out[:, 0], torch.tensor([0.0, 0.5, 0.5, 0.5]))
+    mp = _zero_mp()
+    with torch.no_grad():
+        mp.conv_l.bias.fill_(-0.5)  # relu of a negative bias adds nothing
+    assert not mp(torch.zeros(1, 1, 4, 3)).any()
+
+
 def test_four_passes_match_plain_loops_in_order_down_up_right_left():
     torch.manual_seed(0)
     mp = SpatialMessagePassing(2, 3)
     with torch.no_grad():
         for conv in (mp.conv_d, mp.conv_u, mp.conv_r, mp.conv_l):
             conv.weight.normal_(0.0, 0.6)
+            conv.bias.normal_(0.0, 0.3)
     x = torch.randn(1, 2, 5, 6)
     got = mp(x)[0].detach().numpy().astype(np.float64)
     kernels = {"D": mp.conv_d.weight[:, :, 0, :], "U": mp.conv_u.weight[:, :, 0, :],
                "R": mp.conv_r.weight[:, :, :, 0], "L": mp.conv_l.weight[:, :, :, 0]}
     kernels = {k: v.detach().numpy().astype(np.float64) for k, v in kernels.items()}
+    biases = {d: getattr(mp, f"conv_{d.lower()}").bias.detach().numpy().astype(np.float64) for d in "DURL"}
     xs = x[0].numpy().astype(np.float64)
-    np.testing.assert_allclose(got, _reference(xs, kernels, "DURL"), rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(got, _reference(xs, kernels, biases, "DURL"), rtol=1e-5, atol=1e-5)
     for order in ("UDRL", "RLDU", "DULR"):  # the order matters
-        assert np.abs(got - _reference(xs, kernels, order)).max() > 1e-2, order
+        assert np.abs(got - _reference(xs, kernels, biases, order)).max() > 1e-2, order
 
 
 # ------------------------------------------------------------------ head
@@ -305,6 +349,43 @@ def test_builds_from_its_config_on_dilated_vgg16():
     assert model.decode_kwargs == {"exist_threshold": 0.5, "prob_threshold": 0.3, "row_step": 1, "min_points": 4}
 
 
+def test_vgg16_bn_builds_offline_as_pytorch_auto_drives_encoder(tmp_path, monkeypatch):
+    """pytorch-auto-drive's VGG16 (utils/models/vgg_encoder.py:17-27): torchvision's vgg16_bn features with
+    pool4 (features.33) and pool5 (features.43) removed and conv5_1..3 (features.34, 37, 40) dilated by 2."""
+    import socket
+
+    def no_network(*args, **kwargs):
+        raise AssertionError("building vgg16_bn must not touch the network")
+
+    monkeypatch.setattr(socket.socket, "connect", no_network)
+    indices = indices_for_strides("vgg16_bn", [8], 8)
+    net = build_backbone("vgg16_bn", pretrained=False, out_indices=indices, output_stride=8)
+    assert net.channels == [512] and net.strides == [8]
+    assert isinstance(net.features_1, torch.nn.BatchNorm2d) and isinstance(net.features_41, torch.nn.BatchNorm2d)
+    assert isinstance(net.features_33, torch.nn.Identity) and isinstance(net.features_43, torch.nn.Identity)
+    assert isinstance(net.features_23, torch.nn.MaxPool2d)  # pool3 stays: stride 8
+    assert [getattr(net, f"features_{i}").dilation for i in (30, 34, 37, 40)] == [(1, 1), (2, 2), (2, 2), (2, 2)]
+    assert net.features_34.padding == (2, 2)
+    with torch.no_grad():
+        out = net.eval()(torch.rand(1, 3, 64, 128))
+    assert [tuple(f.shape) for f in out] == [(1, 512, 8, 16)]
+    # torchvision's key layout ("features.N.", with batch-norm statistics) loads
+    state = {k.replace("features_", "features.", 1): torch.randn_like(v) if v.is_floating_point() else v
+             for k, v in net.state_dict().items()}
+    torch.save(state, tmp_path / "vgg16_bn.pth")
+    loaded = build_backbone("vgg16_bn", checkpoint=str(tmp_path / "vgg16_bn.pth"), out_indices=indices,
+                            output_stride=8)
+    assert torch.equal(loaded.state_dict()["features_41.running_var"], state["features.41.running_var"])
+
+
+def test_paper_config_uses_vgg16_bn():
+    with open(Path(__file__).parents[2] / "lanevil_train/conf/experiment/paper_scnn.yaml") as f:
+        paper = yaml.safe_load(f)
+    assert {"override /backbone": "vgg16_bn"} in paper["defaults"]
+    with open(Path(__file__).parents[2] / "lanevil_train/conf/backbone/vgg16_bn.yaml") as f:
+        assert yaml.safe_load(f)["name"] == "vgg16_bn"
+
+
 class _Wrap(torch.nn.Module):
     def __init__(self, head):
         super().__init__()
@@ -321,7 +402,7 @@ def test_forward_traces_with_unrolled_static_loops():
     head = SCNNHead([8], [8], (32, 48), max_lanes=2, hidden_channels=8, mp_channels=4).eval()
     traced = torch.jit.trace(_Wrap(head), torch.randn(2, 8, 4, 6), check_trace=False)
     graph = str(traced.inlined_graph)
-    assert graph.count("aten::relu") >= 2 * 3 + 2 * 5  # every slice step is in the graph
+    assert graph.count("aten::relu") >= 3 + 2 + 5 + 4  # every slice step is in the graph
     other = torch.randn(3, 8, 4, 6)  # another batch size replays the same graph
     for got, want in zip(traced(other), _Wrap(head)(other)):
         torch.testing.assert_close(got, want)
