@@ -247,7 +247,7 @@ class LaneFormerHead(LaneHead):
 
         self.input_proj = nn.Conv2d(self.in_channels[-1], d_model, kernel_size=1)
         self.encoder = RowColumnEncoder(d_model, nhead, num_encoder_layers, dim_feedforward, dropout,
-                                        self.fmap_size, row_column, pixel=bool(pixel_attention))
+                                        self.fmap_size, row_column, pixel=pixel_attention)
         hf, wf = self.fmap_size
         self.register_buffer("mem_pos", sine_encoding_2d(hf, wf, d_model)[None], persistent=False)
         self.query_embed = nn.Embedding(num_queries, d_model)
