@@ -1,22 +1,24 @@
 """LaneATT anchors and ground-truth encoding (numpy only, so it runs in data workers).
 
-Geometry follows the official LaneATT: straight-line anchors leave the left, right and bottom
-image borders at Line-CNN's angles, measured in normalised image coordinates; a lane is x at
-``n_offsets`` fixed rows from the bottom row (row 0, y = H-1) to the top row (y = 0).
+Geometry follows the official LaneATT (lucastabelini/LaneATT, lib/models/laneatt.py): straight-line
+anchors leave the left, bottom and right image borders (in that order) at Line-CNN's angles,
+measured in normalised image coordinates; a lane is x at ``n_offsets`` fixed rows from the bottom
+row (row 0, y = H-1) to the top row (y = 0). The anchors are pooled from a feature map of
+H // stride rows and W // stride columns, as the official.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from lanevil_train.lanes import as_lane, lane_x_at
 
+# Line-CNN's angles as the official lists them (lib/models/laneatt.py, LaneATT.__init__), in degrees
 LEFT_ANGLES: tuple[float, ...] = (72.0, 60.0, 49.0, 39.0, 30.0, 22.0)
 RIGHT_ANGLES: tuple[float, ...] = (108.0, 120.0, 131.0, 141.0, 150.0, 158.0)
-BOTTOM_ANGLES: tuple[float, ...] = (165.0, 150.0, 141.0, 131.0, 120.0, 109.0, 100.0, 90.0, 80.0, 71.0,
+BOTTOM_ANGLES: tuple[float, ...] = (165.0, 150.0, 141.0, 131.0, 120.0, 108.0, 100.0, 90.0, 80.0, 72.0,
                                     60.0, 49.0, 39.0, 30.0, 15.0)
 UNDEFINED_X = -1e5  # target x on rows where the ground-truth lane does not exist
 TARGET_META = 3  # target row layout: [valid, start_row, length_rows, x_0 .. x_{S-1}]
@@ -68,7 +70,11 @@ def generate_anchors(
     right_angles: tuple[float, ...] = RIGHT_ANGLES,
     bottom_angles: tuple[float, ...] = BOTTOM_ANGLES,
 ) -> Anchors:
-    """All anchors for an (H, W) input: left border, right border, then bottom border origins."""
+    """All anchors for an (H, W) input, in the official order: left border origins, bottom, then right.
+
+    Side origins run from the bottom (y = 1) up to the top (y = 0), bottom origins from the right
+    (x = 1) to the left (x = 0); each origin carries every angle of its border in turn.
+    """
     h, w = image_size
     if h < 2 or w < 2 or n_offsets < 2:
         raise ValueError(f"generate_anchors: need image_size >= (2, 2) and n_offsets >= 2, got {image_size}, {n_offsets}")
@@ -76,15 +82,16 @@ def generate_anchors(
     lateral_n = d_lat if lateral_n is None else lateral_n
     bottom_n = d_bot if bottom_n is None else bottom_n
     origins, angles = [], []
-    for x0, side_angles in ((0.0, left_angles), (1.0, right_angles)):
-        for y0 in np.linspace(1.0, 0.0, lateral_n):
-            for a in side_angles:
-                origins.append((x0, y0))
+    borders = (
+        ([(0.0, y) for y in np.linspace(1.0, 0.0, lateral_n)], left_angles),
+        ([(x, 1.0) for x in np.linspace(1.0, 0.0, bottom_n)], bottom_angles),
+        ([(1.0, y) for y in np.linspace(1.0, 0.0, lateral_n)], right_angles),
+    )
+    for border_origins, border_angles in borders:
+        for origin in border_origins:
+            for a in border_angles:
+                origins.append(origin)
                 angles.append(a)
-    for x0 in np.linspace(1.0, 0.0, bottom_n):
-        for a in bottom_angles:
-            origins.append((x0, 1.0))
-            angles.append(a)
     origins_arr = np.asarray(origins, dtype=np.float64)
     angles_arr = np.asarray(angles, dtype=np.float64)
     n_strips = n_offsets - 1
@@ -93,19 +100,35 @@ def generate_anchors(
     return Anchors(xs, starts, origins_arr, angles_arr)
 
 
+def feature_map_size(image_size: tuple[int, int], stride: int) -> tuple[int, int]:
+    """(Hf, Wf) the anchors are pooled from: H // stride, W // stride as the official (fmap_h, fmap_w).
+
+    A ResNet gives ceil(H / stride) rows; the last one (below H // stride) is not read, as in the official."""
+    h, w = image_size
+    hf, wf = h // stride, w // stride
+    if hf < 1 or wf < 1:
+        raise ValueError(f"LaneATT: the input {w}x{h} is smaller than the feature stride {stride}")
+    return hf, wf
+
+
 def anchor_cut_indices(anchors: Anchors, image_size: tuple[int, int], stride: int) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
     """Feature-map column of every anchor at every feature row, and whether it is inside the map.
 
-    Returns (cols (A, Hf) int64 clamped into the map, valid (A, Hf) float32, (Hf, Wf)) with
-    Hf = ceil(H / stride), Wf = ceil(W / stride); row r is sampled at its centre pixel.
+    Returns (cols (A, Hf) int64 clamped into the map, valid (A, Hf) float32, (Hf, Wf)), built as the
+    official compute_anchor_cut_indices: feature row r (top first) is the normalised height
+    r / (Hf - 1) (the rows span the whole image, the top one at y = 0, the bottom one at y = H);
+    the anchor's x there, in the official scale (normalised x times W), is divided by the stride and
+    rounded; a column below 0 or above Wf is zeroed, and the column Wf itself is kept (clamped to
+    Wf - 1) as the official's `> fmaps_w` test does.
     """
     h, w = image_size
-    hf, wf = math.ceil(h / stride), math.ceil(w / stride)
-    centres = np.minimum((np.arange(hf) + 0.5) * stride - 0.5, h - 1)
-    x = anchor_x_at(anchors.origins, anchors.angles, centres, image_size)
-    valid = (x >= -0.5) & (x < w - 0.5)
-    cols = np.clip(np.floor((x + 0.5) / stride), 0, wf - 1).astype(np.int64)
-    return cols, valid.astype(np.float32), (hf, wf)
+    hf, wf = feature_map_size(image_size, stride)
+    yn = np.linspace(0.0, 1.0, hf) if hf > 1 else np.ones(1)  # official linspace(1, 0, Hf), flipped top-first
+    slope = 1.0 / np.tan(np.deg2rad(anchors.angles))[:, None]
+    x = (anchors.origins[:, :1] + (anchors.origins[:, 1:] - yn[None, :]) * slope) * w
+    cols = np.round(x / stride)
+    valid = (cols >= 0) & (cols <= wf)
+    return np.clip(cols, 0, wf - 1).astype(np.int64), valid.astype(np.float32), (hf, wf)
 
 
 def _extrapolate(p0: np.ndarray, p1: np.ndarray, ys: np.ndarray) -> np.ndarray:

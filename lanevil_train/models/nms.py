@@ -7,7 +7,9 @@ cover, is below the threshold. Proposals with no common row never suppress each 
 
 from __future__ import annotations
 
+import numpy as np
 import torch
+import torch.nn.functional as F
 
 
 def lane_ends(starts: torch.Tensor, lengths: torch.Tensor, n_rows: int) -> torch.Tensor:
@@ -69,3 +71,76 @@ def lane_nms(
         alive_cpu = alive.cpu()
         i += 1
     return order[torch.tensor(kept, dtype=torch.long, device=xs.device)]
+
+
+
+def _suppression_matrix(xs: torch.Tensor, starts: torch.Tensor, ends: torch.Tensor, threshold: float,
+                        chunks: int = 2) -> torch.Tensor:
+    """(N, N) bool, symmetric: whether proposals i and j are closer than threshold (mean |x| over their common
+    rows), exactly as lane_distances decides it, for one image.
+
+    Computing every pair over every row costs N^2 x S; instead a lower bound of each pair's distance comes from
+    prefix sums (per block of rows, |sum of x_i - x_j| <= sum of |x_i - x_j|), and only the pairs that bound
+    leaves under the threshold (neighbours, a few crossing pairs) are measured row by row."""
+    n, n_rows = xs.shape
+    prefix = F.pad(torch.cumsum(xs, dim=1), (1, 0))  # (N, S+1): prefix[i, r] = sum of x_i over rows < r
+    lo = torch.maximum(starts[:, None], starts[None, :])
+    hi = torch.minimum(ends[:, None], ends[None, :]) + 1  # exclusive
+    count = hi - lo
+    bound = torch.zeros(n, n, device=xs.device)
+    edges = torch.linspace(0, n_rows, chunks + 1).round().long().tolist()
+    for c0, c1 in zip(edges[:-1], edges[1:]):
+        a = lo.clamp(c0, c1)
+        b = torch.maximum(hi.clamp(c0, c1), a)
+        block = torch.gather(prefix, 1, b) - torch.gather(prefix, 1, a)  # [i, j]: sum of x_i over the block
+        bound += (block - block.T).abs()
+    limit = threshold * count.clamp(min=1)
+    candidate = torch.triu((count > 0) & (bound < limit), diagonal=1)
+    i, j = torch.nonzero(candidate, as_tuple=True)
+    rows = torch.arange(n_rows, device=xs.device)
+    common = (rows >= lo[i, j][:, None]) & (rows < hi[i, j][:, None])
+    dist = ((xs[i] - xs[j]).abs() * common).sum(dim=1)
+    close = torch.zeros(n, n, dtype=torch.bool, device=xs.device)
+    close[i, j] = dist < limit[i, j]
+    return close | close.T
+
+
+def lane_nms_batched(
+    xs: torch.Tensor,
+    starts: torch.Tensor,
+    lengths: torch.Tensor,
+    scores: torch.Tensor,
+    threshold: float,
+    top_k: int | None = None,
+) -> torch.Tensor:
+    """Which proposals greedy lane NMS keeps, per image of a batch: a (B, N) bool mask.
+
+    The rule of lane_nms (xs: (B, N, S); starts: (N,) or (B, N); lengths and scores: (B, N)), fast for
+    the many proposals of training: LaneATT runs it on every anchor's proposal (15 px, top 3,000, no
+    score threshold) and computes its loss on those kept.
+    """
+    if xs.ndim != 3 or lengths.shape != xs.shape[:2] or scores.shape != xs.shape[:2]:
+        raise ValueError(
+            f"lane_nms_batched: expected xs (B, N, S) and lengths/scores (B, N), got {tuple(xs.shape)}, "
+            f"{tuple(lengths.shape)}, {tuple(scores.shape)}"
+        )
+    b, n, n_rows = xs.shape
+    keep = torch.zeros(b, n, dtype=torch.bool, device=xs.device)
+    starts = starts.long().expand(b, n)
+    limit = n if top_k is None else top_k
+    for k in range(b):
+        order = torch.argsort(scores[k], descending=True, stable=True)
+        s = starts[k, order]
+        close = _suppression_matrix(xs[k, order].float(), s, lane_ends(s, lengths[k, order], n_rows), threshold)
+        close = close.cpu().numpy()
+        removed = np.zeros(n, dtype=bool)
+        kept = []
+        for i in range(n):  # greedy, by descending score: a kept proposal removes those close to it
+            if removed[i]:
+                continue
+            kept.append(i)
+            if len(kept) == limit:
+                break
+            removed |= close[i]
+        keep[k, order[torch.as_tensor(kept, dtype=torch.long, device=xs.device)]] = True
+    return keep

@@ -49,6 +49,9 @@ def train(cfg: DictConfig) -> float | None:
     trainer = build_trainer(cfg, callbacks=callbacks)  # before the data: Lightning checks its arguments here
     splits = ("train", "val", "test") if cfg.task.test_after_fit else ("train", "val")
     datamodule = build_datamodule(cfg, splits, model, defense)
+    choose_anchors = getattr(model.head, "choose_anchors", None)
+    if choose_anchors is not None:  # LaneATT: its anchors from the train split's lanes (kept in the checkpoint)
+        choose_anchors(datamodule.sets["train"], crop_top=model.build_config.get("crop_top", 0.0), cache_dir=out)
     suite = test_dataset(cfg) if cfg.task.get("suite") is not None else None  # read and checked before training
     trainer.fit(model, datamodule=datamodule, ckpt_path=cfg.ckpt_path)
     result = None

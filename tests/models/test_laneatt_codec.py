@@ -74,3 +74,24 @@ def test_encode_rejects_too_many_lanes():
         head.encode(lanes)
     empty = head.encode([])["lanes"]
     assert empty.shape == (2, TARGET_META + 72) and np.all(empty[:, 0] == 0)
+
+
+@pytest.mark.usefixtures("hydra_conf")
+@pytest.mark.parametrize("overrides,want", [
+    # cfgs/laneatt_tusimple_resnet18.yml test_parameters: conf 0.2, nms_thres 45, nms_topk = max_lanes 5
+    (["model=laneatt"], {"conf_threshold": 0.2, "nms_threshold": 45.0, "nms_topk": 5}),
+    # cfgs/laneatt_culane_resnet18.yml: conf 0.5, nms_thres 50, nms_topk = max_lanes 4
+    (["experiment=paper_laneatt"], {"conf_threshold": 0.5, "nms_threshold": 50.0, "nms_topk": 4}),
+    # the quickstart keeps the values it was tuned with
+    (["experiment=quickstart"], {"conf_threshold": 0.3, "nms_threshold": 50.0, "nms_topk": 6}),
+])
+def test_decoding_values_per_dataset_in_the_configs(overrides, want):
+    from hydra import compose
+    from omegaconf import OmegaConf
+
+    cfg = compose(config_name="config", overrides=overrides)
+    assert OmegaConf.to_container(cfg.model.decode, resolve=True) == want
+    head = cfg.model.head
+    if overrides != ["experiment=quickstart"]:  # the official anchors and training NMS (every cfgs/*.yml)
+        assert (head.anchor_selection, head.topk_anchors, head.frequency_threshold) == ("frequency", 1000, 30.0)
+        assert (head.train_nms_threshold, head.train_nms_topk) == (15.0, 3000)
