@@ -10,15 +10,17 @@ finest stride; it is computed only in train mode, so the exported (eval) graph i
 
 Losses: focal classification over the cells, the structural similarity and shape losses, and cross-entropy of
 the aux segmentation (ufld_losses.py). Decoding takes the expectation of the location under the softmax over the
-cells, on the rows where the arg-max is not "no lane", and keeps a lane with at least ``min_points`` points.
+cells, on the rows where the arg-max is not "no lane", mapped to x as the official TuSimple writer does
+(ufld_codec.cell_to_x), and keeps a lane with at least ``min_points`` points. The cells are the official ones
+(positions linspace(0, W - 1, num_cells), ufld_codec.py).
 
 Where we chose: lanes fill the slots by their x at the image bottom, in left-to-right order and centred on the
 camera (lanes.assign_slots; the paper's datasets give fixed lane indices); row anchors are fractions of the
-height; the similarity loss compares softmax distributions (the official: smooth L1 on logits) and the shape loss
-counts only rows holding the ground-truth lane (ufld_losses.py); decoding extends each lane's ends to the
-neighbouring row anchors (decode's extend_ends). The loss weights default to the official TuSimple config
-(similarity 1, shape 0, aux 1): a shape loss weighted 1 (in cell units) slowed the classification's start a lot
-in our small runs, which fits the official configs leaving it off.
+height; the shape loss counts only rows holding the ground-truth lane (ufld_losses.py); decoding extends each
+lane's ends to the neighbouring row anchors (decode's extend_ends) and clips x to the image (the official writer
+leaves the last cell's centre, past the right edge, as it is). The loss weights default to the official TuSimple
+config (similarity 1, shape 0, aux 1; its CULane config sets similarity 0): a shape loss weighted 1 (in cell
+units) slowed the classification's start a lot in our small runs, which fits the official configs leaving it off.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ from torch import nn
 from lanevil_train.lanes import SLOT_ASSIGNMENTS, as_lane
 from lanevil_train.models.head import LaneHead
 from lanevil_train.models.ufld_codec import (
+    cell_to_x,
     cell_width,
     draw_seg_mask,
     encode_cls_labels,
@@ -232,7 +235,8 @@ class UFLDHead(LaneHead):
         """Per image: lanes as (N, 2) float arrays in input pixels, y descending, left to right.
 
         A slot has a point on each row whose arg-max over the num_cells + 1 classes is not "no lane"; its x is
-        the expected cell centre under the softmax over the cells. A slot with fewer than `min_points` points
+        the expected cell index under the softmax over the cells, mapped as the official TuSimple writer
+        (ufld_codec.cell_to_x) and clipped to [0, W - 1]. A slot with fewer than `min_points` points
         is dropped (the official keeps lanes with more than 2). `extend_ends`: a lane's true ends lie between
         its end rows and the next row anchors (or the image bottom below the last row), so each end is extended
         straight to that neighbouring row, stopping where it leaves the image (our choice; the official stops
@@ -240,7 +244,8 @@ class UFLDHead(LaneHead):
         """
         logits = raw["cls_logits"].detach().float()
         present = (logits.argmax(dim=1) != self.num_cells).cpu().numpy()  # (B, R, L)
-        xs = ((expected_locations(logits) + 0.5) * self.cell_width).cpu().numpy()
+        w = self.image_size[1]
+        xs = cell_to_x(expected_locations(logits), w, self.num_cells).clamp(0.0, w - 1.0).cpu().numpy()
         out: list[list[np.ndarray]] = []
         for b in range(logits.shape[0]):
             lanes = []

@@ -6,9 +6,16 @@ UFLD (Qin et al., ECCV 2020) describes a lane by the grid cell it crosses on eac
 56 rows, 64 to 284 every 4 px; CULane: 18 rows, 121 to 287); here they are fractions of the input height, so the
 same set fits any input size (y = fraction * H, clamped to the last pixel row).
 
-Cells tile x in [0, W - 1] evenly (width (W - 1) / num_cells); a lane x maps to cell floor(x / width) and a cell
-decodes to its centre. The official code spaces cell boundaries by (W - 1) / (num_cells - 1); the difference is
-under one cell and ours keeps every decoded centre inside the image.
+The cell geometry is the official one (cfzd/Ultra-Fast-Lane-Detection, data/dataset.py `_grid_pts`): the cell
+positions are ``linspace(0, W - 1, G)`` for G = num_cells, so a cell is (W - 1) / (G - 1) px wide and a lane x
+falls into cell floor(x / width); G - 1 cells cover [0, W - 1) and the last cell only x = W - 1 itself. The
+official TuSimple writer (evaluation/eval_wrapper.py `generate_tusimple_lines`) maps an expected cell index loc
+to x = (loc + 0.5) * W / (G - 1) in the original image's pixels; our lanes are resized proportionally (x * W_orig
+/ W), so the same formula in input pixels gives the same original x (`cell_to_x`). The official CULane writer
+(eval_wrapper.py `generate_lines`, and demo.py) maps differently, x = (loc + 1) * (800 - 1) / (G - 1) scaled to
+1640 px, minus 1: half a cell further right (2 px at 800 px, 200 cells); we use the TuSimple writer's for both.
+One more small difference: the official encodes in the original image's pixels (cells of (W_orig - 1) / (G - 1)),
+we in the input's, which moves a cell boundary by at most a pixel.
 """
 
 from __future__ import annotations
@@ -62,17 +69,22 @@ def row_ys(fractions: np.ndarray, height: int) -> np.ndarray:
 
 
 def cell_width(width: int, num_cells: int) -> float:
-    """Width in pixels of one grid cell: the cells tile [0, W - 1]."""
-    return (width - 1.0) / num_cells
+    """Width in pixels of one grid cell: the spacing of the official cell positions linspace(0, W - 1, G)
+    (data/dataset.py `_grid_pts`: col_sample[1] - col_sample[0])."""
+    return (width - 1.0) / (num_cells - 1)
 
 
-def cell_centres(width: int, num_cells: int) -> np.ndarray:
-    """x (pixels) of each cell's centre."""
-    return (np.arange(num_cells) + 0.5) * cell_width(width, num_cells)
+def cell_to_x(locations, width: int, num_cells: int):
+    """x (pixels) of expected cell indices (numpy or torch): (loc + 0.5) * W / (G - 1), the official TuSimple
+    writer's mapping (evaluation/eval_wrapper.py `generate_tusimple_lines`, with W its 1280). It is the cell's
+    centre stretched by W / (W - 1): at most one pixel right of it."""
+    return (locations + 0.5) * (width / (num_cells - 1.0))
 
 
 def x_to_cell(xs: np.ndarray, width: int, num_cells: int) -> np.ndarray:
-    """Cell index of each x; NaN or x outside [0, W - 1] gives num_cells (the "no lane" class)."""
+    """Cell index of each x, floor(x / cell_width) as the official label code (data/dataset.py `_grid_pts`:
+    int(pt // (col_sample[1] - col_sample[0]))); NaN or x outside [0, W - 1] gives num_cells (the "no lane"
+    class). The same float arithmetic as the official; the clip only guards the last cell against rounding up."""
     xs = np.asarray(xs, dtype=np.float64)
     inside = np.isfinite(xs) & (xs >= 0) & (xs <= width - 1)
     cells = np.floor(np.where(inside, xs, 0.0) / cell_width(width, num_cells))

@@ -23,20 +23,22 @@ def classification_loss(logits: torch.Tensor, labels: torch.Tensor, gamma: float
 
 
 def similarity_loss(logits: torch.Tensor) -> torch.Tensor:
-    """The paper's similarity loss: the L1 distance between the classification distributions (softmax over the
-    num_cells + 1 classes) of neighbouring row anchors, averaged over lanes and row pairs of each image.
+    """The official similarity loss (cfzd/Ultra-Fast-Lane-Detection, utils/loss.py `ParsingRelationLoss`): the
+    differences of the raw logits of neighbouring row anchors, every class ("no lane" included), under smooth L1
+    (beta 1) against 0, averaged over every element; here per image, so the batch mean equals the official's.
 
-    The paper sums ||P_j - P_{j+1}||_1 over all lanes and rows; the official code applies smooth L1 to the raw
-    logits instead. We take the distributions, so each term lies in [0, 2] whatever the logits' scale.
+    The paper writes the L1 distance between the rows' softmax distributions; that version rewards spreading each
+    distribution (flat rows are alike), which lets "no lane" win the arg-max, and in our head-only fits it lost most
+    rows. logits (B, C+1, R, L) -> (B,).
     """
-    prob = torch.softmax(logits.float(), dim=1)  # (B, C+1, R, L)
-    diff = (prob[:, :, :-1] - prob[:, :, 1:]).abs().sum(dim=1)  # (B, R-1, L)
-    return diff.flatten(1).mean(dim=1)
+    diff = logits[:, :, :-1].float() - logits[:, :, 1:].float()  # (B, C+1, R-1, L)
+    return F.smooth_l1_loss(diff, torch.zeros_like(diff), reduction="none", beta=1.0).flatten(1).mean(dim=1)
 
 
 def expected_locations(logits: torch.Tensor) -> torch.Tensor:
     """The expected cell index (B, R, L): softmax over the num_cells cells (the "no lane" class left out), then
-    sum_k k * prob_k (the paper's Loc, in cell units; cell k's centre is at k + 0.5 cells)."""
+    sum_k k * prob_k, k from 0 (the paper's Loc, in cell units; as the official TuSimple writer,
+    evaluation/eval_wrapper.py `generate_tusimple_lines`; ufld_codec.cell_to_x maps it to pixels)."""
     prob = torch.softmax(logits[:, :-1].float(), dim=1)
     index = torch.arange(prob.shape[1], device=prob.device, dtype=prob.dtype).view(1, -1, 1, 1)
     return (prob * index).sum(dim=1)
