@@ -30,6 +30,7 @@ from lanevil_train.models.clrnet_priors import (
 )
 from lanevil_train.models.necks import FPN
 
+from ._head_overfit import head_only_fit
 from ._lanes_fixture import assert_lanes_inside, assert_round_trip, synthetic_lanes, train_steps
 
 SMALL = {"num_priors": 32, "sample_points": 12, "fc_hidden_dim": 16}  # a cheap head for CPU tests
@@ -448,4 +449,13 @@ def test_paper_config_turns_the_auxiliary_segmentation_on_the_quickstart_off():
     quick = compose(config_name="config", overrides=["experiment=quickstart_clrnet"]).model.head
     assert quick.seg_loss_weight == 0.0
     assert compose(config_name="config", overrides=["model=clrnet"]).model.head.seg_loss_weight == 0.0
+
+
+@pytest.mark.usefixtures("one_thread")
+def test_head_only_overfit_reaches_its_accuracy():
+    """The FPN and head alone on 4 simulated scenes (a frozen random ResNet-18), AdamW 1e-2 for 100 steps (the
+    cosine to 0), 64 priors for speed. Measured when written: 91.9 % accuracy, FP 22.5 %, FN 18.8 % (at the
+    family's own rate, 6e-4 at batch 24, 100 steps decode nothing: 0 %)."""
+    out = head_only_fit("clrnet", ["model.head.num_priors=64"], scenes=4, steps=100, lr=1e-2)
+    assert out["accuracy"] >= 85.0 and out["fn"] <= 30.0 and out["fp"] <= 35.0, out
 

@@ -15,6 +15,7 @@ from lanevil_train.models.scnn import SCNNHead, SpatialMessagePassing
 from lanevil_train.lanes import assign_slots
 from lanevil_train.models.scnn_codec import bottom_x
 
+from ._head_overfit import head_only_fit
 from ._lanes_fixture import assert_lanes_inside, assert_round_trip, synthetic_lanes, train_steps
 
 
@@ -406,3 +407,14 @@ def test_forward_traces_with_unrolled_static_loops():
     other = torch.randn(3, 8, 4, 6)  # another batch size replays the same graph
     for got, want in zip(traced(other), _Wrap(head)(other)):
         torch.testing.assert_close(got, want)
+
+
+def test_head_only_overfit_reaches_its_accuracy():
+    """The head alone on 4 simulated scenes (a frozen random ResNet-18 cut at its stride-8 layer2, as the
+    quickstart), SGD 0.02 for 150 steps, 64 / 32 wide for speed. Measured when written: 84.9 % accuracy, FP 0,
+    FN 18.8 %; over seeds 0-4 the fit lands near 85 % or near 96 % (82.8 % / FP 8.3 / FN 25 the worst), as it
+    did before issue 32 (no bias, up / left passes reaching row 0 / column 0, a C times smaller init)."""
+    out = head_only_fit("scnn", ["backbone.out_indices=[2]", "model.head.hidden_channels=64",
+                                 "model.head.mp_channels=32"], scenes=4, steps=150, lr=0.02)
+    assert out["accuracy"] >= 80.0 and out["fn"] <= 30.0 and out["fp"] <= 20.0, out
+
