@@ -232,9 +232,8 @@ def test_loss_parts_are_consistent():
     torch.testing.assert_close(all_anchors, focal_loss(raw["cls_logits"][2], torch.zeros(head.n_anchors).long()).sum() * 10)
 
 
-def test_a_few_adam_steps_reduce_the_loss():
+def test_a_few_adam_steps_reduce_the_loss(one_thread):
     torch.manual_seed(0)
-    torch.set_num_threads(2)
     rng = np.random.default_rng(1)
     image_size = (64, 160)
     bb = build_backbone("resnet18")
