@@ -17,18 +17,6 @@ def lane_ends(starts: torch.Tensor, lengths: torch.Tensor, n_rows: int) -> torch
     return torch.clamp(starts.long() + torch.floor(lengths.float() + 0.5).long() - 1, max=n_rows - 1)
 
 
-def lane_distances(xs: torch.Tensor, starts: torch.Tensor, ends: torch.Tensor, i: int) -> torch.Tensor:
-    """Mean |x_i - x_j| over the rows that proposal i and every proposal j share; +inf if none."""
-    n_rows = xs.shape[1]
-    lo = torch.maximum(starts, starts[i])
-    hi = torch.minimum(ends, ends[i])
-    rows = torch.arange(n_rows, device=xs.device)
-    common = (rows[None, :] >= lo[:, None]) & (rows[None, :] <= hi[:, None])
-    dist = ((xs - xs[i : i + 1]).abs() * common).sum(dim=1)
-    count = (hi - lo + 1).clamp(min=0)
-    return torch.where(count > 0, dist / count.clamp(min=1), torch.full_like(dist, float("inf")))
-
-
 def lane_nms(
     xs: torch.Tensor,
     starts: torch.Tensor,
@@ -48,36 +36,13 @@ def lane_nms(
             f"lane_nms: expected xs (N, S) and starts/lengths/scores (N,), got {tuple(xs.shape)}, "
             f"{tuple(starts.shape)}, {tuple(lengths.shape)}, {tuple(scores.shape)}"
         )
-    if n == 0:
-        return torch.zeros(0, dtype=torch.long, device=xs.device)
-    order = torch.argsort(scores, descending=True, stable=True)
-    xs = xs[order].float()
-    starts = starts[order].long()
-    ends = lane_ends(starts, lengths[order], xs.shape[1])
-    alive = torch.ones(n, dtype=torch.bool, device=xs.device)
-    kept: list[int] = []
-    limit = n if top_k is None else top_k
-    alive_cpu = alive.cpu()
-    i = 0
-    while len(kept) < limit:
-        # next surviving proposal in score order
-        while i < n and not bool(alive_cpu[i]):
-            i += 1
-        if i >= n:
-            break
-        kept.append(i)
-        alive[i] = False
-        alive &= ~(lane_distances(xs, starts, ends, i) < threshold)
-        alive_cpu = alive.cpu()
-        i += 1
-    return order[torch.tensor(kept, dtype=torch.long, device=xs.device)]
-
+    return _greedy_keep(xs, starts, lengths, scores, threshold, top_k)
 
 
 def _suppression_matrix(xs: torch.Tensor, starts: torch.Tensor, ends: torch.Tensor, threshold: float,
                         chunks: int = 2) -> torch.Tensor:
     """(N, N) bool, symmetric: whether proposals i and j are closer than threshold (mean |x| over their common
-    rows), exactly as lane_distances decides it, for one image.
+    rows), for one image.
 
     Computing every pair over every row costs N^2 x S; instead a lower bound of each pair's distance comes from
     prefix sums (per block of rows, |sum of x_i - x_j| <= sum of |x_i - x_j|), and only the pairs that bound
@@ -124,23 +89,32 @@ def lane_nms_batched(
             f"lane_nms_batched: expected xs (B, N, S) and lengths/scores (B, N), got {tuple(xs.shape)}, "
             f"{tuple(lengths.shape)}, {tuple(scores.shape)}"
         )
-    b, n, n_rows = xs.shape
-    keep = torch.zeros(b, n, dtype=torch.bool, device=xs.device)
-    starts = starts.long().expand(b, n)
-    limit = n if top_k is None else top_k
-    for k in range(b):
-        order = torch.argsort(scores[k], descending=True, stable=True)
-        s = starts[k, order]
-        close = _suppression_matrix(xs[k, order].float(), s, lane_ends(s, lengths[k, order], n_rows), threshold)
-        close = close.cpu().numpy()
-        removed = np.zeros(n, dtype=bool)
-        kept = []
-        for i in range(n):  # greedy, by descending score: a kept proposal removes those close to it
-            if removed[i]:
-                continue
-            kept.append(i)
-            if len(kept) == limit:
-                break
-            removed |= close[i]
-        keep[k, order[torch.as_tensor(kept, dtype=torch.long, device=xs.device)]] = True
+    keep = torch.zeros(xs.shape[:2], dtype=torch.bool, device=xs.device)
+    starts = starts.long().expand(xs.shape[:2])
+    for k in range(xs.shape[0]):
+        keep[k, _greedy_keep(xs[k], starts[k], lengths[k], scores[k], threshold, top_k)] = True
     return keep
+
+
+def _greedy_keep(xs: torch.Tensor, starts: torch.Tensor, lengths: torch.Tensor, scores: torch.Tensor,
+                 threshold: float, top_k: int | None) -> torch.Tensor:
+    """One image's kept indices, by descending score: proposals are visited by score, and a kept one removes those
+    closer to it than the threshold (the suppression matrix decides "close" for every pair at once)."""
+    n = xs.shape[0]
+    if n == 0:
+        return torch.zeros(0, dtype=torch.long, device=xs.device)
+    order = torch.argsort(scores, descending=True, stable=True)
+    ordered_starts = starts[order].long()
+    close = _suppression_matrix(xs[order].float(), ordered_starts, lane_ends(ordered_starts, lengths[order], xs.shape[1]),
+                                threshold).cpu().numpy()
+    limit = n if top_k is None else top_k
+    removed = np.zeros(n, dtype=bool)
+    kept: list[int] = []
+    for i in range(n):
+        if removed[i]:
+            continue
+        kept.append(i)
+        if len(kept) == limit:
+            break
+        removed |= close[i]
+    return order[torch.as_tensor(kept, dtype=torch.long, device=xs.device)]
