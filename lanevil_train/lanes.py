@@ -1,6 +1,6 @@
 """Lane geometry shared by every layer: a lane is an (N, 2) float array of (x, y) pixels.
 
-This is the one currency of the package (see DESIGN.md, "Data flow"): points ordered by
+This is the one currency of the package (every layer hands lanes on in this form): points ordered by
 y descending (bottom of the image first). It depends on numpy only, so sim/, data/,
 models/ and metrics/ can all use it without importing each other.
 """
