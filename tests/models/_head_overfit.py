@@ -39,10 +39,9 @@ def _config(overrides: list[str]):
         return compose(config_name="config", overrides=overrides)
 
 
-def _batch(family_cfg, model, scenes: int, size: tuple[int, int]) -> dict:
+def _batch(family_cfg, model, seeds: list[int], size: tuple[int, int]) -> dict:
     processor = LaneSampleProcessor(size, augment=False, encode=model.head.encode, crop_top=CROP_TOP)
-    dataset = SyntheticLaneDataset(scenes, first_seed=FIRST_SEED, size=(360, 640))
-    items = [processor(dataset[i]) for i in range(scenes)]
+    items = [processor(SyntheticLaneDataset(1, first_seed=seed, size=(360, 640))[0]) for seed in seeds]
     targets = {key: torch.from_numpy(np.stack([item["target"][key] for item in items])) for key in items[0]["target"]}
     return {"images": torch.from_numpy(np.stack([item["image"] for item in items])), "targets": targets,
             "input_lanes": [item["input_lanes"] for item in items]}
@@ -60,19 +59,21 @@ def _optimizer(model, steps: int, batch: int, lr: float | None):
 
 
 def head_only_fit(family: str, overrides=(), scenes: int = 8, steps: int = 200, size: tuple[int, int] = (112, 320),
-                  lr: float | None = None, seed: int = 0) -> dict:
+                  lr: float | None = None, seed: int = 0, scene_seeds: list[int] | None = None) -> dict:
     """TuSimple accuracy, FP and FN (in %) of the family's head fitted alone to `scenes` scenes for `steps` steps,
-    scored on those scenes in input pixels (the 20 px threshold scaled to the width); also the decoded `lanes`."""
+    scored on those scenes in input pixels (the 20 px threshold scaled to the width); also the decoded `lanes`.
+    The scenes are seeds FIRST_SEED, FIRST_SEED + 1, ... unless `scene_seeds` lists them."""
+    seeds = list(scene_seeds) if scene_seeds is not None else list(range(FIRST_SEED, FIRST_SEED + scenes))
     cfg = _config([f"model={family}", "backbone=resnet18", f"data.input_size=[{size[0]},{size[1]}]",
                    f"data.crop_top={CROP_TOP}", *overrides])
     torch.manual_seed(seed)
     model = build_model(model_config(cfg))
-    batch = _batch(cfg, model, scenes, size)
+    batch = _batch(cfg, model, seeds, size)
     model.backbone.requires_grad_(False)
     with torch.no_grad():
         features = [f.detach() for f in model.backbone(batch["images"])]  # batch statistics: a random net's scale
     targets = targets_to(batch["targets"], torch.device("cpu"))
-    optimizer, schedule = _optimizer(model, steps, scenes, lr)
+    optimizer, schedule = _optimizer(model, steps, len(seeds), lr)
     trainable = [p for group in optimizer.param_groups for p in group["params"]]
     model.train()
     for _ in range(steps):
@@ -104,10 +105,13 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=200)
     parser.add_argument("--scenes", type=int, default=8)
     parser.add_argument("--lr", type=float, default=None)
+    parser.add_argument("--seeds", type=int, nargs="+", default=None, help="the scenes' seeds (default: --scenes from "
+                        f"{FIRST_SEED})")
     args = parser.parse_args()
     with contextlib.suppress(AttributeError):
         torch.set_num_threads(1)
-    out = head_only_fit(args.family, args.overrides, scenes=args.scenes, steps=args.steps, lr=args.lr)
+    out = head_only_fit(args.family, args.overrides, scenes=args.scenes, steps=args.steps, lr=args.lr,
+                        scene_seeds=args.seeds)
     print(f"{args.family}: accuracy {out['accuracy']:.1f} %, FP {out['fp']:.1f} %, FN {out['fn']:.1f} %, "
           f"final loss {out['final_loss']:.4f}")
 

@@ -11,6 +11,7 @@ from lanevil_train.models.laneatt_frequency import FREQUENCY_FILE, top_anchors
 from lanevil_train.models.losses import focal_loss
 from lanevil_train.models.nms import lane_nms, lane_nms_batched
 
+from ._head_overfit import head_only_fit
 from ._lanes_fixture import synthetic_lanes, train_steps
 
 
@@ -255,6 +256,23 @@ class _Wrap(torch.nn.Module):
     def forward(self, f):
         raw = self.head([f])
         return raw["cls_logits"], raw["length"], raw["xs"]
+
+
+# Scenes of the head-only harness's seed range where every lane has a positive anchor (mean distance under the
+# official 15 px at 640 wide, 7.5 px here) among the quickstart's 792 anchors at 112x320. On the others a curved
+# lane may have none: the official rule then never trains the head on it and a frozen random backbone cannot make
+# up for it (the head then fits 38-53 %), so they would test the anchor grid, not the head.
+MATCHED_SEEDS = [4014, 4032, 4033, 4038]
+
+
+def test_head_only_fit_reaches_scenes_whose_lanes_have_anchors(one_thread):
+    # the head fitted alone (frozen random ResNet-18, stride 32) for 150 steps at 3e-3: accuracy 91.1 %, FP 39.6 %,
+    # FN 8.3 % when written (90.8 / 31.2 / 8.3 after 200 steps); a loss, target or decoding that disagree (an
+    # anchor order the targets do not share, offsets read at the wrong rows) falls far below
+    head = ["model.head.anchor_selection=all", "model.head.topk_anchors=null", "model.head.train_nms_threshold=null",
+            "model.head.lateral_n=16", "model.head.bottom_n=40"]
+    out = head_only_fit("laneatt", head, steps=150, lr=3e-3, scene_seeds=MATCHED_SEEDS)
+    assert out["accuracy"] >= 85.0 and out["fn"] <= 20.0, out
 
 
 @pytest.mark.filterwarnings("ignore::FutureWarning")

@@ -9,7 +9,7 @@ from lanevil_train.models.laneformer import Y_MARGIN, LaneFormerHead, y_from_log
 from lanevil_train.models.laneformer_loss import assign, encode_lanes, matching_cost
 from lanevil_train.tasks.builders import build_model, model_config
 
-from ._head_overfit import _batch, _config, _optimizer, head_only_fit
+from ._head_overfit import FIRST_SEED, _batch, _config, _optimizer, head_only_fit
 from ._lanes_fixture import assert_lanes_inside, assert_round_trip, synthetic_lanes, train_steps
 
 SMALL = {"d_model": 16, "nhead": 2, "num_encoder_layers": 1, "num_decoder_layers": 2, "dim_feedforward": 32,
@@ -243,7 +243,7 @@ def _output_spread(overrides: list[str], steps: int = 10) -> tuple[float, float]
     cfg = _config(["experiment=quickstart_laneformer", f"data.input_size=[{size[0]},{size[1]}]", *overrides])
     torch.manual_seed(0)
     model = build_model(model_config(cfg))
-    batch = _batch(cfg, model, 4, size)
+    batch = _batch(cfg, model, [FIRST_SEED + i for i in range(4)], size)
     optimizer, schedule = _optimizer(model, 1000, cfg.data.batch_size, None)
     for _ in range(steps):
         model.train()
