@@ -46,6 +46,7 @@ from lanevil_train.models.ufld_codec import (
 from lanevil_train.models.ufld_losses import (
     classification_loss,
     expected_locations,
+    local_expected_locations,
     segmentation_loss,
     shape_loss,
     similarity_loss,
@@ -231,12 +232,14 @@ class UFLDHead(LaneHead):
         return {"loss": per_sample.mean(), "per_sample": per_sample, **{k: v.mean() for k, v in parts.items()}}
 
     # ------------------------------------------------------------------ decode
-    def decode(self, raw: dict, min_points: int = 3, extend_ends: bool = True) -> list[list[np.ndarray]]:
+    def decode(self, raw: dict, min_points: int = 3, extend_ends: bool = True,
+               local_width: int | None = None) -> list[list[np.ndarray]]:
         """Per image: lanes as (N, 2) float arrays in input pixels, y descending, left to right.
 
         A slot has a point on each row whose arg-max over the num_cells + 1 classes is not "no lane"; its x is
-        the expected cell index under the softmax over the cells, mapped as the official TuSimple writer
-        (ufld_codec.cell_to_x) and clipped to [0, W - 1]. A slot with fewer than `min_points` points
+        the expected cell index under the softmax over the cells (`local_width` None, v1's writer; an int k: over
+        the arg-max cell +- k only, UFLD v2's), mapped as the official TuSimple writer (ufld_codec.cell_to_x) and
+        clipped to [0, W - 1]. A slot with fewer than `min_points` points
         is dropped (the official keeps lanes with more than 2). `extend_ends`: a lane's true ends lie between
         its end rows and the next row anchors (or the image bottom below the last row), so each end is extended
         straight to that neighbouring row, stopping where it leaves the image (our choice; the official stops
@@ -245,7 +248,8 @@ class UFLDHead(LaneHead):
         logits = raw["cls_logits"].detach().float()
         present = (logits.argmax(dim=1) != self.num_cells).cpu().numpy()  # (B, R, L)
         w = self.image_size[1]
-        xs = cell_to_x(expected_locations(logits), w, self.num_cells).clamp(0.0, w - 1.0).cpu().numpy()
+        locations = expected_locations(logits) if local_width is None else local_expected_locations(logits, local_width)
+        xs = cell_to_x(locations, w, self.num_cells).clamp(0.0, w - 1.0).cpu().numpy()
         out: list[list[np.ndarray]] = []
         for b in range(logits.shape[0]):
             lanes = []

@@ -44,6 +44,19 @@ def expected_locations(logits: torch.Tensor) -> torch.Tensor:
     return (prob * index).sum(dim=1)
 
 
+def local_expected_locations(logits: torch.Tensor, width: int) -> torch.Tensor:
+    """The expected cell index (B, R, L) over the cells within `width` of the arg-max cell only, the softmax taken
+    over that window: UFLD v2's decoding (evaluation/eval_wrapper.py `generate_lines_local`, local_width = 1). A
+    flat distribution no longer pulls the position towards the image centre, as the expectation over all cells
+    does. The arg-max is over the cells, the "no lane" class left out."""
+    cells = logits[:, :-1].float()
+    peak = cells.argmax(dim=1, keepdim=True)  # (B, 1, R, L)
+    index = torch.arange(cells.shape[1], device=cells.device).view(1, -1, 1, 1)
+    inside = (index - peak).abs() <= int(width)
+    prob = torch.softmax(cells.masked_fill(~inside, float("-inf")), dim=1)
+    return (prob * index.to(prob.dtype)).sum(dim=1)
+
+
 def shape_loss(logits: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
     """The paper's shape loss: |(Loc_j - Loc_{j+1}) - (Loc_{j+1} - Loc_{j+2})|, the second-order difference of
     the expected locations over three consecutive row anchors, averaged per image.

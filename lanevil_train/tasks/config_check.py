@@ -495,6 +495,7 @@ RULES: dict[str, Rule] = {
     "model.decode.cluster_threshold": number(0, low_open=True),
     "model.decode.min_points": integer(1),
     "model.decode.extend_ends": boolean(),
+    "model.decode.local_width": null_or(integer(0)),
     "model.decode.exist_threshold": number(0, 1),
     "model.decode.prob_threshold": number(0, 1),
     "model.decode.row_step": integer(1),

@@ -21,6 +21,7 @@ from lanevil_train.models.ufld_codec import (
 from lanevil_train.models.ufld_losses import (
     classification_loss,
     expected_locations,
+    local_expected_locations,
     shape_loss,
     similarity_loss,
 )
@@ -137,6 +138,28 @@ def test_similarity_loss_is_the_official_smooth_l1_on_neighbouring_rows_logits()
     torch.testing.assert_close(similarity_loss(batch[1:2]), per_image[1:2])
     # a lane with the same logits on every row costs nothing
     assert similarity_loss(batch[:, :, :1].expand(-1, -1, 5, -1)).abs().max() == 0
+
+
+def test_local_decoding_reads_the_peak_where_the_full_expectation_drifts_to_the_centre():
+    # 10 cells + "no lane": a peak at cell 2 (0.5, its neighbours 0.1 each) and 0.3 spread flat over cells 4-9 (a
+    # half-trained row). v1's expectation over all cells: 0.1*1 + 0.5*2 + 0.1*3 + 0.05*(4+...+9) = 3.35, more than
+    # a cell right of the lane; v2's window of +-1 around the arg-max, the softmax renormalised over cells 1-3:
+    # (0.1*1 + 0.5*2 + 0.1*3) / 0.7 = 2.0; width 0 is the arg-max itself
+    probs = torch.tensor([1e-9, 0.1, 0.5, 0.1, 0.05, 0.05, 0.05, 0.05, 0.05, 0.05])
+    logits = torch.cat([probs.log(), torch.tensor([-5.0])])[None, :, None, None]  # (1, 11, 1, 1), a lane
+    full = float(expected_locations(logits))
+    assert full == pytest.approx(3.35, abs=1e-5)
+    assert float(local_expected_locations(logits, 1)) == pytest.approx(2.0, abs=1e-5)
+    assert float(local_expected_locations(logits, 0)) == pytest.approx(2.0, abs=1e-6)
+    # width 2: cells 0-4, (0.1*1 + 0.5*2 + 0.1*3 + 0.05*4) / 0.75
+    assert float(local_expected_locations(logits, 2)) == pytest.approx(1.6 / 0.75, abs=1e-5)
+    # the head's decode takes the option (model.decode.local_width); the "no lane" logit is out of both
+    head = UFLDHead([512], [32], (32, 100), num_cells=10, row_anchors=[0.2, 0.6, 1.0], max_lanes=1, use_aux=False)
+    raw = {"cls_logits": logits.expand(1, 11, 3, 1).clone()}
+    x_full = head.decode(raw, min_points=1, extend_ends=False)[0][0][:, 0]
+    x_local = head.decode(raw, min_points=1, extend_ends=False, local_width=1)[0][0][:, 0]
+    np.testing.assert_allclose(x_full, float(cell_to_x(3.35, 100, 10)), atol=1e-3)
+    np.testing.assert_allclose(x_local, float(cell_to_x(2.0, 100, 10)), atol=1e-3)
 
 
 def test_shape_loss_is_the_second_difference_of_expected_locations():
