@@ -46,7 +46,6 @@ from lanevil_train.models.ufld_codec import (
 from lanevil_train.models.ufld_losses import (
     classification_loss,
     expected_locations,
-    local_expected_locations,
     segmentation_loss,
     shape_loss,
     similarity_loss,
@@ -248,8 +247,7 @@ class UFLDHead(LaneHead):
         logits = raw["cls_logits"].detach().float()
         present = (logits.argmax(dim=1) != self.num_cells).cpu().numpy()  # (B, R, L)
         w = self.image_size[1]
-        locations = expected_locations(logits) if local_width is None else local_expected_locations(logits, local_width)
-        xs = cell_to_x(locations, w, self.num_cells).clamp(0.0, w - 1.0).cpu().numpy()
+        xs = cell_to_x(expected_locations(logits, local_width), w, self.num_cells).clamp(0.0, w - 1.0).cpu().numpy()
         out: list[list[np.ndarray]] = []
         for b in range(logits.shape[0]):
             lanes = []

@@ -35,25 +35,20 @@ def similarity_loss(logits: torch.Tensor) -> torch.Tensor:
     return F.smooth_l1_loss(diff, torch.zeros_like(diff), reduction="none", beta=1.0).flatten(1).mean(dim=1)
 
 
-def expected_locations(logits: torch.Tensor) -> torch.Tensor:
+def expected_locations(logits: torch.Tensor, local_width: int | None = None) -> torch.Tensor:
     """The expected cell index (B, R, L): softmax over the num_cells cells (the "no lane" class left out), then
     sum_k k * prob_k, k from 0 (the paper's Loc, in cell units; as the official TuSimple writer,
-    evaluation/eval_wrapper.py `generate_tusimple_lines`; ufld_codec.cell_to_x maps it to pixels)."""
-    prob = torch.softmax(logits[:, :-1].float(), dim=1)
-    index = torch.arange(prob.shape[1], device=prob.device, dtype=prob.dtype).view(1, -1, 1, 1)
-    return (prob * index).sum(dim=1)
+    evaluation/eval_wrapper.py `generate_tusimple_lines`; ufld_codec.cell_to_x maps it to pixels).
 
-
-def local_expected_locations(logits: torch.Tensor, width: int) -> torch.Tensor:
-    """The expected cell index (B, R, L) over the cells within `width` of the arg-max cell only, the softmax taken
-    over that window: UFLD v2's decoding (evaluation/eval_wrapper.py `generate_lines_local`, local_width = 1). A
-    flat distribution no longer pulls the position towards the image centre, as the expectation over all cells
-    does. The arg-max is over the cells, the "no lane" class left out."""
+    `local_width` k: the softmax is taken over the cells within k of the arg-max cell only, UFLD v2's decoding
+    (evaluation/eval_wrapper.py `generate_lines_local`, local_width = 1), so a flat distribution no longer pulls
+    the position towards the image centre as the expectation over all cells does."""
     cells = logits[:, :-1].float()
-    peak = cells.argmax(dim=1, keepdim=True)  # (B, 1, R, L)
     index = torch.arange(cells.shape[1], device=cells.device).view(1, -1, 1, 1)
-    inside = (index - peak).abs() <= int(width)
-    prob = torch.softmax(cells.masked_fill(~inside, float("-inf")), dim=1)
+    if local_width is not None:
+        outside = (index - cells.argmax(dim=1, keepdim=True)).abs() > int(local_width)
+        cells = cells.masked_fill(outside, float("-inf"))
+    prob = torch.softmax(cells, dim=1)
     return (prob * index.to(prob.dtype)).sum(dim=1)
 
 

@@ -21,7 +21,6 @@ from lanevil_train.models.ufld_codec import (
 from lanevil_train.models.ufld_losses import (
     classification_loss,
     expected_locations,
-    local_expected_locations,
     shape_loss,
     similarity_loss,
 )
@@ -149,10 +148,10 @@ def test_local_decoding_reads_the_peak_where_the_full_expectation_drifts_to_the_
     logits = torch.cat([probs.log(), torch.tensor([-5.0])])[None, :, None, None]  # (1, 11, 1, 1), a lane
     full = float(expected_locations(logits))
     assert full == pytest.approx(3.35, abs=1e-5)
-    assert float(local_expected_locations(logits, 1)) == pytest.approx(2.0, abs=1e-5)
-    assert float(local_expected_locations(logits, 0)) == pytest.approx(2.0, abs=1e-6)
+    assert float(expected_locations(logits, 1)) == pytest.approx(2.0, abs=1e-5)
+    assert float(expected_locations(logits, 0)) == pytest.approx(2.0, abs=1e-6)
     # width 2: cells 0-4, (0.1*1 + 0.5*2 + 0.1*3 + 0.05*4) / 0.75
-    assert float(local_expected_locations(logits, 2)) == pytest.approx(1.6 / 0.75, abs=1e-5)
+    assert float(expected_locations(logits, 2)) == pytest.approx(1.6 / 0.75, abs=1e-5)
     # the head's decode takes the option (model.decode.local_width); the "no lane" logit is out of both
     head = UFLDHead([512], [32], (32, 100), num_cells=10, row_anchors=[0.2, 0.6, 1.0], max_lanes=1, use_aux=False)
     raw = {"cls_logits": logits.expand(1, 11, 3, 1).clone()}
