@@ -105,8 +105,8 @@ def _greedy_keep(xs: torch.Tensor, starts: torch.Tensor, lengths: torch.Tensor, 
         return torch.zeros(0, dtype=torch.long, device=xs.device)
     order = torch.argsort(scores, descending=True, stable=True)
     ordered_starts = starts[order].long()
-    close = _suppression_matrix(xs[order].float(), ordered_starts, lane_ends(ordered_starts, lengths[order], xs.shape[1]),
-                                threshold).cpu().numpy()
+    ends = lane_ends(ordered_starts, lengths[order], xs.shape[1])
+    close = _suppression_matrix(xs[order].float(), ordered_starts, ends, threshold).cpu().numpy()
     limit = n if top_k is None else top_k
     removed = np.zeros(n, dtype=bool)
     kept: list[int] = []
