@@ -3,11 +3,13 @@ batch-1 / batch-32 throughput on a GPU when one is there, next to the published 
 
 Usage: python benchmarks/bench_families.py [--families laneatt,ufld,...] [--device cpu|cuda]
                                            [--batches 1,32] [--repeats 10] [--threads 2] [--json out.jsonl]
+                                           [--modes eager,graph,compile] [--timeout 300]
 
 Each family is built by build_model from its conf/model config, with ResNet-18 (SCNN: VGG-16, as its paper), in
 a process of its own so that peak memory (ru_maxrss on CPU, max_memory_allocated on a GPU) is its own. Timed is
 LaneDetector.forward (the network: what the ONNX export holds); "decode" adds the family's Python decoding
-(NMS, lane assembly) of a batch-1 output, on the host.
+(NMS, lane assembly) of a batch-1 output, on the host. On a GPU, --modes adds the forward through CUDA graphs
+(what evaluation runs there) and torch.compile, each with its largest output difference from the eager forward.
 """
 
 from __future__ import annotations
@@ -60,7 +62,28 @@ def _time(fn, repeats: int, sync) -> float:
     return statistics.median(times)
 
 
-def measure(family: str, device: str, batches: list[int], repeats: int) -> dict:
+def _max_difference(a, b) -> float:
+    """The largest absolute difference between two outputs (dicts/tuples of tensors) of one network."""
+    from torch.utils._pytree import tree_leaves
+
+    pairs = zip(tree_leaves(a), tree_leaves(b))
+    return max((float((x.float() - y.float()).abs().max()) for x, y in pairs if isinstance(x, torch.Tensor)),
+               default=0.0)
+
+
+def _forward(model, mode: str):
+    """The inference forward of `mode`: eager, graph (models/cuda_graphs.py, what evaluation uses on a GPU) or
+    compile (torch.compile, default mode)."""
+    from lanevil_train.models.cuda_graphs import GraphedInference
+
+    if mode == "graph":
+        return GraphedInference(model)
+    if mode == "compile":
+        return torch.compile(model)
+    return model
+
+
+def measure(family: str, device: str, batches: list[int], repeats: int, modes: list[str]) -> dict:
     size, backbone, published = FAMILIES[family]
     model = build(family).to(device)
     sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
@@ -70,14 +93,23 @@ def measure(family: str, device: str, batches: list[int], repeats: int) -> dict:
         row["gpu"] = torch.cuda.get_device_name()
         torch.backends.cudnn.benchmark = True
     with torch.inference_mode():
-        for batch in batches:
-            images = torch.randn(batch, 3, *size, device=device)
-            seconds = _time(lambda: model(images), repeats, sync)
-            row[f"b{batch}_ms"] = round(seconds * 1e3, 2)
-            row[f"b{batch}_fps"] = round(batch / seconds, 1)
-        images = torch.randn(1, 3, *size, device=device)
-        row["b1_decode_ms"] = round(_time(lambda: model.head.decode(model(images), **model.decode_kwargs),
-                                          repeats, sync) * 1e3, 2)
+        for mode in modes:
+            forward = _forward(model, mode)
+            prefix = "" if mode == "eager" else f"{mode}_"
+            for batch in batches:
+                images = torch.randn(batch, 3, *size, device=device, generator=torch.Generator(device).manual_seed(0))
+                started = time.perf_counter()
+                out = forward(images)  # a graph is recorded, a compiled model compiled, on the first call
+                sync()
+                if mode != "eager":
+                    row[f"{prefix}b{batch}_first_call_s"] = round(time.perf_counter() - started, 1)
+                    row[f"{prefix}b{batch}_max_diff"] = _max_difference(out, model(images))
+                seconds = _time(lambda: forward(images), repeats, sync)
+                row[f"{prefix}b{batch}_ms"] = round(seconds * 1e3, 2)
+                row[f"{prefix}b{batch}_fps"] = round(batch / seconds, 1)
+            images = torch.randn(1, 3, *size, device=device)
+            row[f"{prefix}b1_decode_ms"] = round(_time(lambda: model.decode_lanes(forward(images), size, [size]),
+                                                       repeats, sync) * 1e3, 2)
     if device == "cuda":
         row["peak_gpu_MB"] = round(torch.cuda.max_memory_allocated() / 2**20)
     row["peak_rss_MB"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
@@ -91,19 +123,28 @@ def main() -> None:
     parser.add_argument("--batches", default=None, help="default: 1 on cpu, 1,32 on cuda")
     parser.add_argument("--repeats", type=int, default=10)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--modes", default="eager", help="comma-separated: eager, graph (CUDA graphs, as evaluation "
+                        "runs on a GPU), compile (torch.compile); each non-eager mode's largest output difference "
+                        "from eager is reported")
+    parser.add_argument("--timeout", type=float, default=None, help="seconds one family may take")
     parser.add_argument("--json", default=None, help="append each family's row to this JSON-lines file")
     parser.add_argument("--one", default=None, help=argparse.SUPPRESS)  # the per-family child process
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     batches = [int(b) for b in (args.batches or ("1,32" if args.device == "cuda" else "1")).split(",")]
     if args.one:
-        print(json.dumps(measure(args.one, args.device, batches, args.repeats)))
+        print(json.dumps(measure(args.one, args.device, batches, args.repeats, args.modes.split(","))))
         return
     rows = []
     for family in args.families.split(","):
         cmd = [sys.executable, __file__, "--one", family, "--device", args.device, "--batches",
-               ",".join(map(str, batches)), "--repeats", str(args.repeats), "--threads", str(args.threads)]
-        proc = subprocess.run(cmd, capture_output=True, text=True)
+               ",".join(map(str, batches)), "--repeats", str(args.repeats), "--threads", str(args.threads),
+               "--modes", args.modes]
+        try:
+            proc = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout)
+        except subprocess.TimeoutExpired:
+            print(f"{family}: over {args.timeout} s", file=sys.stderr)
+            continue
         if proc.returncode != 0:
             print(f"{family}: failed\n{proc.stderr[-3000:]}", file=sys.stderr)
             continue
@@ -112,7 +153,8 @@ def main() -> None:
         if args.json:
             with open(args.json, "a", encoding="utf-8") as handle:
                 handle.write(json.dumps(rows[-1]) + "\n")
-    keys = ["family", "backbone", "input", "params_M", *[k for k in rows[0] if k[0] == "b" and k[1].isdigit()],
+    timed = [k for k in rows[0] if k.endswith(("_ms", "_fps", "_diff")) and k != "published_fps"] if rows else []
+    keys = ["family", "backbone", "input", "params_M", *timed,
             *(["peak_gpu_MB"] if args.device == "cuda" else []), "peak_rss_MB", "published_fps"] if rows else []
     print("\n| " + " | ".join(keys) + " |\n|" + "---|" * len(keys))
     for row in rows:

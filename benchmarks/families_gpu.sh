@@ -8,7 +8,7 @@ OUT=${OUT:-/tmp/families_out}; mkdir -p "$OUT"
 STEPS=${STEPS:-1000}; CASES=${CASES:-10}; TEST=${TEST:-100}; FAMILIES=${FAMILIES:-laneatt ufld bezierlanenet ganet scnn laneformer clrnet}
 DEVICE=${DEVICE:-cuda}; REPEATS=${REPEATS:-20}; LIMIT=${LIMIT:-420}; WORKERS=${WORKERS:-3}
 export PYTHONUNBUFFERED=1 WANDB_MODE=offline
-python3 benchmarks/bench_families.py --device "$DEVICE" --families "$(echo $FAMILIES | tr ' ' ,)" --repeats "$REPEATS" \
+python3 benchmarks/bench_families.py --device "$DEVICE" --families "$(echo $FAMILIES | tr ' ' ,)" --repeats "$REPEATS" --modes eager,graph \
     --json "$OUT/fps.jsonl" > "$OUT/fps.log" 2>&1
 tail -8 "$OUT/fps.log"
 accelerator=$([ "$DEVICE" = cuda ] && echo gpu || echo cpu)

@@ -81,9 +81,13 @@ class LaneDetector(pl.LightningModule):
 
     def predict_lanes(self, images: torch.Tensor, original_sizes: list[tuple[int, int]]) -> list[list[np.ndarray]]:
         """Decoded lanes per image, in each image's original pixels (original_sizes: (H, W) each)."""
-        raw = self(images)
+        return self.decode_lanes(self(images), tuple(images.shape[-2:]), original_sizes)
+
+    def decode_lanes(self, raw: dict[str, torch.Tensor], input_size: tuple[int, int],
+                     original_sizes: list[tuple[int, int]]) -> list[list[np.ndarray]]:
+        """The lanes of the network's outputs `raw` for inputs of `input_size` (H, W), in original pixels."""
         lanes = self.head.decode(raw, **self.decode_kwargs)
-        in_h, in_w = images.shape[-2:]
+        in_h, in_w = input_size
         out = []
         for per_image, (h, w) in zip(lanes, original_sizes):
             cut = int(round(self.crop_top * h))

@@ -17,6 +17,7 @@ from lanevil_train.data.datamodule import ProcessedDataset, collate_lanes
 from lanevil_train.data.formats.atomic import atomic_write_text
 from lanevil_train.data.normalization import DEFAULT_NORMALIZATION, spec_normalization
 from lanevil_train.data.transforms import LaneSampleProcessor
+from lanevil_train.models.cuda_graphs import GraphedInference
 from lanevil_train.models.detector import LaneDetector
 from lanevil_train.progress import progress_counter
 from lanevil_train.results_log import ResultsLog
@@ -25,11 +26,12 @@ from lanevil_train.tasks.scoring import lane_record
 
 def stream_evaluate(model: LaneDetector, dataset: Dataset, out_path: str | Path, label: dict,
                     batch_size: int = 8, num_workers: int = 0, progress: str = "auto",
-                    keep_lanes: bool = True) -> Path:
+                    keep_lanes: bool = True, cuda_graphs: bool = True) -> Path:
     """Score every image of `dataset` not yet in `out_path`, appending one JSON line each.
 
     `label` (e.g. {"model": ..., "dataset": ...}) is copied into every line; `progress` is a
-    lanevil_train.progress mode (auto, rich, tqdm, plain, none).
+    lanevil_train.progress mode (auto, rich, tqdm, plain, none). On a GPU the network runs through CUDA graphs
+    (models/cuda_graphs.py: the same kernels, launched at once; `cuda_graphs=False` for the eager forward).
     """
     log = ResultsLog(out_path)
     done = log.resume()
@@ -43,10 +45,12 @@ def stream_evaluate(model: LaneDetector, dataset: Dataset, out_path: str | Path,
     bar = progress_counter(len(dataset), len(dataset) - len(todo), "evaluate", "img", progress)
     model.eval()
     device = next(model.parameters()).device
+    forward = GraphedInference(model) if cuda_graphs else model
     with torch.inference_mode():
         for batch in loader:
             sizes = [(int(m["height"]), int(m["width"])) for m in batch["meta"]]
-            preds = model.predict_lanes(batch["images"].to(device), sizes)
+            images = batch["images"].to(device)
+            preds = model.decode_lanes(forward(images), tuple(images.shape[-2:]), sizes)
             log.append({**label, **lane_record(pred, gt, meta, keep_lanes)}
                        for pred, gt, meta in zip(preds, batch["lanes"], batch["meta"]))
             bar.update(len(preds))
