@@ -64,7 +64,7 @@ def main() -> None:
     parser.add_argument("--questions-per-clip", type=int, default=5)
     parser.add_argument("--size", type=int, nargs=2, default=[360, 640], metavar=("HEIGHT", "WIDTH"))
     args = parser.parse_args()
-    from lanevil_train.vlm.fake_server import FakeServer
+    from lanevil_train.testing.fake_server import FakeServer
 
     with FakeServer("--delay-ms", str(args.delay_ms), "--no-decode", idle_exit_s=120) as server:
         for image_format in args.formats:

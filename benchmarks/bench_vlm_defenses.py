@@ -78,8 +78,14 @@ def time_textual(model: str, method: str, steps: int) -> dict:
 
     from lanevil_train.vlm.gcg import Examples
     from lanevil_train.vlm.hf import HFVLM
-    from lanevil_train.vlm.pat import RES_GOAL, GCGSettings, PrefixObjective, SoftSettings, tune_prefix, \
-        tune_soft_prefix
+    from lanevil_train.vlm.pat import (
+        RES_GOAL,
+        GCGSettings,
+        PrefixObjective,
+        SoftSettings,
+        tune_prefix,
+        tune_soft_prefix,
+    )
     from lanevil_train.vlm.pat_baseline import PATSettings, tune_pat
 
     vlm = HFVLM(model, dtype="float32", device="cpu", frames_as="video")

@@ -15,11 +15,11 @@ import tempfile
 import time
 from pathlib import Path
 
-from lanevil_train.tasks.results import write_results
+from lanevil_train.evaluation.results import write_results
+from lanevil_train.testing.fake_server import FakeServer
 from lanevil_train.vlm.clip_set import ClipSetDataset, build_clip_set
 from lanevil_train.vlm.clips import clip_cases
 from lanevil_train.vlm.evaluation import evaluate_clips
-from lanevil_train.vlm.fake_server import FakeServer
 from lanevil_train.vlm.hf import HFVLM
 from lanevil_train.vlm.openai import OpenAIVLM
 from lanevil_train.vlm.tiny import build_tiny_vlm

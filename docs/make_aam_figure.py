@@ -15,10 +15,10 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from aam_step import observed_step  # noqa: E402  (docs/, beside this script)
 from hydra import compose, initialize_config_module  # noqa: E402
 from matplotlib.patches import Rectangle  # noqa: E402
 
-from aam_step import observed_step  # noqa: E402  (docs/, beside this script)
 from lanevil_train.callbacks.regions import HAA, LAA, extract_regions  # noqa: E402
 from lanevil_train.data.normalization import unnormalize_image  # noqa: E402
 from lanevil_train.tasks.builders import build_datamodule, build_defense, build_model, model_config  # noqa: E402

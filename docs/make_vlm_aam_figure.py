@@ -18,11 +18,11 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from aam_step import observed_step  # noqa: E402  (docs/, beside this script)
 from matplotlib.patches import Rectangle  # noqa: E402
 from torch.utils.data import DataLoader  # noqa: E402
 
 from lanevil_train.callbacks import AttentionAreaMixing, BatchAdapter  # noqa: E402
-from aam_step import observed_step  # noqa: E402  (docs/, beside this script)
 from lanevil_train.callbacks.regions import HAA, LAA, extract_regions  # noqa: E402
 from lanevil_train.vlm.clip_set import SyntheticClipSuite  # noqa: E402
 from lanevil_train.vlm.qa_data import ClipQADataset, collate_clip_qa  # noqa: E402

@@ -21,7 +21,7 @@ from typing import Any
 
 from pytorch_lightning.plugins.io import TorchCheckpointIO
 
-from lanevil_train.data.formats.atomic import atomic_write_bytes
+from lanevil_train.files.atomic import atomic_write_bytes
 
 _UNSAFE_GLOBAL = re.compile(r"Unsupported global: GLOBAL ([\w.]+)")
 _ZIP_MAGIC = b"PK\x03\x04"  # torch.save (since torch 1.6) writes a zip archive

@@ -35,8 +35,16 @@ import torch.distributed as dist
 import torch.nn.functional as F
 
 from lanevil_train.callbacks.adapter import BatchAdapter
-from lanevil_train.callbacks.regions import (HAA, LAA, blend_region, choose_place, extract_regions, grad_cam,
-                                             hard_examples, target_area)
+from lanevil_train.callbacks.regions import (
+    HAA,
+    LAA,
+    blend_region,
+    choose_place,
+    extract_regions,
+    grad_cam,
+    hard_examples,
+    target_area,
+)
 
 MODES = {"aam": (HAA,), "aam++": (HAA, LAA)}
 HARDNESS = ("auto", "accuracy", "loss")

@@ -4,7 +4,7 @@ Output (root/): images/<case>/<variant>.png, labels (TuSimple JSON lines `labels
 `.lines.txt` beside each image plus `list/test.txt`), and `manifest.jsonl` (data/formats/manifest.py).
 
 Safe to kill at any instant, and a rerun with the same root finishes the set as if nothing had happened:
-- every file is written atomically (data/formats/atomic.py), and a rerun first deletes the temporaries a kill
+- every file is written atomically (files/atomic.py), and a rerun first deletes the temporaries a kill
   left behind;
 - per image, the image (and its .lines.txt) comes first, then its labels.json line, then its manifest line,
   each durable before the next, so a manifest line promises everything before it;
@@ -29,12 +29,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from lanevil_train.data.formats import load_image, write_culane_lanes
-from lanevil_train.data.formats import builds
-from lanevil_train.data.formats.atomic import atomic_write_bytes, atomic_write_text
+from lanevil_train.data.formats import builds, load_image, write_culane_lanes
 from lanevil_train.data.formats.builds import map_jobs, write_build_record
 from lanevil_train.data.formats.manifest import manifest_record, read_manifest
 from lanevil_train.errors import prefixed
+from lanevil_train.files.atomic import atomic_write_bytes, atomic_write_text
 from lanevil_train.illusions import GroundPlaneError, context_from_lanes, context_from_scene, fallback_context
 from lanevil_train.lanes import default_h_samples, lanes_to_rows
 from lanevil_train.perturbations import case_perturbations, get_perturbation, suite_names

@@ -7,9 +7,9 @@ from __future__ import annotations
 import math
 from typing import Sequence
 
-from lanevil_train.metrics import tusimple_summary
 import numpy as np
 
+from lanevil_train.metrics import tusimple_summary
 from lanevil_train.report.records import NAN, Additive, Field, RecordSet, RecordSpec, Score, mean_of, ratio
 
 

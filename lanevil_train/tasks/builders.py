@@ -216,7 +216,7 @@ def build_callbacks(cfg: DictConfig) -> list[pl.Callback]:
 
 def build_trainer(cfg: DictConfig, callbacks: list | None = None, logger=True) -> pl.Trainer:
     """A Lightning Trainer from cfg.trainer, with the configured progress display and logger."""
-    from lanevil_train.tasks.trainer_progress import progress_callback
+    from lanevil_train.trainer_progress import progress_callback
 
     args = OmegaConf.to_container(cfg.trainer, resolve=True)
     if isinstance(args.get("strategy"), dict):  # a strategy object from its config node (trainer=fsdp, deepspeed)

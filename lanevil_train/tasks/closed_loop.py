@@ -21,12 +21,12 @@ from lanevil_train.closed_loop.controller import PurePursuit
 from lanevil_train.closed_loop.episode import LoopSettings, Run, case_scene, drive, ego_lane, illusion_region
 from lanevil_train.closed_loop.policies import DetectorPolicy, TruthPolicy, VLMPolicy
 from lanevil_train.closed_loop.scoring import run_scores
-from lanevil_train.data.formats.atomic import atomic_write_text
+from lanevil_train.evaluation.streaming import claim_results
+from lanevil_train.files.atomic import atomic_write_text
 from lanevil_train.progress import progress_counter
 from lanevil_train.results_log import ResultsLog
 from lanevil_train.sim.vehicle import MPH, VehicleParams
 from lanevil_train.tasks.builders import is_vlm, output_dir
-from lanevil_train.tasks.streaming import claim_results
 from lanevil_train.taxonomy import ILLUSION_NAMES
 
 RUNS = "runs.jsonl"
@@ -69,8 +69,8 @@ def build_policies(cfg: DictConfig) -> list[tuple[object, dict]]:
         policy = VLMPolicy(vlm, cfg.task.vlm.question, cfg.task.vlm.steer_deg, cfg.task.vlm.frames,
                            name=cfg.task.label or vlm.name)
         return [(policy, {"policy": "vlm", **vlm.identity(), **OmegaConf.to_container(cfg.task.vlm)})]
+    from lanevil_train.evaluation.streaming import run_identity
     from lanevil_train.tasks.evaluate import checkpoint_model
-    from lanevil_train.tasks.streaming import run_identity
 
     models = dict(cfg.task.models or {})
     if not models:

@@ -19,14 +19,21 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from lanevil_train.data.formats.atomic import atomic_write_text
-from lanevil_train.report.defenses import (REFERENCE, best_defense, defense_gain, defense_scores, gain_pivot,
-                                           headline_of, write_defense_report)
+from lanevil_train.evaluation.scoring import read_records
+from lanevil_train.files.atomic import atomic_write_text
+from lanevil_train.report.defenses import (
+    REFERENCE,
+    best_defense,
+    defense_gain,
+    defense_scores,
+    gain_pivot,
+    headline_of,
+    write_defense_report,
+)
 from lanevil_train.report.specs import spec_for
 from lanevil_train.report.tables import print_table
 from lanevil_train.tasks.builders import build_defense, build_model, is_vlm, model_config, output_dir
 from lanevil_train.tasks.config_check import check_config, interpolated_from, known_defenses
-from lanevil_train.tasks.scoring import read_records
 
 log = logging.getLogger(__name__)
 

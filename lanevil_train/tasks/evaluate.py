@@ -14,14 +14,13 @@ from omegaconf import DictConfig, OmegaConf
 from lanevil_train.checkpoints import check_detector_checkpoint, fit_weights, read_lightning_checkpoint
 from lanevil_train.data.suites import IllusionSetDataset, SyntheticIllusionSuite
 from lanevil_train.errors import prefixed
+from lanevil_train.evaluation.results import log_results, write_results
+from lanevil_train.evaluation.scoring import RESULTS, read_records
+from lanevil_train.evaluation.streaming import stream_evaluate
 from lanevil_train.models.detector import LaneDetector
 from lanevil_train.models.head import check_decode_options
 from lanevil_train.report.specs import LANE_SPEC
-from lanevil_train.tasks.builders import (build_logger, build_model, build_split, is_vlm, model_config,
-                                          output_dir)
-from lanevil_train.tasks.results import log_results, write_results
-from lanevil_train.tasks.scoring import RESULTS, read_records
-from lanevil_train.tasks.streaming import stream_evaluate
+from lanevil_train.tasks.builders import build_logger, build_model, build_split, is_vlm, model_config, output_dir
 
 
 def load_checkpoint(cfg: DictConfig) -> LaneDetector:

@@ -9,13 +9,21 @@ import pytorch_lightning as pl
 from omegaconf import DictConfig
 
 from lanevil_train.checkpoints import load_weights
-from lanevil_train.data.formats.atomic import remove_temporaries
 from lanevil_train.data.normalization import spec_normalization
-from lanevil_train.tasks.builders import (build_callbacks, build_datamodule, build_defense, build_model, build_trainer,
-                                          is_vlm, model_config, output_dir)
+from lanevil_train.evaluation.results import score_test_set, write_results
+from lanevil_train.evaluation.scoring import RESULTS, PerImageWriter
+from lanevil_train.files.atomic import remove_temporaries
+from lanevil_train.tasks.builders import (
+    build_callbacks,
+    build_datamodule,
+    build_defense,
+    build_model,
+    build_trainer,
+    is_vlm,
+    model_config,
+    output_dir,
+)
 from lanevil_train.tasks.evaluate import stream_dataset, test_dataset
-from lanevil_train.tasks.results import write_results
-from lanevil_train.tasks.scoring import RESULTS, PerImageWriter, score_test_set
 
 
 def train(cfg: DictConfig) -> float | None:

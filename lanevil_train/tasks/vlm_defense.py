@@ -31,7 +31,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-from lanevil_train.data.formats.atomic import atomic_write_text
+from lanevil_train.files.atomic import atomic_write_text
 
 PROMPT_DEFENSES = ("pat++", "pat", "self_reminder")
 HARDNESS = ("accuracy", "judge", "language")  # how PAT++ finds hard examples (choose_examples)
@@ -177,8 +177,7 @@ def tune_prompt_defense(cfg: DictConfig) -> float | None:
 def _tune_pat_plus_plus(cfg: DictConfig, settings: dict, vlm, train_set, out: Path) -> dict:
     """PAT++: hard examples found by asking the model, then the prefix tuned by GCG (or, soft, by Adam)."""
     from lanevil_train.tasks.vlm_evaluate import build_judge
-    from lanevil_train.vlm.pat import (GCGSettings, PrefixObjective, SoftSettings, tune_prefix,
-                                       tune_soft_prefix)
+    from lanevil_train.vlm.pat import GCGSettings, PrefixObjective, SoftSettings, tune_prefix, tune_soft_prefix
 
     judge = build_judge(cfg, out) if settings["hardness"] == "judge" else None
     choosing = {"model": vlm.identity(), "seed": int(cfg.seed),

@@ -14,16 +14,19 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
-from lanevil_train.data.formats.atomic import atomic_write_text
 from lanevil_train.errors import prefixed
+from lanevil_train.evaluation.results import log_results, write_results
+from lanevil_train.evaluation.streaming import claim_results
+from lanevil_train.files.atomic import atomic_write_text
 from lanevil_train.tasks.builders import build_logger, build_split, instantiate_at, output_dir
-from lanevil_train.tasks.results import log_results, write_results
-from lanevil_train.tasks.streaming import claim_results
-from lanevil_train.tasks.vlm_defense import (add_defense_to_report, check_prompt_defense, is_prompt_defense,
-                                            with_prompt_defense)
+from lanevil_train.tasks.vlm_defense import (
+    add_defense_to_report,
+    check_prompt_defense,
+    is_prompt_defense,
+    with_prompt_defense,
+)
 from lanevil_train.vlm.base import VLM, BlindVLM
 from lanevil_train.vlm.evaluation import ANSWERS, PER_ANSWER, evaluate_clips
-
 
 # Generation and prompt settings of a local backend that a trained model (ckpt_path) is evaluated with.
 GENERATION_KEYS = ("name", "max_new_tokens", "batch_size", "frames_as", "system_prompt", "do_sample", "temperature",
@@ -144,8 +147,8 @@ def write_worst_answers(results: Path, out: Path, k: int = 12) -> Path | None:
     """worst_answers.md: the k questions whose answer got most worse under an illusion (by the judge's score,
     else by accuracy), each with its reference, the clean clip's answer and the perturbed clip's; None when no
     answer got worse."""
+    from lanevil_train.evaluation.scoring import read_records
     from lanevil_train.report.tables import markdown_table
-    from lanevil_train.tasks.scoring import read_records
 
     records = read_records(results, keep_lanes=False)
     field = next((f for f in ("gpt_score", "minilm_score", "correct") if any(r.get(f) is not None for r in records)),
@@ -176,8 +179,8 @@ def write_language_summary(results: list[Path], out: Path) -> Path:
     """language_scores.json: every COCO caption score (METEOR too, which needs Java) of the original and the
     perturbed answers of each model, with the Language score beside its parts; SPICE is not computed (its
     Stanford models cannot be had offline)."""
+    from lanevil_train.evaluation.scoring import read_records
     from lanevil_train.metrics.vqa import language_scores
-    from lanevil_train.tasks.scoring import read_records
 
     groups: dict[tuple, dict] = {}
     for record in (r for path in results for r in read_records(path, keep_lanes=False)):

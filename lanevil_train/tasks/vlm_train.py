@@ -14,8 +14,8 @@ import pytorch_lightning as pl
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from lanevil_train.checkpoints import EMBEDDED_BASE_FOLDER, check_vlm_checkpoint, read_lightning_checkpoint
+from lanevil_train.evaluation.results import write_results
 from lanevil_train.tasks.builders import build_callbacks, build_split, build_trainer, output_dir
-from lanevil_train.tasks.results import write_results
 from lanevil_train.tasks.train import remove_stale_checkpoint_temporaries
 
 # Keys of a VLM model node read by the training code, not arguments of its inference `_target_`.

@@ -34,10 +34,9 @@ import cv2
 import numpy as np
 from torch.utils.data import Dataset
 
-from lanevil_train.data.formats import load_image
+from lanevil_train.data.formats import builds, load_image
 from lanevil_train.data.formats.builds import BUILD_FILE, map_jobs, write_build_record
-from lanevil_train.data.formats import builds
-from lanevil_train.data.formats.atomic import atomic_write_bytes
+from lanevil_train.files.atomic import atomic_write_bytes
 from lanevil_train.illusions.registry import check_severity, get_illusion
 from lanevil_train.perturbations import PAIR, check_kind, get_perturbation, suite_names
 from lanevil_train.progress import progress_counter

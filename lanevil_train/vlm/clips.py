@@ -45,8 +45,7 @@ from itertools import combinations
 import numpy as np
 
 from lanevil_train.illusions.context import context_for_frame, context_from_scene
-from lanevil_train.illusions.footprint import (  # noqa: F401  (changed_road_points, lane_of: part of this API)
-    STANDING, Footprint, changed_road_points, footprint, lane_of)
+from lanevil_train.illusions.footprint import STANDING, Footprint, changed_road_points, footprint, lane_of  # noqa: F401  (changed_road_points, lane_of: part of this API)
 from lanevil_train.illusions.registry import check_seed, get_illusion
 from lanevil_train.perturbations import (
     Combined,

@@ -25,7 +25,7 @@ import json
 import re
 from pathlib import Path
 
-from lanevil_train.data.formats.atomic import atomic_write_text
+from lanevil_train.files.atomic import atomic_write_text
 from lanevil_train.vlm.qa_records import OPTIONS_LEAD, check_qa_record, prompt_text
 
 SECTIONS = ("perception", "prediction", "planning", "behavior")

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from typing import Sequence
 
 from lanevil_train.vlm.base import Frames
-from lanevil_train.vlm.hf import IGNORE_INDEX, EncodedBatch, HFVLM
+from lanevil_train.vlm.hf import HFVLM, IGNORE_INDEX, EncodedBatch
 
 SLOTS = ("prefix", "suffix")
 

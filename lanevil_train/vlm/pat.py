@@ -23,11 +23,19 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
-from lanevil_train.data.formats.atomic import atomic_write_bytes
+from lanevil_train.files.atomic import atomic_write_bytes
 from lanevil_train.vlm.base import VLM, Frames
-from lanevil_train.vlm.gcg import (ControlObjective, Examples, Part, allowed_tokens, embed_scale, gcg_step,
-                                   initial_prefix, splice_prefix)
-from lanevil_train.vlm.hf import EncodedBatch, HFVLM
+from lanevil_train.vlm.gcg import (
+    ControlObjective,
+    Examples,
+    Part,
+    allowed_tokens,
+    embed_scale,
+    gcg_step,
+    initial_prefix,
+    splice_prefix,
+)
+from lanevil_train.vlm.hf import HFVLM, EncodedBatch
 
 RES_GOAL = "I will focus on the factors affecting the road"
 HARD_TARGETS = ("goal", "goal_then_answer")

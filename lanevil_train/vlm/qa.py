@@ -20,10 +20,21 @@ from types import MappingProxyType
 
 import numpy as np
 
+from lanevil_train.vlm.qa_facts import (
+    ILLUSION_FACTS,
+    LANE_PLACES,
+    MARKING_NAMES,
+    NUMBER_WORDS,
+    ORDINALS,
+    ROAD_SHAPES,
+    SCENE_KIND_DISTRACTOR,
+    SCENE_KINDS_TEXT,
+    SPEED_BANDS,
+    WEATHER_TEXT,
+    crossing_allowed,
+    marking_text,
+)
 from lanevil_train.vlm.qa_records import QA_CATEGORIES
-from lanevil_train.vlm.qa_facts import (ILLUSION_FACTS, LANE_PLACES, MARKING_NAMES, NUMBER_WORDS, ORDINALS,
-                                        ROAD_SHAPES, SCENE_KIND_DISTRACTOR, SCENE_KINDS_TEXT, SPEED_BANDS,
-                                        WEATHER_TEXT, crossing_allowed, marking_text)
 
 SEGMENT_ORDER = ("before", "over", "alongside")
 REQUIRED_TRUTH = ("curvature_sign", "slope", "num_lanes", "ego_lane", "markings", "weather", "night", "wet", "scene_kind",

@@ -188,8 +188,7 @@ def _llava_config(tokenizer, size: int):
 
 def _onevision_processor(tokenizer, size: int):
     """LLaVA-OneVision: SigLIP-style image and video processors, `<image>`/`<video>` placeholders."""
-    from transformers import (LlavaOnevisionImageProcessor, LlavaOnevisionProcessor,
-                              LlavaOnevisionVideoProcessor)
+    from transformers import LlavaOnevisionImageProcessor, LlavaOnevisionProcessor, LlavaOnevisionVideoProcessor
     square = {"height": size, "width": size}
     images = LlavaOnevisionImageProcessor(size=square, image_grid_pinpoints=_onevision_pinpoints(size))
     videos = LlavaOnevisionVideoProcessor(size=square)

@@ -23,8 +23,16 @@ from pathlib import Path
 import pytorch_lightning as pl
 import torch
 
-from lanevil_train.vlm.hf import (ADAPTER_CONFIG, DTYPES, FRAMES_AS, HFVLM, _check_architecture, _check_model_dir,
-                                  _choice, _load_processor)
+from lanevil_train.vlm.hf import (
+    ADAPTER_CONFIG,
+    DTYPES,
+    FRAMES_AS,
+    HFVLM,
+    _check_architecture,
+    _check_model_dir,
+    _choice,
+    _load_processor,
+)
 from lanevil_train.vlm.qa_data import ClipQADataset, clip_images, collate_clip_qa
 from lanevil_train.vlm.vision_maps import VISION_LAYERS, VisionMaps, vision_layer
 

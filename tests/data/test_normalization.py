@@ -16,9 +16,9 @@ from lanevil_train.data.datasets import SyntheticLaneDataset
 from lanevil_train.data.defenses import fill_holes
 from lanevil_train.data.normalization import NORMALIZATIONS, normalization, normalize_image, unnormalize_image
 from lanevil_train.data.transforms import LaneSampleProcessor
+from lanevil_train.evaluation.streaming import stream_evaluate
 from lanevil_train.tasks.builders import build_defense, build_model
 from lanevil_train.tasks.evaluate import checkpoint_model
-from lanevil_train.tasks.streaming import stream_evaluate
 from lanevil_train.tasks.train import check_same_network
 
 CONF = Path(lanevil_train.conf.__file__).parent

@@ -11,7 +11,7 @@ from lanevil_train.corruptions import CORRUPTION_NAMES, CORRUPTIONS
 from lanevil_train.data.illusion_set import Plan, build_illusion_set, synthetic_cases
 from lanevil_train.data.suites import IllusionSetDataset, SyntheticIllusionSuite
 from lanevil_train.illusions import ILLUSIONS
-from lanevil_train.perturbations import (case_perturbations, combined_choice, get_perturbation, suite_names)
+from lanevil_train.perturbations import case_perturbations, combined_choice, get_perturbation, suite_names
 from lanevil_train.report.combined import combined_table
 from lanevil_train.report.specs import record_set
 from lanevil_train.taxonomy import CATEGORIES, ILLUSION_CATEGORY, PAIR_CATEGORIES

@@ -6,8 +6,15 @@ import albumentations as A
 import numpy as np
 import pytest
 
-from lanevil_train.illusions import (CATEGORIES, ILLUSIONS, GroundPlaneError, IllusionTransform, apply_illusion,
-                                     apply_illusions, context_from_scene)
+from lanevil_train.illusions import (
+    CATEGORIES,
+    ILLUSIONS,
+    GroundPlaneError,
+    IllusionTransform,
+    apply_illusion,
+    apply_illusions,
+    context_from_scene,
+)
 from lanevil_train.sim import SceneParams, build_scene, render_scene
 
 EXPECTED = {

@@ -16,8 +16,16 @@ from lanevil_train.sim.sequence import scene_at
 from lanevil_train.taxonomy import ILLUSION_NAMES
 from lanevil_train.vlm import clips
 from lanevil_train.vlm.clips import (
-    FRAMES_PER_CLIP, SEGMENTS, ClipCase, changed_road_points, clip_cases, clip_truth, lane_of, reference_scene,
-    render_clip, segment_positions,
+    FRAMES_PER_CLIP,
+    SEGMENTS,
+    ClipCase,
+    changed_road_points,
+    clip_cases,
+    clip_truth,
+    lane_of,
+    reference_scene,
+    render_clip,
+    segment_positions,
 )
 
 SIZE = (144, 256)

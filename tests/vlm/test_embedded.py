@@ -6,9 +6,19 @@ import numpy as np
 import pytest
 import torch
 
-from lanevil_train.vlm.embedded import (DEFAULT_FRAME_SIZE, PARAMETER_RANGE, build_embedded_vlm, check_frame_size,
-                                        check_sizes, count_parameters, fit_answers, make_embedded_vlm, pretrain_vision,
-                                        qa_corpus, vision_tokens)
+from lanevil_train.vlm.embedded import (
+    DEFAULT_FRAME_SIZE,
+    PARAMETER_RANGE,
+    build_embedded_vlm,
+    check_frame_size,
+    check_sizes,
+    count_parameters,
+    fit_answers,
+    make_embedded_vlm,
+    pretrain_vision,
+    qa_corpus,
+    vision_tokens,
+)
 from lanevil_train.vlm.hf import HFVLM
 from lanevil_train.vlm.qa_records import prompt_text
 

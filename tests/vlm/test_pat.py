@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from lanevil_train.vlm.hf import IGNORE_INDEX, HFVLM
 from lanevil_train.vlm.gcg import Examples, allowed_tokens, gcg_step, initial_prefix, retokenises, splice_prefix
+from lanevil_train.vlm.hf import HFVLM, IGNORE_INDEX
 from lanevil_train.vlm.pat import RES_GOAL, PrefixObjective, hard_mask, hard_target, load_prefix, save_prefix
 from lanevil_train.vlm.tiny import FAMILIES
 

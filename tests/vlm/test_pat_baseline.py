@@ -6,8 +6,15 @@ from __future__ import annotations
 import pytest
 import torch
 
-from lanevil_train.vlm.gcg import ControlObjective, Examples, Part, allowed_tokens, initial_prefix, splice_prefix, \
-    splice_suffix
+from lanevil_train.vlm.gcg import (
+    ControlObjective,
+    Examples,
+    Part,
+    allowed_tokens,
+    initial_prefix,
+    splice_prefix,
+    splice_suffix,
+)
 from lanevil_train.vlm.hf import IGNORE_INDEX
 from lanevil_train.vlm.pat_baseline import PATSettings, tune_pat, wrong_answer
 

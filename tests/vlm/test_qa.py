@@ -5,7 +5,6 @@ from __future__ import annotations
 import itertools
 
 import numpy as np
-
 import pytest
 
 from lanevil_train.vlm import qa as qa_module
@@ -310,8 +309,13 @@ def test_mirror_scene_classes_are_the_classes_of_the_mirrored_scene():
 def test_training_aids_are_the_description_and_open_questions_whose_answers_turn_on_the_frames():
     """training_aids: the description, then the lane count, ego lane, steering and safe action asked openly, each
     answer the truth's (a hill's bend included), phrased as the benchmark's own kinds, the same for the same clip."""
-    from lanevil_train.vlm.qa import (DESCRIBE_QUESTION, EGO_LANE_QUESTIONS, LANE_COUNT_QUESTIONS, describe_scene,
-                                      training_aids)
+    from lanevil_train.vlm.qa import (
+        DESCRIBE_QUESTION,
+        EGO_LANE_QUESTIONS,
+        LANE_COUNT_QUESTIONS,
+        describe_scene,
+        training_aids,
+    )
 
     aids = training_aids(truth(num_lanes=4, ego_lane=3, curvature_sign=1, slope="uphill",
                                markings=["white_solid"] * 5), "case-7-over")

@@ -18,8 +18,15 @@ import pytest
 import torch
 from torch import nn
 
-from lanevil_train.vlm.sharding import (LayerWrapFSDPStrategy, checkpointed_blocks, fsdp_units, gathered_state_dict,
-                                        layer_classes, layer_wrap_policy, repeated_block_classes)
+from lanevil_train.vlm.sharding import (
+    LayerWrapFSDPStrategy,
+    checkpointed_blocks,
+    fsdp_units,
+    gathered_state_dict,
+    layer_classes,
+    layer_wrap_policy,
+    repeated_block_classes,
+)
 from lanevil_train.vlm.tiny import FAMILIES, make_tiny_vlm
 
 REPO = Path(__file__).resolve().parents[2]

@@ -102,16 +102,3 @@ class PerImageWriter(pl.Callback):
         for part in parts:
             part.unlink(missing_ok=True)
 
-
-def score_test_set(trainer: pl.Trainer, model: pl.LightningModule, datamodule: pl.LightningDataModule,
-                   writer: PerImageWriter, ckpt_path: str | None = None) -> float | None:
-    """Run trainer.test (the trainer must carry `writer`); rank 0 writes the score tables beside the per-image
-    results and returns the Accuracy (%); other ranks return None."""
-    from lanevil_train.tasks.results import write_results
-
-    if writer not in trainer.callbacks:
-        raise ValueError("score_test_set: the trainer was built without the PerImageWriter callback it was given")
-    trainer.test(model, datamodule=datamodule, ckpt_path=ckpt_path, verbose=False)
-    if not trainer.is_global_zero:
-        return None
-    return write_results([writer.path], writer.path.parent)

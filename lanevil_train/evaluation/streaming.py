@@ -14,14 +14,14 @@ import torch
 from torch.utils.data import DataLoader, Dataset, Subset
 
 from lanevil_train.data.datamodule import ProcessedDataset, collate_lanes
-from lanevil_train.data.formats.atomic import atomic_write_text
 from lanevil_train.data.normalization import DEFAULT_NORMALIZATION, spec_normalization
 from lanevil_train.data.transforms import LaneSampleProcessor
+from lanevil_train.evaluation.scoring import lane_record
+from lanevil_train.files.atomic import atomic_write_text
 from lanevil_train.models.cuda_graphs import GraphedInference
 from lanevil_train.models.detector import LaneDetector
 from lanevil_train.progress import progress_counter
 from lanevil_train.results_log import ResultsLog
-from lanevil_train.tasks.scoring import lane_record
 
 
 def stream_evaluate(model: LaneDetector, dataset: Dataset, out_path: str | Path, label: dict,

@@ -5,10 +5,12 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+import pytorch_lightning as pl
+
+from lanevil_train.evaluation.scoring import PerImageWriter, read_records
 from lanevil_train.report.scores import summary_rows
 from lanevil_train.report.specs import record_set
 from lanevil_train.report.tables import print_table, write_table
-from lanevil_train.tasks.scoring import read_records
 
 
 def write_results(result_files: list[Path], out_dir: Path, baseline: str | None = None,
@@ -93,3 +95,15 @@ def log_results(logger, out_dir: Path) -> None:
     logger.save()
     if hasattr(logger, "experiment") and hasattr(logger.experiment, "finish"):
         logger.experiment.finish()
+
+
+def score_test_set(trainer: pl.Trainer, model: pl.LightningModule, datamodule: pl.LightningDataModule,
+                   writer: PerImageWriter, ckpt_path: str | None = None) -> float | None:
+    """Run trainer.test (the trainer must carry `writer`); rank 0 writes the score tables beside the per-image
+    results and returns the Accuracy (%); other ranks return None."""
+    if writer not in trainer.callbacks:
+        raise ValueError("score_test_set: the trainer was built without the PerImageWriter callback it was given")
+    trainer.test(model, datamodule=datamodule, ckpt_path=ckpt_path, verbose=False)
+    if not trainer.is_global_zero:
+        return None
+    return write_results([writer.path], writer.path.parent)
