@@ -35,12 +35,6 @@ def model_config(cfg: DictConfig) -> dict:
     return out
 
 
-def is_vlm(cfg: DictConfig) -> bool:
-    """Whether the model is a VLM backend (model=vlm/<backend>: a model node with its own `_target_`) rather than
-    a lane detector (a backbone and a head)."""
-    return cfg.get("model") is not None and cfg.model.get("_target_") is not None
-
-
 def instantiate_at(node, key: str, **kwargs):
     """instantiate(node, **kwargs), where any error names the config key `key` the node came from.
 

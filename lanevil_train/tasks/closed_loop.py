@@ -26,7 +26,8 @@ from lanevil_train.files.atomic import atomic_write_text
 from lanevil_train.progress import progress_counter
 from lanevil_train.results_log import ResultsLog
 from lanevil_train.sim.vehicle import MPH, VehicleParams
-from lanevil_train.tasks.builders import is_vlm, output_dir
+from lanevil_train.tasks.builders import output_dir
+from lanevil_train.tasks.kinds import is_vlm
 from lanevil_train.taxonomy import ILLUSION_NAMES
 
 RUNS = "runs.jsonl"

@@ -32,8 +32,9 @@ from lanevil_train.report.defenses import (
 )
 from lanevil_train.report.specs import spec_for
 from lanevil_train.report.tables import print_table
-from lanevil_train.tasks.builders import build_defense, build_model, is_vlm, model_config, output_dir
+from lanevil_train.tasks.builders import build_defense, build_model, model_config, output_dir
 from lanevil_train.tasks.config_check import check_config, interpolated_from, known_defenses
+from lanevil_train.tasks.kinds import is_vlm
 
 log = logging.getLogger(__name__)
 

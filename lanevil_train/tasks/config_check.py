@@ -33,6 +33,7 @@ from lanevil_train.models.head import decode_option_problems
 from lanevil_train.models.schedules import LR_SCALINGS
 from lanevil_train.perturbations import SUITE_KINDS, suite_names
 from lanevil_train.progress import MODES
+from lanevil_train.tasks.kinds import task_target
 from lanevil_train.tasks.vlm_defense import HARDNESS, PROMPT_DEFENSES
 from lanevil_train.tasks.vlm_train import TRAINING_KEYS
 from lanevil_train.vlm.pat import HARD_TARGETS
@@ -42,7 +43,7 @@ HYDRA_KEYS = {"_target_", "_recursive_", "_convert_", "_partial_", "_args_"}
 # Arguments the code passes to a target itself: a config value for them would be ignored.
 SUPPLIED = {"model.head": ("in_channels", "in_strides", "image_size"), "model.neck": ("in_channels", "in_strides")}
 # Keys of a target node that the code reads itself (not arguments of its target): a VLM's training settings.
-READ_BY_CODE = {"model": TRAINING_KEYS}
+READ_BY_CODE = {"model": (*TRAINING_KEYS, "kind")}
 DEFENSE_KEYS = ("name", "transforms", "mixer", "callback")
 # The keys of a textual defense of VLMs (defense=pat++: tasks/vlm_defense.py), beside DEFENSE_KEYS.
 PROMPT_DEFENSE_KEYS = ("prompt", "alpha", "hard_target", "hardness", "pool_clips", "examples", "steps",
@@ -794,9 +795,18 @@ def check_suite_names(cfg: DictConfig) -> list[str]:
 
 
 def _is_vlm(cfg: DictConfig) -> bool:
-    """model=vlm/<backend>: a model node with its own _target_ (tasks.builders.is_vlm)."""
+    """model.kind=vlm (model=vlm/<backend>; a bad kind is reported by check_task_kind)."""
     model = _get(cfg, "model")
-    return isinstance(model, dict) and model.get("_target_") is not None
+    return isinstance(model, dict) and model.get("kind") == "vlm"
+
+
+def check_task_kind(cfg: DictConfig) -> list[str]:
+    """model.kind names a kind, and task=<name> has a function for that kind (tasks/kinds.py)."""
+    try:
+        task_target(cfg)
+    except ValueError as error:
+        return [str(error)]
+    return []
 
 
 def check_vlm_task(cfg: DictConfig) -> list[str]:
@@ -808,10 +818,6 @@ def check_vlm_task(cfg: DictConfig) -> list[str]:
                              "that is a VLM clip suite: evaluate it with model=vlm/<backend>")]
         return []
     task = _get(cfg, "task.name")
-    if task not in ("train", "evaluate", "report", "compare", "closed_loop"):
-        return [f"task: task={task} with a VLM (model={_get(cfg, 'model._target_')}) is not available; VLMs are "
-                f"trained with task=train, evaluated with task=evaluate, compared with task=compare, reported "
-                f"with task=report and driven with task=closed_loop"]
     if task in ("train", "compare") and _get(cfg, "model.base_url") is not _ABSENT:
         return [f"task: task=train with model={_get(cfg, 'model._target_')}: a model behind a server cannot be "
                 f"trained here; fine-tune a local one (model=vlm/hf model.path=DIR, or model=vlm/embedded)"]
@@ -875,7 +881,7 @@ def check_training_ends(cfg: DictConfig) -> list[str]:
 
 
 CROSS_CHECKS = (check_feature_map, check_decode_options, check_backbone_weights, check_cases, check_checkpoint_given, check_training_ends,
-                check_vlm_task, check_split_seeds, check_suite_names)
+                check_task_kind, check_vlm_task, check_split_seeds, check_suite_names)
 
 
 # ---------------------------------------------------------------------------------------------- _target_ nodes

@@ -20,7 +20,7 @@ from lanevil_train.evaluation.streaming import stream_evaluate
 from lanevil_train.models.detector import LaneDetector
 from lanevil_train.models.head import check_decode_options
 from lanevil_train.report.specs import LANE_SPEC
-from lanevil_train.tasks.builders import build_logger, build_model, build_split, is_vlm, model_config, output_dir
+from lanevil_train.tasks.builders import build_logger, build_model, build_split, model_config, output_dir
 
 
 def load_checkpoint(cfg: DictConfig) -> LaneDetector:
@@ -82,13 +82,9 @@ def synthetic_suite(cfg: DictConfig, kind: str = "illusions") -> SyntheticIllusi
 
 
 def evaluate(cfg: DictConfig) -> float:
-    """Score the checkpoint; returns the Accuracy (%) over the perturbed images (all images if none). A VLM
-    (model=vlm/<backend>) is evaluated on clips instead (tasks/vlm_evaluate.py)."""
+    """Score the checkpoint; returns the Accuracy (%) over the perturbed images (all images if none). (A VLM's
+    task=evaluate is tasks/vlm_evaluate.evaluate_vlm: conf/task/evaluate.yaml names one function per kind.)"""
     pl.seed_everything(cfg.seed, workers=True)
-    if is_vlm(cfg):
-        from lanevil_train.tasks.vlm_evaluate import evaluate_vlm
-
-        return evaluate_vlm(cfg)
     model = load_checkpoint(cfg)
     dataset, dataset_name = test_dataset(cfg)
     out = Path(cfg.task.out_dir) if cfg.task.out_dir else output_dir(cfg)

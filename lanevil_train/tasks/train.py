@@ -8,18 +8,16 @@ from pathlib import Path
 import pytorch_lightning as pl
 from omegaconf import DictConfig
 
-from lanevil_train.checkpoints import load_weights
+from lanevil_train.checkpoints import load_weights, remove_stale_checkpoint_temporaries
 from lanevil_train.data.normalization import spec_normalization
 from lanevil_train.evaluation.results import score_test_set, write_results
 from lanevil_train.evaluation.scoring import RESULTS, PerImageWriter
-from lanevil_train.files.atomic import remove_temporaries
 from lanevil_train.tasks.builders import (
     build_callbacks,
     build_datamodule,
     build_defense,
     build_model,
     build_trainer,
-    is_vlm,
     model_config,
     output_dir,
 )
@@ -33,10 +31,6 @@ def train(cfg: DictConfig) -> float | None:
     clean test Accuracy (%) when the test runs, else None. The clean test's per-image records go to
     per_image.jsonl in the run directory (the suite's to robustness/per_image.jsonl), which task=report reads.
     """
-    if is_vlm(cfg):  # model=vlm/<backend>: fine-tune a VLM on the clip suite (tasks/vlm_train.py)
-        from lanevil_train.tasks.vlm_train import train_vlm
-
-        return train_vlm(cfg)
     pl.seed_everything(cfg.seed, workers=True)
     out = output_dir(cfg)
     model = build_model(model_config(cfg))
@@ -96,14 +90,6 @@ def check_same_network(checkpoint: dict, spec: dict, path) -> None:
         raise ValueError(f"ckpt_path={path}: resuming needs the network the checkpoint was trained with, and this "
                          f"config differs ({differences}); set those back, or start a new run from its weights with "
                          f"task.init_from={path}")
-
-
-def remove_stale_checkpoint_temporaries(callbacks: list) -> None:
-    """Delete the `.partial` files a run killed while saving a checkpoint left in the checkpoint folders (nothing
-    writes there before fit starts)."""
-    for callback in callbacks:
-        if isinstance(callback, pl.callbacks.ModelCheckpoint) and callback.dirpath and Path(callback.dirpath).is_dir():
-            remove_temporaries(callback.dirpath)
 
 
 def run_label(cfg: DictConfig) -> str:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytorch_lightning as pl
 from omegaconf import DictConfig
 
 from lanevil_train.errors import prefixed
@@ -106,6 +107,7 @@ def run_identity(vlm: VLM, judge, label: dict) -> dict:
 
 def evaluate_vlm(cfg: DictConfig) -> float:
     """Evaluate the VLM; returns its headline score (the judge's, else Language) over the perturbed answers."""
+    pl.seed_everything(cfg.seed, workers=True)
     dataset, dataset_name = clip_suite(cfg)  # read and checked before the model is loaded
     out = Path(cfg.task.out_dir) if cfg.task.out_dir else output_dir(cfg)
     if is_prompt_defense(cfg):

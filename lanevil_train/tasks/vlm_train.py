@@ -13,10 +13,14 @@ from pathlib import Path
 import pytorch_lightning as pl
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from lanevil_train.checkpoints import EMBEDDED_BASE_FOLDER, check_vlm_checkpoint, read_lightning_checkpoint
+from lanevil_train.checkpoints import (
+    EMBEDDED_BASE_FOLDER,
+    check_vlm_checkpoint,
+    read_lightning_checkpoint,
+    remove_stale_checkpoint_temporaries,
+)
 from lanevil_train.evaluation.results import write_results
 from lanevil_train.tasks.builders import build_callbacks, build_split, build_trainer, output_dir
-from lanevil_train.tasks.train import remove_stale_checkpoint_temporaries
 
 # Keys of a VLM model node read by the training code, not arguments of its inference `_target_`.
 TRAINING_KEYS = ("lora", "fine_tune", "embedded", "attention_layer")
@@ -25,8 +29,8 @@ MODEL_FOLDER = "model"  # the trained model (or adapter) in the Hugging Face for
 
 
 def inference_node(model: DictConfig) -> DictConfig:
-    """The model node without its training keys: what builds the inference backend."""
-    return OmegaConf.masked_copy(model, [key for key in model if key not in TRAINING_KEYS])
+    """The model node without its training keys and its kind: what builds the inference backend."""
+    return OmegaConf.masked_copy(model, [key for key in model if key not in (*TRAINING_KEYS, "kind")])
 
 
 def lora_settings(cfg: DictConfig) -> dict | None:
