@@ -38,8 +38,9 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=3)
     args = parser.parse_args()
     with initialize_config_module(config_module="lanevil_train.conf", version_base="1.3"):
-        cfg = compose(config_name="config", overrides=["experiment=quickstart", "defense=aam++", "data.train.num_scenes=64",
-                                                       "output_dir=/tmp/aam_figure", f"seed={args.seed}"])
+        cfg = compose(config_name="config", overrides=["experiment=quickstart", "defense=aam++",
+                                                       "data.train.num_scenes=64", "output_dir=/tmp/aam_figure",
+                                                       f"seed={args.seed}"])
     torch.manual_seed(args.seed)
     model = build_model(model_config(cfg))
     model.load_state_dict(torch.load(args.ckpt, map_location="cpu", weights_only=False)["state_dict"])

@@ -129,8 +129,9 @@ class AttentionAreaMixing(pl.Callback):
             raise ValueError(f"AttentionAreaMixing: feature_map must be a callable (layer output -> (B, C, h, w) "
                              f"map), got {type(feature_map).__name__}")
         # t_haa < t_laa is allowed (the paper's sensitivity grid has T_HAA 0.2 with T_LAA 0.4): the masks overlap
-        for name, value in (("t_haa", t_haa), ("t_laa", t_laa), ("beta", beta), ("mix_prob", mix_prob), ("overlap_threshold", overlap_threshold),
-                            ("min_area", min_area), ("max_region_fraction", max_region_fraction)):
+        for name, value in (("t_haa", t_haa), ("t_laa", t_laa), ("beta", beta), ("mix_prob", mix_prob),
+                            ("overlap_threshold", overlap_threshold), ("min_area", min_area),
+                            ("max_region_fraction", max_region_fraction)):
             if not _is_number(value) or not 0.0 <= value <= 1.0:
                 raise ValueError(f"AttentionAreaMixing: {name} must be a number in [0, 1], got {value!r}")
         if not _is_number(sigma) or sigma < 0:

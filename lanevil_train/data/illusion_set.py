@@ -80,7 +80,7 @@ def dataset_cases(records: list[dict]) -> list[Case]:
     out = []
     for i, record in enumerate(records):
         name = str(record.get("raw_file") or record.get("rel_path") or record["image_path"])
-        out.append(Case(name, i, 0, str(record["image_path"]), tuple(np.asarray(l) for l in record["lanes"]),
+        out.append(Case(name, i, 0, str(record["image_path"]), tuple(np.asarray(lane) for lane in record["lanes"]),
                         record.get("source")))
     return out
 
@@ -186,7 +186,8 @@ def render_case(args: tuple[Case, Plan, str, frozenset]) -> list[dict]:
         return []
     image, lanes, ctx = case_source(case, plan)
     h_samples = default_h_samples(image.shape[0])
-    label = {"lanes": lanes_to_rows(lanes, h_samples).round().astype(int).tolist(), "h_samples": h_samples.astype(int).tolist()}
+    label = {"lanes": lanes_to_rows(lanes, h_samples).round().astype(int).tolist(),
+             "h_samples": h_samples.astype(int).tolist()}
     out = []
     for record in todo:
         try:

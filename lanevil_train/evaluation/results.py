@@ -83,7 +83,8 @@ def log_results(logger, out_dir: Path) -> None:
         for name, rows in tables.items():
             if rows and isinstance(rows, list) and isinstance(rows[0], dict):
                 columns = list(rows[0])
-                logger.log_table(key=f"evaluate/{name}", columns=columns, data=[[r.get(c) for c in columns] for r in rows])
+                logger.log_table(key=f"evaluate/{name}", columns=columns,
+                                 data=[[r.get(c) for c in columns] for r in rows])
         pngs = sorted(Path(out_dir).glob("*.png"))
         if pngs:
             logger.log_image(key="evaluate/plots", images=[str(p) for p in pngs], caption=[p.stem for p in pngs])

@@ -17,7 +17,8 @@ summed |dx| + |dy| between the 100 points sampled on the predicted and the targe
 clamped to [0, 1], local_max 1 where the query is the maximum of its window of k = 9 queries); the cost here is its
 negative. The window: the official k = 9 (matching) and local_maximum_window_size = 9 (decoding) are set for its 40
 (TuSimple, 640 px) and 50 (CULane, 800 px) queries; `scaled_window` keeps the fraction of the query row it covers
-for narrower inputs (two lanes survive only (k + 1) / 2 queries apart: 9 keeps at most 4 of 20 queries' lanes). Loss: BCE on the existence logits (positives weight 1, negatives 0.4: the official's pos_weight 1 / 0.4
+for narrower inputs (two lanes survive only (k + 1) / 2 queries apart: 9 keeps at most 4 of 20 queries' lanes). Loss:
+BCE on the existence logits (positives weight 1, negatives 0.4: the official's pos_weight 1 / 0.4
 divided back), L1 between the matched curves' sampled points (summed over x and y, over the matched lanes x 100 of
 the whole batch), BCE of the auxiliary segmentation (weights 1 / 0.4 likewise, logits bilinearly resized to the
 mask), weighted 0.1, 1 and 0.75 as the official config.

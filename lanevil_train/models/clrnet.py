@@ -5,8 +5,8 @@ the coarsest to the finest: at each stage, ROIGather samples the stage's feature
 (grid_sample at 36 of the 72 rows, laid out top row first as the official), mixes it with the ROI features of
 the earlier stages, reduces it with an fc layer and lets it attend to the whole (resized) feature map; shared
 fc layers then classify each prior (2 logits) and regress start_y, start_x, theta, the length and 72 x offsets.
-A stage's refined line (without the offsets, detached) is the next stage's prior. The loss (clrnet_loss) is computed on every stage's
-predictions, with a dynamic assignment of predictions to lanes; NMS lives in ``decode`` only.
+A stage's refined line (without the offsets, detached) is the next stage's prior. The loss (clrnet_loss) is computed on
+every stage's predictions, with a dynamic assignment of predictions to lanes; NMS lives in ``decode`` only.
 
 The official training's auxiliary segmentation loss is an option (``seg_loss_weight`` > 0; the official
 weight is 1.0): a 1x1 convolution (after dropout 0.1) over the refined levels resized to the finest one and

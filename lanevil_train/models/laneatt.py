@@ -85,14 +85,16 @@ class LaneATTHead(LaneHead):
         if neg_threshold < pos_threshold:
             raise ValueError(f"LaneATTHead: neg_threshold {neg_threshold} must be >= pos_threshold {pos_threshold}")
         if anchor_selection not in ANCHOR_SELECTIONS:
-            raise ValueError(f"anchor_selection: expected one of {', '.join(ANCHOR_SELECTIONS)}, got {anchor_selection!r}")
+            raise ValueError(f"anchor_selection: expected one of {', '.join(ANCHOR_SELECTIONS)}, "
+                             f"got {anchor_selection!r}")
         if anchor_selection == "frequency" and topk_anchors is None:
             raise ValueError("topk_anchors: anchor_selection=frequency keeps the topk_anchors most used anchors; "
                              "set it (the official: 1000) or use anchor_selection=all")
         if topk_anchors is not None and topk_anchors < 2:
             raise ValueError(f"topk_anchors: expected null or an integer >= 2, got {topk_anchors}")
         if train_nms_threshold is not None and train_nms_threshold <= 0:
-            raise ValueError(f"train_nms_threshold: expected null (no NMS in training) or > 0 px, got {train_nms_threshold}")
+            raise ValueError(f"train_nms_threshold: expected null (no NMS in training) or > 0 px, "
+                             f"got {train_nms_threshold}")
         if train_nms_topk < 1:
             raise ValueError(f"train_nms_topk: expected an integer >= 1, got {train_nms_topk}")
         self.n_offsets = n_offsets
@@ -169,7 +171,8 @@ class LaneATTHead(LaneHead):
         set), most used first as the official orders them."""
         freq = np.asarray(frequency)
         if freq.shape != (len(self.all_anchors),):
-            raise ValueError(f"LaneATTHead: anchor_frequency has shape {freq.shape}, expected ({len(self.all_anchors)},)")
+            raise ValueError(f"LaneATTHead: anchor_frequency has shape {freq.shape}, "
+                             f"expected ({len(self.all_anchors)},)")
         if self.anchor_selection == "frequency":
             self._set_anchors(top_anchors(freq, self.n_anchors))
         self.anchors_chosen.fill_(1)
@@ -184,7 +187,8 @@ class LaneATTHead(LaneHead):
         xs, starts = torch.from_numpy(full.xs).float(), torch.from_numpy(full.starts)
         key = dataset_fingerprint(train_dataset, self.image_size, crop_top,
                                   {"anchors": len(full), "n_offsets": self.n_offsets,
-                                   "threshold": self.frequency_threshold, "first_xs": full.xs[:, 0].round(3).tolist()[:8]})
+                                   "threshold": self.frequency_threshold,
+                                   "first_xs": full.xs[:, 0].round(3).tolist()[:8]})
 
         def count():
             log.info("LaneATT: counting how often the %d train images' lanes use each of the %d anchors",

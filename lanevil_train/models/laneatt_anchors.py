@@ -77,7 +77,8 @@ def generate_anchors(
     """
     h, w = image_size
     if h < 2 or w < 2 or n_offsets < 2:
-        raise ValueError(f"generate_anchors: need image_size >= (2, 2) and n_offsets >= 2, got {image_size}, {n_offsets}")
+        raise ValueError(f"generate_anchors: need image_size >= (2, 2) and n_offsets >= 2, "
+                         f"got {image_size}, {n_offsets}")
     d_lat, d_bot = default_origin_counts(image_size)
     lateral_n = d_lat if lateral_n is None else lateral_n
     bottom_n = d_bot if bottom_n is None else bottom_n
@@ -111,7 +112,8 @@ def feature_map_size(image_size: tuple[int, int], stride: int) -> tuple[int, int
     return hf, wf
 
 
-def anchor_cut_indices(anchors: Anchors, image_size: tuple[int, int], stride: int) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
+def anchor_cut_indices(anchors: Anchors, image_size: tuple[int, int],
+                       stride: int) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
     """Feature-map column of every anchor at every feature row, and whether it is inside the map.
 
     Returns (cols (A, Hf) int64 clamped into the map, valid (A, Hf) float32, (Hf, Wf)), built as the

@@ -7,8 +7,8 @@ lines 16 px wide on its 1640x590 images; the width here is ``lane_width`` px at 
 and scales with the input width (16 px at 1640 is about 8 px at SCNN's 800 px input), at least 1 px.
 Where lanes overlap (near the vanishing point) the one drawn later, further right, wins.
 
-Slots (``lanes.assign_slots``, shared with UFLD): CULane's label generator sorts the lanes by the x where their linear fit
-meets the bottom row, splits them into the lanes left and right of the ego vehicle (where the sign of
+Slots (``lanes.assign_slots``, shared with UFLD): CULane's label generator sorts the lanes by the x where their linear
+fit meets the bottom row, splits them into the lanes left and right of the ego vehicle (where the sign of
 their slope changes, else at the image centre) and gives the two
 nearest left lanes slots 1, 2 and the two nearest right ones slots 3, 4 (0-based here: 0..3), so a slot
 means a position relative to the car ("ego left", "ego right", ...), and lanes beyond those four are

@@ -222,7 +222,8 @@ class Handler(BaseHTTPRequestHandler):
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     """The server's command line."""
-    parser = argparse.ArgumentParser(prog="python -m lanevil_train.testing.fake_server", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m lanevil_train.testing.fake_server",
+                                     description=__doc__.split("\n")[0])
     parser.add_argument("--port", type=int, default=0, help="0: any free port (printed on the first line)")
     parser.add_argument("--mode", choices=("answer", "judge", "paraphrase"), default="answer")
     parser.add_argument("--model", default="fake-vlm")
@@ -262,7 +263,8 @@ class FakeServer:
     API root, `.stats()` its counters."""
 
     def __init__(self, *options: str, idle_exit_s: float = 120.0, start_timeout_s: float = 30.0):
-        command = [sys.executable, "-m", "lanevil_train.testing.fake_server", "--idle-exit-s", str(idle_exit_s), *options]
+        command = [sys.executable, "-m", "lanevil_train.testing.fake_server", "--idle-exit-s", str(idle_exit_s),
+                   *options]
         self.process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         line = _read_line(self.process, start_timeout_s)
         if not line.strip().isdigit():

@@ -8,8 +8,8 @@ Suite kinds (perturbations.SUITE_KINDS, recorded in the plan; a set without one 
 clip's clean clip, then each severity of its case's illusion (illusions), of every corruption (corruptions), or of
 the case's illusion, its second illusion and the pair "a+b" (combined; vlm/clips.py). All variants of a base clip
 come from one render of the scene. A corruption suite's QA leaves out the questions whose template reads a fact in
-vlm/suite_qa.py's CORRUPTION_UNSAFE_FACTS (the illusion, which is not drawn; the weather and light, which weather and brightness
-corruptions change the look of), and base clips left without a question.
+vlm/suite_qa.py's CORRUPTION_UNSAFE_FACTS (the illusion, which is not drawn; the weather and light, which weather and
+brightness corruptions change the look of), and base clips left without a question.
 
 Safe to kill at any instant, like the image builder (data/illusion_set.py): frames are written atomically, then
 the base clip's QA lines, then its variants' clip lines, each durable before the next, so a clip line promises

@@ -7,7 +7,8 @@ Layout (DriveLM docs/data_prep_nus.md): {scene_token: {"scene_description", "key
 Writing: a scene is a case, a key frame is a base clip; `image_paths` holds the clean clip's 6 frames as FRAME_0 ..
 FRAME_5; our six categories go to DriveLM's four (CATEGORY_TO_DRIVELM), a choice question's options are appended
 to "Q" as DriveLM's multiple-choice questions have them, and each item keeps our record in "lanevil" and each key
-frame its clip variants in "lanevil_clips" and its QA order in "lanevil_qa_order", so `read_drivelm(write_drivelm(...))` gives back the same records.
+frame its clip variants in "lanevil_clips" and its QA order in "lanevil_qa_order", so `read_drivelm(write_drivelm(...))`
+gives back the same records.
 
 Reading a DriveLM file (or a user's in that layout) without those fields: a key frame is one clean clip
 (clip_id = base_clip_id = frame token, case_id = scene token, segment "key_frame", severity 0). A DriveLM key frame

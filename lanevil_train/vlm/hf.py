@@ -131,9 +131,9 @@ class HFVLM(VLM):
     def identity(self) -> dict:
         """Path, a cheap hash of config + weight file names/sizes, and every setting that changes the answers."""
         return {"backend": type(self).__name__, "name": self.name, "path": str(self.path),
-                "model_hash": model_dir_hash(self.path), "dtype": self.dtype_name, "max_new_tokens": self.max_new_tokens,
-                "frames_as": self.frames_as, "system_prompt": self.system_prompt, "do_sample": self.do_sample,
-                "temperature": self.temperature if self.do_sample else None,
+                "model_hash": model_dir_hash(self.path), "dtype": self.dtype_name,
+                "max_new_tokens": self.max_new_tokens, "frames_as": self.frames_as, "system_prompt": self.system_prompt,
+                "do_sample": self.do_sample, "temperature": self.temperature if self.do_sample else None,
                 **({} if self.adapter is None else {"adapter": str(self.adapter), "adapter_hash":
                     adapter_dir_hash(self.adapter), "merge_adapter": self.merge_adapter})}
 

@@ -4,9 +4,9 @@ template sentences.
 
 A rewrite is kept only when it passes checks that the meaning-bearing form survived: not empty, not much longer,
 still a question when the original was, still yes/no when the original was (and not yes/no when it was not), an
-answer's leading Yes/No kept, and the same option letters in the same order for a choice question. Anything else keeps the original text (and is
-counted), so the pass can only vary the wording, never break a QA pair. Replies are cached per (model, temperature,
-question), so rebuilding a suite asks nothing twice.
+answer's leading Yes/No kept, and the same option letters in the same order for a choice question. Anything else keeps
+the original text (and is counted), so the pass can only vary the wording, never break a QA pair. Replies are cached
+per (model, temperature, question), so rebuilding a suite asks nothing twice.
 """
 
 from __future__ import annotations
@@ -73,7 +73,8 @@ def rejection(original: str, paraphrase: str, max_ratio: float) -> str | None:
 
 
 class OpenAIParaphraser:
-    """Callable list[str] -> list[str]: each question (or open answer) reworded through an OpenAI-compatible endpoint, or kept.
+    """Callable list[str] -> list[str]: each question (or open answer) reworded through an OpenAI-compatible endpoint,
+    or kept.
 
     api_key_env: the environment variable holding the API key (it must be set; None: no key); max_ratio: a
     paraphrase longer than max_ratio x the original (+20 characters) is refused; cache_path: a

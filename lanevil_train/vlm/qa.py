@@ -37,8 +37,8 @@ from lanevil_train.vlm.qa_facts import (
 from lanevil_train.vlm.qa_records import QA_CATEGORIES
 
 SEGMENT_ORDER = ("before", "over", "alongside")
-REQUIRED_TRUTH = ("curvature_sign", "slope", "num_lanes", "ego_lane", "markings", "weather", "night", "wet", "scene_kind",
-                  "illusion", "illusion_lane", "ego_speed_mps", "frame_step_m", "segment")
+REQUIRED_TRUTH = ("curvature_sign", "slope", "num_lanes", "ego_lane", "markings", "weather", "night", "wet",
+                  "scene_kind", "illusion", "illusion_lane", "ego_speed_mps", "frame_step_m", "segment")
 
 
 # ---------------------------------------------------------------------------------------------- helpers

@@ -186,7 +186,8 @@ class LayerWrapFSDPStrategy(FSDPStrategy):
         return super()._setup_model(model)
 
     def _wrap_on_cpu(self, model: nn.Module, policy) -> nn.Module:
-        """FSDP-wrap `model` on CPU (gloo) as Lightning would, but with device_id=cpu, which torch's FSDP needs there."""
+        """FSDP-wrap `model` on CPU (gloo) as Lightning would, but with device_id=cpu, which torch's FSDP needs
+        there."""
         import torch
         from torch.distributed.fsdp import FullyShardedDataParallel
 

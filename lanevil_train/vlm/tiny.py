@@ -192,8 +192,9 @@ def _onevision_processor(tokenizer, size: int):
     square = {"height": size, "width": size}
     images = LlavaOnevisionImageProcessor(size=square, image_grid_pinpoints=_onevision_pinpoints(size))
     videos = LlavaOnevisionVideoProcessor(size=square)
-    return LlavaOnevisionProcessor(images, tokenizer, videos, num_image_tokens=16, vision_feature_select_strategy="full",
-                                   chat_template=_TEMPLATES["llava_onevision"], vision_aspect_ratio="anyres_max_9")
+    return LlavaOnevisionProcessor(images, tokenizer, videos, num_image_tokens=16,
+                                   vision_feature_select_strategy="full", chat_template=_TEMPLATES["llava_onevision"],
+                                   vision_aspect_ratio="anyres_max_9")
 
 
 def _onevision_pinpoints(size: int) -> list[list[int]]:

@@ -194,7 +194,8 @@ class VLMFineTuner(pl.LightningModule):
         if len(found) != 1:
             raise ValueError(f"model.attention_layer: {name!r} names {len(found)} modules of the {self.model_type} "
                              f"model ({found[:3]}); expected one, a dotted name as in the Hugging Face model (e.g. "
-                             f"{vision_layer(self.model_type) if self.model_type in VISION_LAYERS else 'model.visual'})")
+                             f"{vision_layer(self.model_type) if self.model_type in VISION_LAYERS else 'model.visual'}"
+                             ")")
         return found[0]
 
     # ---- Lightning hooks -----------------------------------------------------------------------------------------

@@ -126,4 +126,5 @@ def test_combined_table_reads_each_pair_against_the_original_and_its_single_illu
     assert row["Accuracy/Original"] == pytest.approx(90.0) and row["Accuracy/Perturbed"] == pytest.approx(60.0)
     assert row["Accuracy/Gap"] == pytest.approx(-30.0)
     assert row["Accuracy/first alone"] == pytest.approx(80.0) and row["Accuracy/second alone"] == pytest.approx(70.0)
-    assert row["Accuracy/Gap vs first"] == pytest.approx(-20.0) and row["Accuracy/Gap vs second"] == pytest.approx(-10.0)
+    assert row["Accuracy/Gap vs first"] == pytest.approx(-20.0) and \
+        row["Accuracy/Gap vs second"] == pytest.approx(-10.0)

@@ -88,7 +88,8 @@ def test_an_empty_illusion_suite_is_refused_before_training(tmp_path):
 def test_build_refuses_an_empty_source(tmp_path):
     root, data = _tusimple(tmp_path, train_lines=2, test_lines=0)
     out = tmp_path / "set"
-    with pytest.raises(EmptySplitError, match=rf"^data\.test\.label_files: the test split is empty: .*{root / 'test.json'}"):
+    with pytest.raises(EmptySplitError, match=rf"^data\.test\.label_files: the test split is empty: "
+                                              rf".*{root / 'test.json'}"):
         build(_config(tmp_path, "task=build", f"task.out_dir={out}", *data))
     assert not out.exists()
     with pytest.raises(ValueError, match=r"^task\.cases: .*>= 1, got 0"):
@@ -189,7 +190,7 @@ def test_resuming_with_another_input_geometry_is_refused(tmp_path):
         train(_config(tmp_path, f"ckpt_path={path}", "data.crop_top=0.4"))
 
 
-# ---------------------------------------------------------------------------------------------- a checkpoint of the other kind
+# --------------------------------------------------------------------------------------- a checkpoint of the other kind
 
 @pytest.fixture(scope="module")
 def vlm_checkpoints(tmp_path_factory):
@@ -225,7 +226,8 @@ def test_a_vlm_checkpoint_given_to_a_detector_task_names_the_model_it_needs(tmp_
                                  f"a lane detector's; give it with model=vlm/hf model.path={model_dir}")
     path, model_dir = vlm_checkpoints["embedded"]
     with pytest.raises(CheckpointError, match=rf"^{option}={path}: a VLM's checkpoint \(qwen2_vl fine-tuned from "
-                                              rf"{model_dir}\), not a lane detector's; give it with model=vlm/embedded$"):
+                                              rf"{model_dir}\), not a lane detector's; "
+                                              r"give it with model=vlm/embedded$"):
         run(_config(tmp_path, task, f"{option}={path}", "task.cases=1"))
 
 
@@ -239,7 +241,8 @@ def test_a_detector_checkpoint_of_another_family_or_given_to_a_vlm_is_named(tmp_
             train(_config(tmp_path, f"{option}={path}"))
     _, model_dir = vlm_checkpoints["hf"]
     for task in ("task=evaluate", "task=train"):
-        with pytest.raises(CheckpointError, match=rf"^ckpt_path={path}: a lane detector's checkpoint \(ufld-resnet18\), "
+        with pytest.raises(CheckpointError, match=rf"^ckpt_path={path}: a lane detector's checkpoint "
+                                                  r"\(ufld-resnet18\), "
                                                   r"not a VLM's; drop model=vlm/\.\.\.: detector tasks rebuild "
                                                   r"model=ufld backbone=resnet18 from it$"):
             (evaluate if task == "task=evaluate" else train)(composed(

@@ -13,7 +13,8 @@ from tests.tasks.cli_helpers import TINY, run_cli
 
 def test_help_lists_config_groups(tmp_path):
     out = run_cli(["--help"], tmp_path / "run").stdout
-    for group in ("task:", "data:", "model:", "backbone:", "defense:", "trainer:", "callbacks:", "logger:", "experiment:"):
+    for group in ("task:", "data:", "model:", "backbone:", "defense:", "trainer:", "callbacks:", "logger:",
+                  "experiment:"):
         assert group in out, group
     assert "laneatt" in out and "quickstart" in out and "ddp_spawn" in out
 

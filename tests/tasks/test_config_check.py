@@ -59,7 +59,8 @@ def shipped_options() -> list[tuple[str, str]]:
 
 def needs(group: str, option: str, files: Path) -> list[str]:
     """What an option needs from the user by design: a dataset root (???), a checkpoint to score."""
-    if (group == "data" and option in ("tusimple", "culane")) or (group == "experiment" and option.startswith("paper_")):
+    if (group == "data" and option in ("tusimple", "culane")) or \
+            (group == "experiment" and option.startswith("paper_")):
         return [f"data.root={files / 'dataset'}"]
     if group == "task" and option in ("evaluate", "cross_domain", "closed_loop"):
         return [f"ckpt_path={files / 'model.ckpt'}"]
@@ -172,7 +173,8 @@ BAD = [
     (["model.optimizer.lr=1e-3x"], "model.optimizer.lr: expected a number > 0, got '1e-3x'"),
     (["model.optimizer.weight_decay=-0.1"], "model.optimizer.weight_decay: expected a number >= 0, got -0.1"),
     (["model.scheduler=step"],
-     "model.scheduler: expected null or a mapping with a _target_ (the dotted name of a class or function), got 'step'"),
+     "model.scheduler: expected null or a mapping with a _target_ (the dotted name of a class or function), "
+     "got 'step'"),
     (["model.scheduler._target_=torch.optim.NoSuchSchedule"],
      "model.scheduler._target_: cannot import 'torch.optim.NoSuchSchedule'"),
     (["+model.optimizer.momentum=0.9"],
@@ -299,10 +301,12 @@ BAD = [
     (["task=build", "task.fallback=1"], "task.fallback: expected true or false, got 1"),
     (["task=build", "task.cases=0"], "task.cases: expected an integer >= 1, the number of simulated scenes"),
     (["task=evaluate"],
-     "ckpt_path: task=evaluate scores a checkpoint; expected the path of a Lightning checkpoint file (or task.onnx=model.onnx), got null"),
+     "ckpt_path: task=evaluate scores a checkpoint; expected the path of a Lightning checkpoint file "
+     "(or task.onnx=model.onnx), got null"),
     (["task=cross_domain"], "ckpt_path: task=cross_domain scores a checkpoint"),
     (["task=report", "task.runs=[1]"], "task.runs: expected a list of strings, got [1]"),
-    (["task=compare", "task.defenses=[none,aam+]"], f"{DEFENSES}, got ['none', 'aam+'] (unknown: aam+; known: aam, aam++, copypaste, cutout, hsv, mida, mixup, "
+    (["task=compare", "task.defenses=[none,aam+]"],
+     f"{DEFENSES}, got ['none', 'aam+'] (unknown: aam+; known: aam, aam++, copypaste, cutout, hsv, mida, mixup, "
      f"none, pat, pat++, pgd, self_reminder)"),
     (["task=compare", "task.defenses=[aam,aam++]"],
      f"{DEFENSES}, got ['aam', 'aam++'] ('none' is missing: it is the reference every gain is measured against)"),

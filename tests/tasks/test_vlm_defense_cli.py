@@ -208,7 +208,8 @@ def test_pat_plus_plus_finds_hard_examples_by_each_answers_language_score(tiny_m
                        "defense.examples=2", "defense.pool_clips=3", "defense.chunk=4", f"output_dir={run}"]))
     chosen = json.loads((run / "examples.json").read_text())
     examples = chosen["examples"]
-    assert chosen["choosing"]["hardness"] == "language" and sorted(e["hard"] for e in examples) == [False] * 2 + [True] * 2
+    assert chosen["choosing"]["hardness"] == "language" and \
+        sorted(e["hard"] for e in examples) == [False] * 2 + [True] * 2
     values = [v for k, v in seen.items() if k != "pairs"]
     assert len(values) == chosen["pool"] == len(seen["pairs"]) and chosen["mean_score"] == pytest.approx(
         sum(values) / len(values))

@@ -77,7 +77,8 @@ def test_a_drivelm_file_reads_as_one_clean_clip_per_key_frame(tmp_path):
 
 @pytest.mark.parametrize("breakage, message", [
     (lambda d: d["scene-a"].pop("key_frames"), "scene scene-a: missing 'key_frames'"),
-    (lambda d: d["scene-a"]["key_frames"]["tok1"].pop("image_paths"), "scene scene-a frame tok1: missing 'image_paths'"),
+    (lambda d: d["scene-a"]["key_frames"]["tok1"].pop("image_paths"),
+     "scene scene-a frame tok1: missing 'image_paths'"),
     (lambda d: d["scene-a"]["key_frames"]["tok1"]["QA"]["perception"][0].pop("A"),
      r"scene scene-a frame tok1: QA.perception\[0\]: A: expected a non-empty string"),
     (lambda d: d["scene-a"]["key_frames"]["tok1"]["QA"].update(weather=[]), "QA.weather: unknown section"),

@@ -87,10 +87,12 @@ def test_answers_follow_the_truth():
     ego = [qa for qa in all_kinds(truth(ego_lane=2)) if "lane is the ego vehicle driving in" in qa["question"]]
     assert all("rightmost" in qa["answer"] or "third lane" in qa["answer"] for qa in ego)
     # left of ego lane 1 is white_dashed (crossable); ego lane 0's left is the road's left edge
-    change = [qa for qa in all_kinds(truth()) if qa["question"] == "May the ego vehicle change to the lane on its left here?"]
+    change = [qa for qa in all_kinds(truth())
+              if qa["question"] == "May the ego vehicle change to the lane on its left here?"]
     assert change[0]["answer"].startswith("Yes") and "dashed white" in change[0]["answer"]
     solid = truth(markings=["yellow_solid", "white_solid", "white_dashed", "white_solid"])
-    change = [qa for qa in all_kinds(solid) if qa["question"] == "May the ego vehicle change to the lane on its left here?"]
+    change = [qa for qa in all_kinds(solid)
+              if qa["question"] == "May the ego vehicle change to the lane on its left here?"]
     assert change[0]["answer"].startswith("No")
     shapes = [qa for qa in all_kinds(truth(slope="uphill", curvature_sign=0)) if qa["category"] == "scene_description"
               and qa["type"] == "choice" and "uphill" in " ".join(qa["choices"])]
