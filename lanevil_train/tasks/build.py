@@ -71,5 +71,6 @@ def write_suite_drivelm(root: Path) -> Path:
     from lanevil_train.vlm.drivelm import write_drivelm
 
     path = root / "drivelm.json"
-    write_drivelm(path, ResultsLog(root / CLIPS_FILE, "clip_id").records(), ResultsLog(root / QA_FILE, "qa_id").records())
+    clips = ResultsLog(root / CLIPS_FILE, "clip_id").records()
+    write_drivelm(path, clips, ResultsLog(root / QA_FILE, "qa_id").records())
     return path

@@ -5,8 +5,9 @@ For every case (a scene seed), every illusion of task.illusions and every repeat
 each severity and once clean (the twin): closed_loop/episode.py. Each model (ckpt_path, or several in task.models,
 label: checkpoint) drives every run. Finished runs are appended to <out>/runs.jsonl with their scores, after their
 traces (one JSON line per control step) were written whole to <out>/traces/<model>/; a rerun with the same out_dir
-skips them, and a model added to task.models later drives only its own runs (the settings must be the same). The report (closed_loop.md, asr_by_*.{md,csv,json}, asr.png, deviation.png, worst_run.gif) is built
-from runs.jsonl and the traces alone.
+skips them, and a model added to task.models later drives only its own runs (the settings must be the same). The
+report (closed_loop.md, asr_by_*.{md,csv,json}, asr.png, deviation.png, worst_run.gif) is built from runs.jsonl and
+the traces alone.
 """
 
 from __future__ import annotations

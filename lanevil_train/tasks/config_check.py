@@ -851,7 +851,8 @@ def check_split_seeds(cfg: DictConfig) -> list[str]:
         for b, b0, b1 in ranges[i + 1:]:
             if a0 < b1 and b0 < a1:
                 problems.append(f"data.{b}.first_seed: the {b} split's seeds [{b0}, {b1}) overlap the {a} split's "
-                                f"[{a0}, {a1}); splits must not share scenes: move data.{b}.first_seed or shrink a split")
+                                f"[{a0}, {a1}); splits must not share scenes: move data.{b}.first_seed or shrink a "
+                                f"split")
     return problems
 
 
@@ -880,14 +881,15 @@ def check_training_ends(cfg: DictConfig) -> list[str]:
     return []
 
 
-CROSS_CHECKS = (check_feature_map, check_decode_options, check_backbone_weights, check_cases, check_checkpoint_given, check_training_ends,
-                check_task_kind, check_vlm_task, check_split_seeds, check_suite_names)
+CROSS_CHECKS = (check_feature_map, check_decode_options, check_backbone_weights, check_cases, check_checkpoint_given,
+                check_training_ends, check_task_kind, check_vlm_task, check_split_seeds, check_suite_names)
 
 
 # ---------------------------------------------------------------------------------------------- _target_ nodes
 
 # Where config nodes with a `_target_` are: single nodes, lists of them, and mappings of named ones.
-TARGET_NODES = ("model", "model.head", "model.neck", "model.optimizer", "model.scheduler", "backbone", "defense.mixer", "defense.callback", "logger", "judge",
+TARGET_NODES = ("model", "model.head", "model.neck", "model.optimizer", "model.scheduler", "backbone", "defense.mixer",
+                "defense.callback", "logger", "judge",
                 *(f"data.{split}" for split in SPLITS))
 TARGET_LISTS = ("data.train_transforms", "defense.transforms")
 TARGET_MAPS = ("callbacks",)

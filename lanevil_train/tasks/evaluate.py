@@ -113,7 +113,8 @@ def _stream(cfg: DictConfig, model: LaneDetector, dataset, dataset_name: str, ou
                           cfg.task.label or f"{spec['model']['name']}-{spec['backbone']['name']}")
 
 
-def stream_dataset(cfg: DictConfig, model: LaneDetector, dataset, dataset_name: str, out: Path, model_label: str) -> Path:
+def stream_dataset(cfg: DictConfig, model: LaneDetector, dataset, dataset_name: str, out: Path,
+                   model_label: str) -> Path:
     """Score `model` on `dataset` into out/per_image.jsonl (resumes a partial file); returns that path."""
     label = {"model": model_label, "dataset": dataset_name}
     return stream_evaluate(model, dataset, out / RESULTS, label, batch_size=cfg.data.batch_size,
