@@ -35,8 +35,7 @@ def task_target(cfg: DictConfig) -> str:
         kind = model_kind(cfg)
         if kind not in target:
             runs = " and ".join(f"{k} models" for k in target)
-            model = cfg.model.get("name") or cfg.model.get("_target_")
-            raise ValueError(f"task: task={name} runs {runs}; model={model} is a {kind} (model.kind={kind})")
+            raise ValueError(f"task: task={name} runs {runs}; this model is a {kind} (model.kind={kind})")
         target = target[kind]
     if not isinstance(target, str) or not target:
         raise ValueError(f"task={name}: the task config names no function; add e.g. "

@@ -219,8 +219,12 @@ BAD = [
     (["task=train", "model=vlm/openai", "model.base_url=http://h/v1", "model.name=m"],
      "task: task=train with model=lanevil_train.vlm.openai.OpenAIVLM: a model behind a server cannot be trained "
      "here; fine-tune a local one"),
-    (["task=build", "model=vlm/openai", "model.base_url=http://h/v1", "model.name=m"],
-     "task: task=build with a VLM (model=lanevil_train.vlm.openai.OpenAIVLM) is not available"),
+    # the kind of model decides the task's function (tasks/kinds.py)
+    (["task=export", "model=vlm/openai", "model.base_url=http://h/v1", "model.name=m"],
+     "task: task=export runs detector models; this model is a vlm (model.kind=vlm)"),
+    (["~model.kind"], "model.kind: expected one of detector, vlm (a lane detector's conf/model/<family>.yaml says "
+     "`kind: detector`, a VLM backend's conf/model/vlm/<backend>.yaml `kind: vlm`), got None"),
+    (["model.kind=detectr"], "model.kind: expected one of detector, vlm"),
     (["task=train", "model=vlm/hf", "model.path=/tmp", "data=synthetic"],
      "data: expected clips (a VLM trains on the clip suite's QA), got 'synthetic' (model=vlm/<backend> selects "
      "data=clips unless another data= is given: drop it)"),
