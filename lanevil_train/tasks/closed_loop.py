@@ -27,7 +27,7 @@ from lanevil_train.files.atomic import atomic_write_text
 from lanevil_train.progress import progress_counter
 from lanevil_train.results_log import ResultsLog
 from lanevil_train.sim.vehicle import MPH, VehicleParams
-from lanevil_train.tasks.builders import output_dir
+from lanevil_train.tasks.builders import checkpoint_model, output_dir
 from lanevil_train.tasks.kinds import is_vlm
 from lanevil_train.taxonomy import ILLUSION_NAMES
 
@@ -72,7 +72,6 @@ def build_policies(cfg: DictConfig) -> list[tuple[object, dict]]:
                            name=cfg.task.label or vlm.name)
         return [(policy, {"policy": "vlm", **vlm.identity(), **OmegaConf.to_container(cfg.task.vlm)})]
     from lanevil_train.evaluation.streaming import run_identity
-    from lanevil_train.tasks.evaluate import checkpoint_model
 
     models = dict(cfg.task.models or {})
     if not models:

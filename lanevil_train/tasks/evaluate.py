@@ -11,7 +11,6 @@ from pathlib import Path
 import pytorch_lightning as pl
 from omegaconf import DictConfig, OmegaConf
 
-from lanevil_train.checkpoints import check_detector_checkpoint, fit_weights, read_lightning_checkpoint
 from lanevil_train.data.suites import IllusionSetDataset, SyntheticIllusionSuite
 from lanevil_train.errors import prefixed
 from lanevil_train.evaluation.results import log_results, write_results
@@ -20,15 +19,14 @@ from lanevil_train.evaluation.streaming import stream_evaluate
 from lanevil_train.models.detector import LaneDetector
 from lanevil_train.models.head import check_decode_options
 from lanevil_train.report.specs import LANE_SPEC
-from lanevil_train.tasks.builders import build_logger, build_model, build_split, model_config, output_dir
+from lanevil_train.tasks.builders import build_logger, build_split, checkpoint_model, output_dir
+from lanevil_train.tasks.export import OnnxLaneDetector
 
 
 def load_checkpoint(cfg: DictConfig) -> LaneDetector:
     """The checkpoint's network with its weights, or the ONNX model of task.onnx (run by onnxruntime, decoded by
     the family's head as the checkpoint would be); decoding overridable with task.decode.*."""
     if cfg.task.get("onnx"):
-        from lanevil_train.tasks.export import OnnxLaneDetector
-
         model = OnnxLaneDetector(cfg.task.onnx)
     else:
         if cfg.ckpt_path is None:
@@ -39,16 +37,6 @@ def load_checkpoint(cfg: DictConfig) -> LaneDetector:
                  if value is not None}
     check_decode_options(model.head, overrides, "task.decode")
     model.decode_kwargs.update(overrides)
-    return model
-
-
-def checkpoint_model(cfg: DictConfig) -> LaneDetector:
-    """The network of the checkpoint at ckpt_path (its stored build config; the command line's for checkpoints
-    without one) with its weights."""
-    checkpoint = read_lightning_checkpoint(cfg.ckpt_path, "ckpt_path")
-    check_detector_checkpoint(checkpoint, f"ckpt_path={cfg.ckpt_path}")  # a VLM's names the model= it needs
-    model = build_model(checkpoint.get("lanevil_model") or model_config(cfg))
-    fit_weights(model, checkpoint["state_dict"], f"ckpt_path={cfg.ckpt_path}")
     return model
 
 

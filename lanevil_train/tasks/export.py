@@ -26,8 +26,7 @@ from torch import nn
 
 from lanevil_train.files.atomic import atomic_write_bytes
 from lanevil_train.models.detector import LaneDetector
-from lanevil_train.tasks.builders import build_model, model_config, output_dir
-from lanevil_train.tasks.evaluate import checkpoint_model
+from lanevil_train.tasks.builders import build_model, checkpoint_model, model_config, output_dir
 
 log = logging.getLogger(__name__)
 
