@@ -90,8 +90,11 @@ def cycles(edges: dict[str, set[str]]) -> list[list[str]]:
 
 
 def folder(module: str) -> str:
+    """The folder a module is in (models/clrnet/head.py -> models/); a top-level module stands for itself."""
     parts = module.split(".")
-    return parts[1] if len(parts) > 2 or (len(parts) == 2 and (ROOT / parts[1]).is_dir()) else "(top-level modules)"
+    if len(parts) > 2 or (len(parts) == 2 and (ROOT / parts[1]).is_dir()):
+        return parts[1] + "/"
+    return parts[-1] + ".py"
 
 
 def draw(edges: dict[str, set[str]], out: Path) -> None:
@@ -102,6 +105,8 @@ def draw(edges: dict[str, set[str]], out: Path) -> None:
 
     folders = defaultdict(set)
     for a, targets in edges.items():
+        if a == "lanevil_train":
+            continue  # the package's __init__
         for b in targets:
             if folder(a) != folder(b):
                 folders[folder(a)].add(folder(b))
@@ -124,19 +129,21 @@ def draw(edges: dict[str, set[str]], out: Path) -> None:
     for d, names in rows.items():
         for i, name in enumerate(sorted(names)):
             position[name] = ((i + 1) / (len(names) + 1), d)
-    fig, ax = plt.subplots(figsize=(12, 1.4 * (max(rows) + 1) + 1))
+    fig, ax = plt.subplots(figsize=(16, 1.3 * (max(rows) + 1) + 1))
     for a, targets in folders.items():
         for b in targets:
             (x0, y0), (x1, y1) = position[a], position[b]
             ax.annotate("", xy=(x1, y1 + 0.12), xytext=(x0, y0 - 0.12),
-                        arrowprops=dict(arrowstyle="->", color="#9aa", lw=0.8, shrinkA=0, shrinkB=0))
+                        arrowprops=dict(arrowstyle="->", color="#8899aa", alpha=0.45, lw=0.7, shrinkA=0, shrinkB=0))
     for name, (x, y) in position.items():
-        ax.text(x, y, name, ha="center", va="center", fontsize=10,
-                bbox=dict(boxstyle="round,pad=0.4", fc="#eef4fb", ec="#4a7ab0"))
+        folder_node = name.endswith("/")
+        ax.text(x, y, name, ha="center", va="center", fontsize=10 if folder_node else 8.5,
+                bbox=dict(boxstyle="round,pad=0.4", fc="#eef4fb" if folder_node else "#f6f6f0",
+                          ec="#4a7ab0" if folder_node else "#999988"))
     ax.set_xlim(0, 1)
     ax.set_ylim(-0.6, max(rows) + 0.6)
     ax.axis("off")
-    ax.set_title("lanevil_train: each folder above the folders it imports (arrows: imports)")
+    ax.set_title("lanevil_train: each folder (blue) and top-level module above what it imports (arrows: imports)")
     fig.tight_layout()
     fig.savefig(out, dpi=110)
 
