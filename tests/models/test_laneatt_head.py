@@ -6,8 +6,8 @@ import torch
 
 from lanevil_train.models.backbones import build_backbone
 from lanevil_train.models.laneatt import LaneATTHead
-from lanevil_train.models.laneatt_anchors import BOTTOM_ANGLES, LEFT_ANGLES, generate_anchors, row_ys
-from lanevil_train.models.laneatt_frequency import FREQUENCY_FILE, top_anchors
+from lanevil_train.models.laneatt.anchors import BOTTOM_ANGLES, LEFT_ANGLES, generate_anchors, row_ys
+from lanevil_train.models.laneatt.frequency import FREQUENCY_FILE, top_anchors
 from lanevil_train.models.losses import focal_loss
 from lanevil_train.models.nms import lane_nms, lane_nms_batched
 

@@ -38,7 +38,7 @@ def similarity_loss(logits: torch.Tensor) -> torch.Tensor:
 def expected_locations(logits: torch.Tensor, local_width: int | None = None) -> torch.Tensor:
     """The expected cell index (B, R, L): softmax over the num_cells cells (the "no lane" class left out), then
     sum_k k * prob_k, k from 0 (the paper's Loc, in cell units; as the official TuSimple writer,
-    evaluation/eval_wrapper.py `generate_tusimple_lines`; ufld_codec.cell_to_x maps it to pixels).
+    evaluation/eval_wrapper.py `generate_tusimple_lines`; codec.cell_to_x maps it to pixels).
 
     `local_width` k: the softmax is taken over the cells within k of the arg-max cell only, UFLD v2's decoding
     (evaluation/eval_wrapper.py `generate_lines_local`, local_width = 1), so a flat distribution no longer pulls

@@ -7,7 +7,7 @@ tensors only (ONNX-exportable); NMS and lane assembly live in ``decode``.
 Distance thresholds (matching, NMS) are given in pixels at ``reference_width`` (640, the
 official input width) and scaled by W / reference_width, so the defaults fit any input size.
 As the official (lucastabelini/LaneATT, lib/models/laneatt.py): the anchors can be the topk most
-used by the train split's lanes (anchor_selection=frequency, laneatt_frequency.py), and the loss
+used by the train split's lanes (anchor_selection=frequency, frequency.py), and the loss
 is computed on the proposals a lane NMS keeps (15 px, top 3,000, no score threshold).
 """
 
@@ -22,7 +22,7 @@ from torch import nn
 
 from lanevil_train.lanes import row_proposal_to_lane
 from lanevil_train.models.head import LaneHead
-from lanevil_train.models.laneatt_anchors import (
+from lanevil_train.models.laneatt.anchors import (
     TARGET_META,
     anchor_cut_indices,
     encode_lanes,
@@ -30,7 +30,7 @@ from lanevil_train.models.laneatt_anchors import (
     generate_anchors,
     row_ys,
 )
-from lanevil_train.models.laneatt_frequency import (
+from lanevil_train.models.laneatt.frequency import (
     anchor_use_frequency,
     cached_frequency,
     dataset_fingerprint,

@@ -2,9 +2,9 @@
 
 Lanes as keypoints: on the stride-8 level a keypoint heatmap (1 channel, sigmoid), the sub-cell error of each
 keypoint (2 channels) and, the paper's global association, every keypoint's offset to its lane's start point
-(2 channels); decoding groups the keypoints by the start points they point at (ganet_codec).
+(2 channels); decoding groups the keypoints by the start points they point at (codec.py).
 
-The head reads the backbone's C3, C4, C5 and builds GANet's own neck (ganet_neck, the official DeformFPN): two
+The head reads the backbone's C3, C4, C5 and builds GANet's own neck (neck.py, the official DeformFPN): two
 self-attention layers with sine position embeddings on C5, which then replaces C5; 1x1 laterals and the top-down
 sum; the Lane-aware Feature Aggregator (LFA) on the finest merged lateral, then a 3x3 conv, for the heatmap
 branch; the offset and error branches read the merged lateral itself (the official ``dcn_only_cls``). The LFA
@@ -19,7 +19,7 @@ Where this differs from the official, and why:
   configured 320x800 input: the same values there);
 - the official's 3x3 output convs of the stride-16 and stride-32 levels, whose outputs nothing reads, are left
   out;
-- per-image loss normalisation (ganet_loss) and the decoding's nearest-centre assignment (ganet_codec).
+- per-image loss normalisation (loss.py) and the decoding's nearest-centre assignment (codec.py).
 """
 
 from __future__ import annotations
@@ -28,9 +28,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from lanevil_train.models.ganet_codec import decode_lanes, encode_targets, heatmap_size
-from lanevil_train.models.ganet_loss import heatmap_focal_loss, lfa_loss, masked_l1
-from lanevil_train.models.ganet_neck import GANetNeck
+from lanevil_train.models.ganet.codec import decode_lanes, encode_targets, heatmap_size
+from lanevil_train.models.ganet.loss import heatmap_focal_loss, lfa_loss, masked_l1
+from lanevil_train.models.ganet.neck import GANetNeck
 from lanevil_train.models.head import LaneHead
 
 HEATMAP_BIAS = -2.19  # CenterNet's initial heatmap bias (sigmoid 0.1), the official CtnetHead's
@@ -42,7 +42,7 @@ def _branch(c_in: int, hidden: int, out: int) -> nn.Sequential:
 
 
 class GANetHead(LaneHead):
-    """GANet on the backbone's maps, finest first (C3, C4, C5 in the paper): its neck (ganet_neck) merges them
+    """GANet on the backbone's maps, finest first (C3, C4, C5 in the paper): its neck (neck.py) merges them
     top-down onto the finest one, whose stride is the heatmap's (8 in the paper)."""
 
     def __init__(
@@ -131,7 +131,7 @@ class GANetHead(LaneHead):
 
     # ------------------------------------------------------------------ targets
     def encode(self, lanes: list[np.ndarray], meta: dict | None = None) -> dict[str, np.ndarray]:
-        """GT lanes (input pixels) -> heatmap, error, offsets, mask, lfa_points, lfa_valid (ganet_codec)."""
+        """GT lanes (input pixels) -> heatmap, error, offsets, mask, lfa_points, lfa_valid (codec.py)."""
         return encode_targets(lanes, self.image_size, self.stride, self.max_lanes, self.points_per_lane,
                               self.radius, self.lfa_gt_points)
 
@@ -165,7 +165,7 @@ class GANetHead(LaneHead):
         cluster_threshold: float = 5.0,
         min_points: int = 11,
     ) -> list[list[np.ndarray]]:
-        """Per image: lanes as (N, 2) arrays in input pixels, y descending, left to right (ganet_codec).
+        """Per image: lanes as (N, 2) arrays in input pixels, y descending, left to right (codec.py).
         The defaults are the official CULane ones (stride 8, 320x800): root_threshold in heatmap cells;
         cluster_threshold in heatmap cells at reference_width, scaled to the input width (5 cells = 40 px at
         800 px wide); min_points keypoints per lane (the official "more than 10", for a 40-row heatmap: lower

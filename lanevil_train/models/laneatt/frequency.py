@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from lanevil_train.lanes import lane_extent_problem
-from lanevil_train.models.laneatt_anchors import TARGET_META, encode_lanes
+from lanevil_train.models.laneatt.anchors import TARGET_META, encode_lanes
 from lanevil_train.models.losses import anchor_target_distances
 
 log = logging.getLogger(__name__)

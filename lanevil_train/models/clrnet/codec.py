@@ -4,7 +4,7 @@ A ground-truth lane becomes, as in the official ``GenerateLaneLine``: its x at t
 straight down to the bottom of the image from its two lowest points), the first row inside the image
 (``start_y``), the x there (``start_x``), the number of rows inside (``length``) and its mean angle ``theta``
 (the mean over its inside points of the angle from the start point, in units of pi). The rows and the
-extension are LaneATT's (``laneatt_anchors.encode_lane``: the same sampling, plus one row above the lane's
+extension are LaneATT's (``laneatt.anchors.encode_lane``: the same sampling, plus one row above the lane's
 top so the top evaluation row is covered).
 """
 
@@ -15,7 +15,7 @@ import math
 import numpy as np
 import torch
 
-from lanevil_train.models.laneatt_anchors import UNDEFINED_X, encode_lane
+from lanevil_train.models.laneatt.anchors import UNDEFINED_X, encode_lane
 from lanevil_train.models.nms import lane_nms
 
 # target row layout: [valid, start_y (fraction of the height), start_x (px), theta (pi units), length (rows), x_0..]

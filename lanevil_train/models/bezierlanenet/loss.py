@@ -32,7 +32,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from lanevil_train.models.bezier import fit_bezier, sample_bezier, sub_curve
+from lanevil_train.models.bezierlanenet.bezier import fit_bezier, sample_bezier, sub_curve
 from lanevil_train.models.matching import match_batch
 
 NUM_CONTROL_POINTS = 4

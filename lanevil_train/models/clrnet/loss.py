@@ -50,7 +50,7 @@ def assign(cls_logits: torch.Tensor, lines: torch.Tensor, xs: torch.Tensor, targ
     """CLRNet's dynamic (SimOTA-like) assignment: a positive mask (N, P) and each positive's lane index (N, P).
 
     cls_logits (N, P, 2); lines (N, P, >=3) [start_y, start_x (fraction of W-1), theta, ...]; xs (N, P, S)
-    pixels; targets (N, L, meta + S) as clrnet_codec encodes them. The cost of a (prediction, lane) pair is
+    pixels; targets (N, L, meta + S) as codec.py encodes them. The cost of a (prediction, lane) pair is
     focal classification cost - distance_weight x (distance score x start-point score x angle score)^2, each
     score 1 - c / max c + 0.01 (mean |x| distance over the lane's rows, start-point distance in pixels, angle
     difference in degrees). Each lane takes its k lowest-cost predictions, k = max(1, int(sum of its

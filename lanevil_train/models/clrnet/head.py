@@ -1,17 +1,17 @@
 """CLRNet head (Zheng et al., "CLRNet: Cross Layer Refinement Network for Lane Detection", CVPR 2022).
 
-Learnable straight-line priors (start_y, start_x, theta; clrnet_priors) are refined over the FPN levels from
+Learnable straight-line priors (start_y, start_x, theta; priors.py) are refined over the FPN levels from
 the coarsest to the finest: at each stage, ROIGather samples the stage's feature map along every prior line
 (grid_sample at 36 of the 72 rows, laid out top row first as the official), mixes it with the ROI features of
 the earlier stages, reduces it with an fc layer and lets it attend to the whole (resized) feature map; shared
 fc layers then classify each prior (2 logits) and regress start_y, start_x, theta, the length and 72 x offsets.
-A stage's refined line (without the offsets, detached) is the next stage's prior. The loss (clrnet_loss) is computed on
+A stage's refined line (without the offsets, detached) is the next stage's prior. The loss (loss.py) is computed on
 every stage's predictions, with a dynamic assignment of predictions to lanes; NMS lives in ``decode`` only.
 
 The official training's auxiliary segmentation loss is an option (``seg_loss_weight`` > 0; the official
 weight is 1.0): a 1x1 convolution (after dropout 0.1) over the refined levels resized to the finest one and
 concatenated, upsampled to the input, trained by a cross-entropy with the background weighted 0.4 against
-lane masks drawn per lane slot (scnn_codec, as CULane's labels). It runs in training only, so decoding and
+lane masks drawn per lane slot (scnn.codec, as CULane's labels). It runs in training only, so decoding and
 export never see it; with the weight 0 the decoder is not built.
 
 Distances the official gives in pixels at its 800 px wide input (the Line IoU radius 15, the NMS threshold 50,
@@ -28,14 +28,14 @@ import torch.nn.functional as F
 from torch import nn
 
 from lanevil_train.lanes import row_proposal_to_lane
-from lanevil_train.models.clrnet_codec import (
+from lanevil_train.models.clrnet.codec import (
     TARGET_META,
     clrnet_nms,
     encode_lanes,
     start_rows,
 )
-from lanevil_train.models.clrnet_loss import clrnet_losses, segmentation_loss
-from lanevil_train.models.clrnet_priors import (
+from lanevil_train.models.clrnet.loss import clrnet_losses, segmentation_loss
+from lanevil_train.models.clrnet.priors import (
     init_prior_embeddings,
     line_xs,
     row_fractions,
@@ -43,8 +43,8 @@ from lanevil_train.models.clrnet_priors import (
     sample_indices,
 )
 from lanevil_train.models.head import LaneHead
-from lanevil_train.models.scnn_codec import draw_width
-from lanevil_train.models.scnn_codec import encode_lanes as encode_masks
+from lanevil_train.models.scnn.codec import draw_width
+from lanevil_train.models.scnn.codec import encode_lanes as encode_masks
 
 
 def _conv_bn_relu(c_in: int, c_out: int, kernel, padding) -> nn.Sequential:
@@ -105,7 +105,7 @@ class CLRNetHead(LaneHead):
 
     forward -> {"cls_logits": (B, R, P, 2), "lines": (B, R, P, 4), "xs": (B, R, P, S)} for every refinement
     stage r (the last one is the output): lines are [start_y, start_x, theta, length] in the official's
-    normalised units (clrnet_priors; length in rows / (S-1)), xs the x at the S rows in input pixels.
+    normalised units (priors.py; length in rows / (S-1)), xs the x at the S rows in input pixels.
     """
 
     def __init__(self, in_channels: list[int], in_strides: list[int], image_size: tuple[int, int],
@@ -214,8 +214,8 @@ class CLRNetHead(LaneHead):
     # ------------------------------------------------------------------ targets
     def encode(self, lanes: list[np.ndarray], meta: dict | None = None) -> dict[str, np.ndarray]:
         """GT lanes (input pixels) -> {"lanes": float32 (max_lanes, 5 + S)} [valid, start_y, start_x, theta,
-        length, xs] (clrnet_codec); with the auxiliary segmentation also "seg": uint8 (H, W), 0 background and
-        1 + slot on each lane's drawn line (slots as CULane's labels: scnn_codec, "ego")."""
+        length, xs] (codec.py); with the auxiliary segmentation also "seg": uint8 (H, W), 0 background and
+        1 + slot on each lane's drawn line (slots as CULane's labels: scnn.codec, "ego")."""
         out = {"lanes": encode_lanes(lanes, self.image_size, self.n_points, self.max_lanes)}
         if self.seg_decoder is not None:
             out["seg"] = encode_masks(lanes, self.image_size, self.max_lanes, self.seg_line_width)["seg"]

@@ -20,7 +20,7 @@ column 0 as the down and right passes left them. The feature map is cropped (aft
 floors odd sizes where ResNets round up) to the size fixed by ``image_size`` and the stride, so the loops
 have static bounds that tracing and ONNX export unroll (35 + 34 + 99 + 98 slice steps at 288x800).
 
-Targets, slots and post-processing: see ``models/scnn_codec.py``.
+Targets, slots and post-processing: see ``models/scnn/codec.py``.
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ from torch import nn
 
 from lanevil_train.lanes import SLOT_ASSIGNMENTS, as_lane
 from lanevil_train.models.head import LaneHead
-from lanevil_train.models.scnn_codec import (
+from lanevil_train.models.scnn.codec import (
     draw_width,
     encode_lanes,
     lane_points,
@@ -86,7 +86,7 @@ class SCNNHead(LaneHead):
     Reads the last feature map it is given (stride 8 in the paper). ``hidden_channels`` is the dilated 3x3
     convolution's width (1024 in the paper), ``mp_channels`` the message-passing width (128), ``mp_kernel``
     its kernel width (9). ``lane_width`` px at ``reference_width`` is the drawn label width (CULane: 16 px
-    at 1640); ``slot_assignment`` "ego" or "packed" (see models/scnn_codec.py)."""
+    at 1640); ``slot_assignment`` "ego" or "packed" (see models/scnn/codec.py)."""
 
     def __init__(
         self,

@@ -1,4 +1,4 @@
-"""GANet's own neck, built inside its head (models/ganet.py) from the backbone's maps (C3, C4, C5), as the
+"""GANet's own neck, built inside its head (models/ganet/head.py) from the backbone's maps (C3, C4, C5), as the
 official DeformFPN (Wolfwjs/GANet, mmdet/models/necks/dcn_fpn.py) orders it:
 
 1. C5 goes through two self-attention layers, each adding a sine position embedding after its first conv, and

@@ -18,9 +18,9 @@ sees the same keys as eval), and its loss is zero when they are absent. A backbo
 wide (ResNet-50's 1024) goes through a 1x1 conv + BN + ReLU first (the official's optional "reducer"). The
 official trains the offset convolution (``conv_offset``: offsets and masks) at 0.1x the rate; the family config
 gives it through model.lr_multipliers. The local-maximum window of the matching and the decoding is by default
-(``"auto"``) the official 9 scaled to the query count (bezierlanenet_loss.scaled_window): 9 would let at most 4
+(``"auto"``) the official 9 scaled to the query count (loss.scaled_window): 9 would let at most 4
 lanes survive among the 20 queries of a 320 px input.
-Targets, matching and loss: bezierlanenet_loss.
+Targets, matching and loss: loss.py.
 """
 
 from __future__ import annotations
@@ -33,8 +33,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from lanevil_train.lanes import as_lane
-from lanevil_train.models.bezier import x_at_rows
-from lanevil_train.models.bezierlanenet_loss import (
+from lanevil_train.models.bezierlanenet.bezier import x_at_rows
+from lanevil_train.models.bezierlanenet.loss import (
     AUTO,
     bezier_losses,
     encode_targets,

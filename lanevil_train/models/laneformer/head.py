@@ -27,7 +27,7 @@ ROI-aligned features (Zr) to its values. Here:
   of the height through a sigmoid stretched over [-Y_MARGIN, 1 + Y_MARGIN] of the height, so that a lane
   starting on the bottom row, the usual case, is a target the sigmoid reaches: 0.917, not its asymptote 1)
   and x at ``num_points`` fixed rows (fractions of the width, not bounded: a lane may leave the image). The
-  loss (laneformer_loss) runs on the last layer and, as DETR's auxiliary decoding losses, on every earlier one
+  loss (loss.py) runs on the last layer and, as DETR's auxiliary decoding losses, on every earlier one
   (``aux_loss``); those outputs are returned in training mode only.
 
 Left out: the object-aware part (person and vehicle boxes from an external detector as extra keys and values,
@@ -50,8 +50,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from lanevil_train.models.head import LaneHead
-from lanevil_train.models.laneatt_anchors import row_ys
-from lanevil_train.models.laneformer_loss import assemble_lane, encode_lanes, set_loss
+from lanevil_train.models.laneatt.anchors import row_ys
+from lanevil_train.models.laneformer.loss import assemble_lane, encode_lanes, set_loss
 
 ROW_COLUMN_MODES = ("lines", "axial")
 _PARTS = ("start_y", "end_y", "xs")
@@ -308,7 +308,7 @@ class LaneFormerHead(LaneHead):
     # ------------------------------------------------------------------ targets and loss
     def encode(self, lanes: list[np.ndarray], meta: dict | None = None) -> dict[str, np.ndarray]:
         """GT lanes (input pixels) -> {"lanes": (max_lanes, 3 + N) [valid, start_y, end_y, xs], "x_mask":
-        (max_lanes, N)}, float32, in fractions of the image (laneformer_loss.encode_lanes)."""
+        (max_lanes, N)}, float32, in fractions of the image (loss.encode_lanes)."""
         return encode_lanes(lanes, self.image_size, self.num_points, self.max_lanes)
 
     def loss(self, raw: dict, targets: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:

@@ -9,14 +9,14 @@ multi-scale features (strides 8, 16, 32, the paper's aux header) predicts each l
 finest stride; it is computed only in train mode, so the exported (eval) graph is the classification head alone.
 
 Losses: focal classification over the cells, the structural similarity and shape losses, and cross-entropy of
-the aux segmentation (ufld_losses.py). Decoding takes the expectation of the location under the softmax over the
+the aux segmentation (losses.py). Decoding takes the expectation of the location under the softmax over the
 cells, on the rows where the arg-max is not "no lane", mapped to x as the official TuSimple writer does
-(ufld_codec.cell_to_x), and keeps a lane with at least ``min_points`` points. The cells are the official ones
-(positions linspace(0, W - 1, num_cells), ufld_codec.py).
+(codec.cell_to_x), and keeps a lane with at least ``min_points`` points. The cells are the official ones
+(positions linspace(0, W - 1, num_cells), codec.py).
 
 Where we chose: lanes fill the slots by their x at the image bottom, in left-to-right order and centred on the
 camera (lanes.assign_slots; the paper's datasets give fixed lane indices); row anchors are fractions of the
-height; the shape loss counts only rows holding the ground-truth lane (ufld_losses.py); decoding extends each
+height; the shape loss counts only rows holding the ground-truth lane (losses.py); decoding extends each
 lane's ends to the neighbouring row anchors (decode's extend_ends) and clips x to the image (the official writer
 leaves the last cell's centre, past the right edge, as it is). The loss weights default to the official TuSimple
 config (similarity 1, shape 0, aux 1; its CULane config sets similarity 0): a shape loss weighted 1 (in cell
@@ -35,7 +35,7 @@ from torch import nn
 
 from lanevil_train.lanes import SLOT_ASSIGNMENTS, as_lane
 from lanevil_train.models.head import LaneHead
-from lanevil_train.models.ufld_codec import (
+from lanevil_train.models.ufld.codec import (
     cell_to_x,
     cell_width,
     draw_seg_mask,
@@ -43,7 +43,7 @@ from lanevil_train.models.ufld_codec import (
     row_anchor_fractions,
     row_ys,
 )
-from lanevil_train.models.ufld_losses import (
+from lanevil_train.models.ufld.losses import (
     classification_loss,
     expected_locations,
     segmentation_loss,
@@ -237,7 +237,7 @@ class UFLDHead(LaneHead):
 
         A slot has a point on each row whose arg-max over the num_cells + 1 classes is not "no lane"; its x is
         the expected cell index under the softmax over the cells (`local_width` None, v1's writer; an int k: over
-        the arg-max cell +- k only, UFLD v2's), mapped as the official TuSimple writer (ufld_codec.cell_to_x) and
+        the arg-max cell +- k only, UFLD v2's), mapped as the official TuSimple writer (codec.cell_to_x) and
         clipped to [0, W - 1]. A slot with fewer than `min_points` points
         is dropped (the official keeps lanes with more than 2). `extend_ends`: a lane's true ends lie between
         its end rows and the next row anchors (or the image bottom below the last row), so each end is extended
