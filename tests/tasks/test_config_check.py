@@ -215,10 +215,10 @@ BAD = [
     (["task=evaluate", "model=vlm/openai", "model.base_url=http://h/v1", "model.name=m", "model.concurrency=0"],
      "model.concurrency: expected an integer >= 1, got 0"),
     (["task=train", "model=vlm/openai", "model.base_url=http://h/v1", "model.name=m"],
-     "task: task=train with model=lanevil_train.vlm.openai.OpenAIVLM: a model behind a server cannot be trained "
-     "here; fine-tune a local one"),
+     "task: task=train with model=lanevil_train.vlm.backends.openai.OpenAIVLM: a model behind a server cannot be "
+     "trained here; fine-tune a local one"),
     (["task=build", "model=vlm/openai", "model.base_url=http://h/v1", "model.name=m"],
-     "task: task=build with a VLM (model=lanevil_train.vlm.openai.OpenAIVLM) is not available"),
+     "task: task=build with a VLM (model=lanevil_train.vlm.backends.openai.OpenAIVLM) is not available"),
     (["task=train", "model=vlm/hf", "model.path=/tmp", "data=synthetic"],
      "data: expected clips (a VLM trains on the clip suite's QA), got 'synthetic' (model=vlm/<backend> selects "
      "data=clips unless another data= is given: drop it)"),
@@ -229,7 +229,7 @@ BAD = [
     (["task=train", "data=clips", "model=vlm/hf", "model.path=/tmp", "model.fine_tune.variants=some"],
      "model.fine_tune.variants: expected one of all, clean, got 'some'"),
     (["task=evaluate", "model=vlm/openai", "model.base_url=http://h/v1", "model.name=m", "+model.top_p=0.9"],
-     "model.top_p: not a parameter of lanevil_train.vlm.openai.OpenAIVLM; it accepts base_url"),
+     "model.top_p: not a parameter of lanevil_train.vlm.backends.openai.OpenAIVLM; it accepts base_url"),
     (["task=evaluate", "model=vlm/openai", "model.base_url=http://h/v1", "model.name=m", "judge=openai",
       "judge.model=gpt-4o-mini", "judge.api_key_env=null"],
      "judge.base_url: is not set (??? in the config); set it to an http(s) URL, e.g. http://127.0.0.1:8000/v1: "
