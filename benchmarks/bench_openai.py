@@ -36,7 +36,7 @@ def road_frame(seed: int, height: int, width: int) -> np.ndarray:
 def run(concurrency: int, image_format: str, requests: int, questions_per_clip: int, url: str,
         frames: tuple[int, int]) -> dict:
     """Time `requests` requests at `concurrency`; requests/s and the payload size."""
-    from lanevil_train.vlm.openai import OpenAIVLM, encode_frame
+    from lanevil_train.vlm.backends.openai import OpenAIVLM, encode_frame
 
     clips_needed = -(-requests // questions_per_clip)
     clips = [[road_frame(100 * c + f, *frames) for f in range(6)] for c in range(clips_needed)]

@@ -18,7 +18,7 @@ attribute has it switched on, so it can add per-image accuracy when it is able t
 behind frozen weights (a VLM's frozen vision tower) still receives them.
 
 A layer whose output is not a (B, C, H, W) map of the batch images (a vision transformer's tokens) takes a
-`feature_map` callable that lays its output out as one: a VLM's tokens on its frames (vlm/vision_maps.py).
+`feature_map` callable that lays its output out as one: a VLM's tokens on its frames (vlm/training/vision_maps.py).
 """
 
 from __future__ import annotations

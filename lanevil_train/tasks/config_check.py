@@ -36,7 +36,7 @@ from lanevil_train.progress import MODES
 from lanevil_train.tasks.kinds import task_target
 from lanevil_train.tasks.vlm_defense import HARDNESS, PROMPT_DEFENSES
 from lanevil_train.tasks.vlm_train import TRAINING_KEYS
-from lanevil_train.vlm.pat import HARD_TARGETS
+from lanevil_train.vlm.defenses.pat import HARD_TARGETS
 
 # Keys of a `_target_` node that Hydra reads itself (not passed to the target).
 HYDRA_KEYS = {"_target_", "_recursive_", "_convert_", "_partial_", "_args_"}

@@ -9,7 +9,7 @@ from omegaconf import DictConfig
 from lanevil_train.evaluation.results import log_results, write_results
 from lanevil_train.evaluation.scoring import RESULTS
 from lanevil_train.tasks.builders import build_logger, output_dir
-from lanevil_train.vlm.evaluation import PER_ANSWER
+from lanevil_train.vlm.scoring.evaluation import PER_ANSWER
 
 RESULT_FILES = (RESULTS, PER_ANSWER)  # a lane detector's per-image scores, a VLM's per-answer scores
 

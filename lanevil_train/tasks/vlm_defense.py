@@ -18,10 +18,10 @@ task=train with defense=self_reminder only tests the reminded model. task=train 
      - language: every question, with the answer's own Language score (metrics.vqa.language_per_answer).
      Answers below the mean make hard examples, the rest benign ones, as AAM++ picks them. `defense.examples`
      of each are drawn and written to examples.json, and a resumed run reuses them;
-  3. tunes the prefix (vlm/pat.py) into prefix.json, resuming from it;
+  3. tunes the prefix (vlm/defenses/pat.py) into prefix.json, resuming from it;
   4. with task.test_after_fit, evaluates the model with the prefix on the test clips, as task=evaluate would.
 defense=pat draws its examples without asking the model (closed questions of perturbed clips to attack, questions
-of clean clips as benign ones) and tunes prefix and attack suffix in turn (vlm/pat_baseline.py).
+of clean clips as benign ones) and tunes prefix and attack suffix in turn (vlm/defenses/pat_baseline.py).
 """
 
 from __future__ import annotations
@@ -70,7 +70,7 @@ def prompt_settings(defense: DictConfig) -> dict:
 def check_prompt_model(cfg: DictConfig) -> None:
     """A prefix is tuned for a trained local model: model=vlm/hf or vlm/embedded, with model.path or ckpt_path."""
     target = cfg.model.get("_target_")
-    if cfg.ckpt_path is None and target != "lanevil_train.vlm.hf.HFVLM":
+    if cfg.ckpt_path is None and target != "lanevil_train.vlm.backends.hf.HFVLM":
         raise ValueError(f"model: defense={cfg.defense.name} splices a prefix into a local model's token ids; use "
                          f"model=vlm/hf or model=vlm/embedded (got model._target_={target})")
     if cfg.ckpt_path is None and cfg.model.get("path") is None:
@@ -93,8 +93,8 @@ def check_prompt_defense(cfg: DictConfig) -> None:
 def with_prompt_defense(cfg: DictConfig, vlm):
     """task=evaluate: the VLM with its questions wrapped in the reminders (self_reminder), or with the tuned prefix
     of defense.prefix_path before every question (pat++)."""
-    from lanevil_train.vlm.pat import load_prefix
-    from lanevil_train.vlm.reminder import RemindedVLM
+    from lanevil_train.vlm.defenses.pat import load_prefix
+    from lanevil_train.vlm.defenses.reminder import RemindedVLM
 
     settings = prompt_settings(cfg.defense)
     name = f"{vlm.name}+{cfg.defense.name}"
@@ -107,7 +107,7 @@ def with_prompt_defense(cfg: DictConfig, vlm):
 
 def prefixed(vlm, record: dict, name: str):
     """The VLM with a tuned prefix.json `record` before every question (its token ids, or its soft vectors)."""
-    from lanevil_train.vlm.pat import PrefixedVLM
+    from lanevil_train.vlm.defenses.pat import PrefixedVLM
 
     method = "PAT" if record.get("facts", {}).get("method") == "pat" else "PAT++"
     return PrefixedVLM(vlm, record["ids"], name=name, embeddings=record.get("embeddings"), method=method)
@@ -115,8 +115,8 @@ def prefixed(vlm, record: dict, name: str):
 
 def describe_defense(vlm) -> str | None:
     """A markdown section naming the textual defense a VLM answers with (its prefix, or its reminders), else None."""
-    from lanevil_train.vlm.pat import PrefixedVLM
-    from lanevil_train.vlm.reminder import RemindedVLM
+    from lanevil_train.vlm.defenses.pat import PrefixedVLM
+    from lanevil_train.vlm.defenses.reminder import RemindedVLM
 
     if isinstance(vlm, PrefixedVLM) and vlm.embeddings is not None:
         return (f"## Defense: {vlm.method} soft prefix\n\nBefore every question, {len(vlm.prefix_ids)} tuned vectors "
@@ -177,7 +177,7 @@ def tune_prompt_defense(cfg: DictConfig) -> float | None:
 def _tune_pat_plus_plus(cfg: DictConfig, settings: dict, vlm, train_set, out: Path) -> dict:
     """PAT++: hard examples found by asking the model, then the prefix tuned by GCG (or, soft, by Adam)."""
     from lanevil_train.tasks.vlm_evaluate import build_judge
-    from lanevil_train.vlm.pat import GCGSettings, PrefixObjective, SoftSettings, tune_prefix, tune_soft_prefix
+    from lanevil_train.vlm.defenses.pat import GCGSettings, PrefixObjective, SoftSettings, tune_prefix, tune_soft_prefix
 
     judge = build_judge(cfg, out) if settings["hardness"] == "judge" else None
     choosing = {"model": vlm.identity(), "seed": int(cfg.seed),
@@ -197,7 +197,7 @@ def _tune_pat_plus_plus(cfg: DictConfig, settings: dict, vlm, train_set, out: Pa
 
 def _tune_pat(cfg: DictConfig, settings: dict, vlm, train_set, out: Path) -> dict:
     """PAT: attacked and benign examples drawn from the train split, then prefix and attack suffix in turn."""
-    from lanevil_train.vlm.pat_baseline import PATSettings, tune_pat
+    from lanevil_train.vlm.defenses.pat_baseline import PATSettings, tune_pat
 
     choosing = {"method": "pat", "seed": int(cfg.seed), "examples": settings["examples"],
                 "pool_clips": settings["pool_clips"]}
@@ -234,7 +234,7 @@ def choose_pat_examples(train_set, settings: dict, path: Path, choosing: dict) -
     import numpy as np
 
     from lanevil_train.tasks.vlm_train import spread
-    from lanevil_train.vlm.pat_baseline import wrong_answer
+    from lanevil_train.vlm.defenses.pat_baseline import wrong_answer
 
     stored = _stored_examples(path, choosing)
     if stored is not None:
@@ -280,8 +280,8 @@ def choose_examples(vlm, train_set, settings: dict, judge, path: Path, choosing:
 
     from lanevil_train.progress import progress_counter
     from lanevil_train.tasks.vlm_train import spread
-    from lanevil_train.vlm.pat import hard_mask
-    from lanevil_train.vlm.qa_records import answer_is_correct, prompt_text
+    from lanevil_train.vlm.clips.qa_records import answer_is_correct, prompt_text
+    from lanevil_train.vlm.defenses.pat import hard_mask
 
     stored = _stored_examples(path, choosing)
     if stored is not None:
@@ -336,7 +336,7 @@ def choose_examples(vlm, train_set, settings: dict, judge, path: Path, choosing:
 
 
 def _target(qa: dict, hard: bool, mode: str) -> str:
-    from lanevil_train.vlm.pat import hard_target
+    from lanevil_train.vlm.defenses.pat import hard_target
 
     return hard_target(qa["answer"], mode) if hard else qa["answer"]
 
@@ -345,8 +345,8 @@ def examples_of(train_set, chosen: list[dict]):
     """The chosen examples' frames, prompts and targets (pat.Examples)."""
     import numpy as np
 
-    from lanevil_train.vlm.gcg import Examples
-    from lanevil_train.vlm.qa_records import prompt_text
+    from lanevil_train.vlm.clips.qa_records import prompt_text
+    from lanevil_train.vlm.defenses.gcg import Examples
 
     clips, questions = [], []
     for example in chosen:

@@ -27,7 +27,7 @@ from lanevil_train.tasks.vlm_defense import (
     with_prompt_defense,
 )
 from lanevil_train.vlm.base import VLM, BlindVLM
-from lanevil_train.vlm.evaluation import ANSWERS, PER_ANSWER, evaluate_clips
+from lanevil_train.vlm.scoring.evaluation import ANSWERS, PER_ANSWER, evaluate_clips
 
 # Generation and prompt settings of a local backend that a trained model (ckpt_path) is evaluated with.
 GENERATION_KEYS = ("name", "max_new_tokens", "batch_size", "frames_as", "system_prompt", "do_sample", "temperature",
@@ -45,7 +45,7 @@ def build_vlm(cfg: DictConfig) -> VLM:
     from lanevil_train.tasks.vlm_train import inference_node
 
     if cfg.ckpt_path is not None:
-        from lanevil_train.vlm.training import load_finetuned
+        from lanevil_train.vlm.training.finetune import load_finetuned
 
         return load_finetuned(cfg.ckpt_path, "ckpt_path").vlm(**generation_settings(cfg))
     vlm = instantiate_at(inference_node(cfg.model), "model")
@@ -70,7 +70,7 @@ def clip_suite(cfg: DictConfig):
     task.illusions and task.severities; corruptions / combined: the corruption or illusion-pair suite of the
     clips), a folder written by task=build data=clips, a DriveLM-style QA JSON file, or (task.suite=null)
     data=clips' test split."""
-    from lanevil_train.vlm.clip_set import ClipSetDataset, SyntheticClipSuite
+    from lanevil_train.vlm.clips.clip_set import ClipSetDataset, SyntheticClipSuite
 
     suite, task, clips = cfg.task.suite, cfg.task, cfg.data.name == "clips"
     if suite is None:

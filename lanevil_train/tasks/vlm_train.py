@@ -50,7 +50,7 @@ def base_model_dir(cfg: DictConfig, train_set, out: Path) -> Path:
         return Path(cfg.model.path)
     if saved and Path(saved).is_dir():
         return Path(saved)
-    from lanevil_train.vlm.embedded import make_embedded_vlm, pretrain_vision, qa_corpus, save_model_dir
+    from lanevil_train.vlm.backends.embedded import make_embedded_vlm, pretrain_vision, qa_corpus, save_model_dir
 
     init = out / EMBEDDED_BASE_FOLDER
     if not (init / "config.json").is_file():
@@ -129,8 +129,8 @@ def train_vlm(cfg: DictConfig) -> float | None:
     defense alone (pat++, pat, self_reminder) is tuned for the trained model given, which stays as it is. Returns
     the headline score on the perturbed test clips when the test runs, else None."""
     from lanevil_train.tasks.vlm_defense import fine_tunes, is_prompt_defense, tune_prompt_defense
-    from lanevil_train.vlm.qa_data import ClipQADataset, MixingClipCollate, collate_clip_qa
-    from lanevil_train.vlm.training import SkipTrainedBatches, VLMFineTuner
+    from lanevil_train.vlm.clips.qa_data import ClipQADataset, MixingClipCollate, collate_clip_qa
+    from lanevil_train.vlm.training.finetune import SkipTrainedBatches, VLMFineTuner
 
     pl.seed_everything(cfg.seed, workers=True)
     if is_prompt_defense(cfg) and not fine_tunes(cfg.defense):  # a prompt for the frozen model: no weight changes
@@ -191,7 +191,7 @@ def check_visual_defense(cfg: DictConfig) -> None:
 
     from lanevil_train.callbacks import AttentionAreaMixing
     from lanevil_train.data.mixers import MixUp
-    from lanevil_train.vlm.vision_maps import vision_layer
+    from lanevil_train.vlm.training.vision_maps import vision_layer
 
     defense = cfg.defense
     if defense.get("transforms"):
@@ -217,7 +217,7 @@ def model_family(cfg: DictConfig) -> str:
     import json
 
     if cfg.model.get("embedded") is not None:
-        from lanevil_train.vlm.embedded import FAMILY
+        from lanevil_train.vlm.backends.embedded import FAMILY
 
         return FAMILY
     config = Path(str(cfg.model.path)) / "config.json"
@@ -288,7 +288,7 @@ def with_model(cfg: DictConfig, model: dict) -> DictConfig:
 def _save(cfg: DictConfig, trainer: pl.Trainer, module, folder: Path) -> Path:
     """The trained model (or LoRA adapter) saved in the Hugging Face format by rank 0; under trainer=fsdp every rank
     first takes part in gathering the whole state dict onto rank 0 (sharding.gathered_state_dict)."""
-    from lanevil_train.vlm.sharding import gathered_state_dict
+    from lanevil_train.vlm.training.sharding import gathered_state_dict
 
     state = gathered_state_dict(trainer)
     if trainer.is_global_zero:
@@ -312,7 +312,7 @@ def _loaders(cfg: DictConfig, train, val, collate, val_collate):
     read once per epoch), the validation pairs in order."""
     from torch.utils.data import DataLoader
 
-    from lanevil_train.vlm.qa_data import WindowShuffleSampler
+    from lanevil_train.vlm.clips.qa_data import WindowShuffleSampler
 
     common = {"batch_size": cfg.data.batch_size, "num_workers": cfg.data.num_workers,
               "persistent_workers": cfg.data.num_workers > 0}
@@ -324,7 +324,7 @@ def _loaders(cfg: DictConfig, train, val, collate, val_collate):
 def _test(cfg: DictConfig, saved: Path, out: Path) -> float:
     """The saved model on the test clips, loaded as task=evaluate would (test_vlm)."""
     from lanevil_train.tasks.vlm_evaluate import generation_settings
-    from lanevil_train.vlm.hf import HFVLM
+    from lanevil_train.vlm.backends.hf import HFVLM
 
     settings = {**generation_settings(cfg), "dtype": cfg.model.get("dtype", "auto"),
                 "device": cfg.model.get("device", "auto")}

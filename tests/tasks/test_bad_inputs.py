@@ -199,7 +199,7 @@ def vlm_checkpoints(tmp_path_factory):
     import shutil
 
     from lanevil_train.vlm.tiny import build_tiny_vlm
-    from lanevil_train.vlm.training import VLMFineTuner
+    from lanevil_train.vlm.training.finetune import VLMFineTuner
 
     root = tmp_path_factory.mktemp("vlm_runs")
     hf = build_tiny_vlm("qwen2_vl", root / "tiny-qwen2-vl")

@@ -217,8 +217,8 @@ BAD = [
     (["task=evaluate", "model=vlm/openai", "model.base_url=http://h/v1", "model.name=m", "model.concurrency=0"],
      "model.concurrency: expected an integer >= 1, got 0"),
     (["task=train", "model=vlm/openai", "model.base_url=http://h/v1", "model.name=m"],
-     "task: task=train with model=lanevil_train.vlm.openai.OpenAIVLM: a model behind a server cannot be trained "
-     "here; fine-tune a local one"),
+     "task: task=train with model=lanevil_train.vlm.backends.openai.OpenAIVLM: a model behind a server cannot be "
+     "trained here; fine-tune a local one"),
     # the kind of model decides the task's function (tasks/kinds.py)
     (["task=export", "model=vlm/openai", "model.base_url=http://h/v1", "model.name=m"],
      "task: task=export runs detector models; this model is a vlm (model.kind=vlm)"),
@@ -235,7 +235,7 @@ BAD = [
     (["task=train", "data=clips", "model=vlm/hf", "model.path=/tmp", "model.fine_tune.variants=some"],
      "model.fine_tune.variants: expected one of all, clean, got 'some'"),
     (["task=evaluate", "model=vlm/openai", "model.base_url=http://h/v1", "model.name=m", "+model.top_p=0.9"],
-     "model.top_p: not a parameter of lanevil_train.vlm.openai.OpenAIVLM; it accepts base_url"),
+     "model.top_p: not a parameter of lanevil_train.vlm.backends.openai.OpenAIVLM; it accepts base_url"),
     (["task=evaluate", "model=vlm/openai", "model.base_url=http://h/v1", "model.name=m", "judge=openai",
       "judge.model=gpt-4o-mini", "judge.api_key_env=null"],
      "judge.base_url: is not set (??? in the config); set it to an http(s) URL, e.g. http://127.0.0.1:8000/v1: "

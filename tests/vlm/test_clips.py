@@ -1,4 +1,4 @@
-"""vlm.clips: clips of a driving camera, clean and perturbed, and their ground truth."""
+"""vlm.clips.clips: clips of a driving camera, clean and perturbed, and their ground truth."""
 
 from __future__ import annotations
 
@@ -14,8 +14,8 @@ from lanevil_train.illusions.visibility import changed_pixels
 from lanevil_train.sim import render_scene, sample_scene_params
 from lanevil_train.sim.sequence import scene_at
 from lanevil_train.taxonomy import ILLUSION_NAMES
-from lanevil_train.vlm import clips
-from lanevil_train.vlm.clips import (
+from lanevil_train.vlm.clips import clips
+from lanevil_train.vlm.clips.clips import (
     FRAMES_PER_CLIP,
     SEGMENTS,
     ClipCase,

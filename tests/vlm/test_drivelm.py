@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from lanevil_train.vlm import clip_set
-from lanevil_train.vlm.clip_set import ClipSetDataset, build_clip_set
-from lanevil_train.vlm.drivelm import read_drivelm, to_drivelm, write_drivelm
+from lanevil_train.vlm.clips import clip_set
+from lanevil_train.vlm.clips.clip_set import ClipSetDataset, build_clip_set
+from lanevil_train.vlm.clips.drivelm import read_drivelm, to_drivelm, write_drivelm
 from tests.vlm import fake_clips
 
 

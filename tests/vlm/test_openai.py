@@ -8,9 +8,9 @@ import pytest
 
 from lanevil_train.results_log import ResultsLog
 from lanevil_train.testing.fake_server import FakeServer
+from lanevil_train.vlm.backends.openai import OpenAIVLM
 from lanevil_train.vlm.http import EndpointError, reply_text
-from lanevil_train.vlm.judge import OpenAIJudge
-from lanevil_train.vlm.openai import OpenAIVLM
+from lanevil_train.vlm.scoring.judge import OpenAIJudge
 
 
 @pytest.fixture

@@ -23,7 +23,7 @@ from pathlib import Path
 import pytorch_lightning as pl
 import torch
 
-from lanevil_train.vlm.hf import (
+from lanevil_train.vlm.backends.hf import (
     ADAPTER_CONFIG,
     DTYPES,
     FRAMES_AS,
@@ -33,8 +33,8 @@ from lanevil_train.vlm.hf import (
     _choice,
     _load_processor,
 )
-from lanevil_train.vlm.qa_data import ClipQADataset, clip_images, collate_clip_qa
-from lanevil_train.vlm.vision_maps import VISION_LAYERS, VisionMaps, vision_layer
+from lanevil_train.vlm.clips.qa_data import ClipQADataset, clip_images, collate_clip_qa
+from lanevil_train.vlm.training.vision_maps import VISION_LAYERS, VisionMaps, vision_layer
 
 ADAPTER_NAME = "default"  # peft's name for the one adapter get_peft_model adds
 

@@ -1,4 +1,4 @@
-"""The words the QA templates (vlm/qa.py) use for the simulator's names: illusions, lanes, markings, weather.
+"""The words the QA templates (vlm/clips/qa.py) use for the simulator's names: illusions, lanes, markings, weather.
 
 Each illusion has what it looks like to a camera (the misleading cue a question carries) and what it really is
 (the reference answer). The names are the simulator's (sim/presets.py) and the taxonomy's (taxonomy.py).

@@ -3,8 +3,8 @@ paper compares PAT++ with (§5.4), adapted from jailbreaks to illusions.
 
 PAT tunes a defense prefix against an adversary that is tuned at the same time. Each step, as their code alternates
 them (rain152/PAT):
-  1. the attack: one GCG step (vlm/gcg.py) on an attack suffix after the question, lowering the NLL of the wrong
-     answer (`wrong_answer`: the other of yes/no, another option of a choice question) on the attacked examples,
+  1. the attack: one GCG step (vlm/defenses/gcg.py) on an attack suffix after the question, lowering the NLL of the
+     wrong answer (`wrong_answer`: the other of yes/no, another option of a choice question) on the attacked examples,
      which carry the defense prefix as it is;
   2. the defense: one GCG step on the prefix, lowering alpha * L_bgn + (1 - alpha) * L_adv, where L_bgn is the NLL
      of the reference answer on benign examples (prefix, question) and L_adv that of the reference answer on the
@@ -23,9 +23,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
-from lanevil_train.vlm.gcg import ControlObjective, Examples, Part, allowed_tokens, gcg_step, initial_prefix
-from lanevil_train.vlm.hf import HFVLM
-from lanevil_train.vlm.pat import PREFIX_FILE, GCGSettings, load_prefix, progress_note, resume_state, save_prefix
+from lanevil_train.vlm.backends.hf import HFVLM
+from lanevil_train.vlm.defenses.gcg import ControlObjective, Examples, Part, allowed_tokens, gcg_step, initial_prefix
+from lanevil_train.vlm.defenses.pat import (
+    PREFIX_FILE,
+    GCGSettings,
+    load_prefix,
+    progress_note,
+    resume_state,
+    save_prefix,
+)
 
 
 @dataclass

@@ -1,5 +1,6 @@
 """Greedy coordinate gradient (GCG) over a slot of discrete tokens spliced into a VLM's prompts: PAT++'s defense
-prefix (vlm/pat.py), and PAT's defense prefix and attack suffix (vlm/pat_baseline.py), are tuned by the same steps.
+prefix (vlm/defenses/pat.py), and PAT's defense prefix and attack suffix (vlm/defenses/pat_baseline.py), are tuned by
+the same steps.
 
 A control is n token ids spliced into the token ids of every example: right before the question (`prefix`: after
 the image tokens in every family whose chat template puts the frames first, before the question and so before the
@@ -19,8 +20,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Sequence
 
+from lanevil_train.vlm.backends.hf import HFVLM, IGNORE_INDEX, EncodedBatch
 from lanevil_train.vlm.base import Frames
-from lanevil_train.vlm.hf import HFVLM, IGNORE_INDEX, EncodedBatch
 
 SLOTS = ("prefix", "suffix")
 

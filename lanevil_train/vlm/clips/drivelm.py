@@ -27,7 +27,7 @@ import re
 from pathlib import Path
 
 from lanevil_train.files.atomic import atomic_write_text
-from lanevil_train.vlm.qa_records import OPTIONS_LEAD, check_qa_record, prompt_text
+from lanevil_train.vlm.clips.qa_records import OPTIONS_LEAD, check_qa_record, prompt_text
 
 SECTIONS = ("perception", "prediction", "planning", "behavior")
 CATEGORY_TO_DRIVELM = {"scene_description": "perception", "object_recognition": "perception",

@@ -21,8 +21,8 @@ from typing import Sequence
 
 import numpy as np
 
+from lanevil_train.vlm.backends.weight_files import check_weight_files
 from lanevil_train.vlm.base import VLM, Frames, check_batch, is_clip_tensor
-from lanevil_train.vlm.weight_files import check_weight_files
 
 FRAMES_AS = ("auto", "images", "video")
 DTYPES = ("auto", "float32", "bfloat16", "float16")

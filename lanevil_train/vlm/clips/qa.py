@@ -9,7 +9,7 @@ lane marking?" -> "No. It is the shadow of a rail ...". Categories rotate with t
 phrasings. The benchmark pays no answer prior: `case_plan` draws each yes/no question's true answer so that a
 case's Yes and No are even (per category and overall, to within one) and each yes/no kind phrases its question
 so the truth answers it that way ("Is it daytime?" / "Is it night?"); every choice question has CHOICE_OPTIONS
-options with the correct letter dealt evenly. What a QA record holds and the accuracy rule: vlm/qa_records.py.
+options with the correct letter dealt evenly. What a QA record holds and the accuracy rule: vlm/clips/qa_records.py.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from types import MappingProxyType
 
 import numpy as np
 
-from lanevil_train.vlm.qa_facts import (
+from lanevil_train.vlm.clips.qa_facts import (
     ILLUSION_FACTS,
     LANE_PLACES,
     MARKING_NAMES,
@@ -34,7 +34,7 @@ from lanevil_train.vlm.qa_facts import (
     crossing_allowed,
     marking_text,
 )
-from lanevil_train.vlm.qa_records import QA_CATEGORIES
+from lanevil_train.vlm.clips.qa_records import QA_CATEGORIES
 
 SEGMENT_ORDER = ("before", "over", "alongside")
 REQUIRED_TRUTH = ("curvature_sign", "slope", "num_lanes", "ego_lane", "markings", "weather", "night", "wet",
@@ -530,8 +530,8 @@ def describe_scene(truth: dict, base_clip_id: str) -> dict:
     """A dense description of what a clip's frames show (setting, lane count and ego lane, weather, light and
     surface, road shape, the bend a slope hides and the steering it asks for) as a QA record
     `{base_clip_id}-describe`. Training-only: never one of the benchmark's QA. Every phrase is one the QA's answers
-    use, so a small VLM trained from scratch (vlm/embedded.py) learns to read the frames from it: the benchmark's
-    QA alone let it learn their text prior instead."""
+    use, so a small VLM trained from scratch (vlm/backends/embedded.py) learns to read the frames from it: the
+    benchmark's QA alone let it learn their text prior instead."""
     check_truth(truth, f"truth of {base_clip_id}")
     shape, sign = road_shape(truth), _curve(truth)
     bend = [ROAD_SHAPES[f"{BENDS[sign + 1]}_curve"]] if sign and shape in ("uphill", "downhill") else []
@@ -551,7 +551,7 @@ def training_aids(truth: dict, base_clip_id: str) -> list[dict]:
     steering the road's bend asks for and the safe action. Never part of the benchmark's QA; phrased as the
     benchmark's own open kinds, with the phrasing drawn from the clip id.
 
-    Why: a small VLM trained from scratch (vlm/embedded.py) gets its say on the frames from a few answer tokens
+    Why: a small VLM trained from scratch (vlm/backends/embedded.py) gets its say on the frames from a few answer tokens
     ("three", "left"); in the 5 benchmark QA of a clip those are rare (one steering question in about 30), in a
     description one token in 60. Short answers that turn on a fact make that fact's tokens a large part of the loss
     (what that changes: benchmarks/RESULTS.md, "VLM fine-tuning")."""

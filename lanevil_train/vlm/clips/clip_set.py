@@ -6,10 +6,10 @@ per QA of a base clip) and `build.json` (the plan, the counts, and whether the s
 
 Suite kinds (perturbations.SUITE_KINDS, recorded in the plan; a set without one is an illusion suite): each base
 clip's clean clip, then each severity of its case's illusion (illusions), of every corruption (corruptions), or of
-the case's illusion, its second illusion and the pair "a+b" (combined; vlm/clips.py). All variants of a base clip
+the case's illusion, its second illusion and the pair "a+b" (combined; vlm/clips/clips.py). All variants of a base clip
 come from one render of the scene. A corruption suite's QA leaves out the questions whose template reads a fact in
-vlm/suite_qa.py's CORRUPTION_UNSAFE_FACTS (the illusion, which is not drawn; the weather and light, which weather and
-brightness corruptions change the look of), and base clips left without a question.
+vlm/clips/suite_qa.py's CORRUPTION_UNSAFE_FACTS (the illusion, which is not drawn; the weather and light, which weather
+and brightness corruptions change the look of), and base clips left without a question.
 
 Safe to kill at any instant, like the image builder (data/illusion_set.py): frames are written atomically, then
 the base clip's QA lines, then its variants' clip lines, each durable before the next, so a clip line promises
@@ -42,9 +42,9 @@ from lanevil_train.perturbations import PAIR, check_kind, get_perturbation, suit
 from lanevil_train.progress import progress_counter
 from lanevil_train.results_log import ResultsLog
 from lanevil_train.taxonomy import ILLUSION_CATEGORY, ILLUSION_NAMES
-from lanevil_train.vlm.qa import scene_classes, training_aids
-from lanevil_train.vlm.qa_records import check_qa_record
-from lanevil_train.vlm.suite_qa import kept_questions, suite_qa
+from lanevil_train.vlm.clips.qa import scene_classes, training_aids
+from lanevil_train.vlm.clips.qa_records import check_qa_record
+from lanevil_train.vlm.clips.suite_qa import kept_questions, suite_qa
 
 CLIPS_FILE = "clips.jsonl"
 QA_FILE = "qa.jsonl"
@@ -54,8 +54,8 @@ Paraphraser = Callable[[list], list]
 
 
 def _geometry():
-    """The clip renderer (vlm/clips.py), imported when first needed; tests may replace this function."""
-    from lanevil_train.vlm import clips
+    """The clip renderer (vlm/clips/clips.py), imported when first needed; tests may replace this function."""
+    from lanevil_train.vlm.clips import clips
 
     return clips
 
@@ -323,9 +323,9 @@ class ClipSetDataset(Dataset):
 
     @classmethod
     def from_drivelm(cls, path: str | Path, image_root: str | Path | None = None) -> "ClipSetDataset":
-        """A dataset from a DriveLM-style QA JSON (vlm/drivelm.py says which images make a clip); image paths
+        """A dataset from a DriveLM-style QA JSON (vlm/clips/drivelm.py says which images make a clip); image paths
         are relative to `image_root` (default: the JSON file's folder)."""
-        from lanevil_train.vlm.drivelm import read_drivelm
+        from lanevil_train.vlm.clips.drivelm import read_drivelm
 
         clips, qas = read_drivelm(path)
         self = cls.__new__(cls)

@@ -2,7 +2,7 @@
 changes how weather and light look, the questions whose template reads those facts of the scene truth.
 
 Which facts a template reads is found by running it once on a probe truth that logs the keys read (`template_reads`),
-so no list of template names has to be kept in step with vlm/qa.py.
+so no list of template names has to be kept in step with vlm/clips/qa.py.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from functools import cache
 import numpy as np
 
 from lanevil_train.perturbations import check_kind
-from lanevil_train.vlm.qa import KINDS, case_plan, make_qa
+from lanevil_train.vlm.clips.qa import KINDS, case_plan, make_qa
 
 # truth keys a corruption-suite question must not read: the illusion is not drawn, weather and light are what the
 # weather and brightness corruptions change the look of

@@ -2,7 +2,7 @@
 
 It is the project's offline default VLM (`model=vlm/embedded`): nothing is downloaded, and it is saved with
 `save_pretrained`, so it loads through AutoModelForImageTextToText + AutoProcessor and runs through the very same
-`vlm/hf` code (HFVLM: generation, answer loss, LoRA, prefix splicing) as any downloaded model. It is a small
+`vlm/backends/hf.py` code (HFVLM: generation, answer loss, LoRA, prefix splicing) as any downloaded model. It is a small
 baseline trained on the simulated clips, never one of the paper's models.
 
 Choices (defaults; every size is a keyword of `build_embedded_vlm`):
@@ -46,8 +46,8 @@ from typing import Sequence
 import numpy as np
 
 from lanevil_train.progress import progress_counter
-from lanevil_train.vlm.qa import SCENE_CLASSES, UNKNOWN_CLASS, mirror_scene_classes
-from lanevil_train.vlm.qa_records import prompt_text
+from lanevil_train.vlm.clips.qa import SCENE_CLASSES, UNKNOWN_CLASS, mirror_scene_classes
+from lanevil_train.vlm.clips.qa_records import prompt_text
 from lanevil_train.vlm.tiny import _qwen_ids, _token_roles, train_tokenizer
 
 FAMILY = "qwen2_vl"

@@ -17,7 +17,7 @@ from lanevil_train.progress import progress_counter
 from lanevil_train.report.specs import VQA_SPEC
 from lanevil_train.results_log import ResultsLog
 from lanevil_train.vlm.base import VLM
-from lanevil_train.vlm.qa_records import prompt_text
+from lanevil_train.vlm.clips.qa_records import prompt_text
 
 ANSWERS = "answers.jsonl"
 PER_ANSWER = "per_answer.jsonl"
@@ -83,7 +83,7 @@ def answer_records(pairs: Sequence[tuple[dict, dict]], answers: Sequence[str], l
     """The scored VQA records of (clip meta, QA) pairs and their answers: accuracy for yes/no and choice
     questions, the judge's score, and the PTB tokens of answer and reference (from which the Language score of any
     group is computed later)."""
-    from lanevil_train.vlm.qa_records import answer_is_correct
+    from lanevil_train.vlm.clips.qa_records import answer_is_correct
 
     if tokenize is None:
         from lanevil_train.metrics.vqa import ptb_tokenize as tokenize
@@ -114,7 +114,7 @@ def evaluate_clips(vlm: VLM, dataset, out_dir: str | Path, label: dict, judge=No
                    pairs_per_chunk: int | None = None) -> Path:
     """Answer and score every (clip variant, QA) pair of `dataset` not yet in out_dir/per_answer.jsonl, in chunks
     of about `pairs_per_chunk` pairs (default: 64, or 4 backend batches when larger); returns that file.
-    `label` ({"model", "dataset"}) is copied into every record; `dataset` is a clip suite (vlm/clip_set.py:
+    `label` ({"model", "dataset"}) is copied into every record; `dataset` is a clip suite (vlm/clips/clip_set.py:
     clip_meta, qa_for, item frames)."""
     out_dir = Path(out_dir)
     answer_log, score_log = ResultsLog(out_dir / ANSWERS), ResultsLog(out_dir / PER_ANSWER)

@@ -1,5 +1,5 @@
 """PAT++ (the paper's §4.2): a defense prefix of n discrete tokens before the question, tuned by greedy coordinate
-gradient (GCG, vlm/gcg.py) while the model's weights stay frozen.
+gradient (GCG, vlm/defenses/gcg.py) while the model's weights stay frozen.
 
 The prefix minimises  alpha * L_bgn + (1 - alpha) * L_hard:
   * L_bgn, on benign examples: the NLL of the reference answer with the prefix;
@@ -24,8 +24,9 @@ from pathlib import Path
 from typing import Sequence
 
 from lanevil_train.files.atomic import atomic_write_bytes
+from lanevil_train.vlm.backends.hf import HFVLM, EncodedBatch
 from lanevil_train.vlm.base import VLM, Frames
-from lanevil_train.vlm.gcg import (
+from lanevil_train.vlm.defenses.gcg import (
     ControlObjective,
     Examples,
     Part,
@@ -35,7 +36,6 @@ from lanevil_train.vlm.gcg import (
     initial_prefix,
     splice_prefix,
 )
-from lanevil_train.vlm.hf import HFVLM, EncodedBatch
 
 RES_GOAL = "I will focus on the factors affecting the road"
 HARD_TARGETS = ("goal", "goal_then_answer")

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset, Sampler
 
-from lanevil_train.vlm.qa_records import prompt_text
+from lanevil_train.vlm.clips.qa_records import prompt_text
 
 VARIANTS = ("clean", "all")
 FRAMES_PER_CLIP = 6
