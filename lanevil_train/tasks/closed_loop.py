@@ -29,6 +29,7 @@ from lanevil_train.results_log import ResultsLog
 from lanevil_train.sim.vehicle import MPH, VehicleParams
 from lanevil_train.tasks.builders import checkpoint_model, output_dir
 from lanevil_train.tasks.kinds import is_vlm
+from lanevil_train.tasks.vlm_builders import build_vlm, check_prompt_defense, is_prompt_defense, with_prompt_defense
 from lanevil_train.taxonomy import ILLUSION_NAMES
 
 RUNS = "runs.jsonl"
@@ -60,9 +61,6 @@ def build_policies(cfg: DictConfig) -> list[tuple[object, dict]]:
     if kind == "truth":
         return [(TruthPolicy(controller(cfg.task), name=cfg.task.label or "ground-truth"), {"policy": "truth"})]
     if kind == "vlm":
-        from lanevil_train.tasks.vlm_defense import check_prompt_defense, is_prompt_defense, with_prompt_defense
-        from lanevil_train.tasks.vlm_evaluate import build_vlm
-
         if is_prompt_defense(cfg):
             check_prompt_defense(cfg)  # before the model loads
         vlm = build_vlm(cfg)

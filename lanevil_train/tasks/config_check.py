@@ -34,8 +34,6 @@ from lanevil_train.models.schedules import LR_SCALINGS
 from lanevil_train.perturbations import SUITE_KINDS, suite_names
 from lanevil_train.progress import MODES
 from lanevil_train.tasks.kinds import task_target
-from lanevil_train.tasks.vlm_defense import HARDNESS, PROMPT_DEFENSES
-from lanevil_train.tasks.vlm_train import TRAINING_KEYS
 from lanevil_train.vlm.defenses.pat import HARD_TARGETS
 
 # Keys of a `_target_` node that Hydra reads itself (not passed to the target).
@@ -43,7 +41,11 @@ HYDRA_KEYS = {"_target_", "_recursive_", "_convert_", "_partial_", "_args_"}
 # Arguments the code passes to a target itself: a config value for them would be ignored.
 SUPPLIED = {"model.head": ("in_channels", "in_strides", "image_size"), "model.neck": ("in_channels", "in_strides")}
 # Keys of a target node that the code reads itself (not arguments of its target): a VLM's training settings.
+# Keys of a VLM model node read by the training code, not arguments of its inference `_target_`.
+TRAINING_KEYS = ("lora", "fine_tune", "embedded", "attention_layer")
 READ_BY_CODE = {"model": (*TRAINING_KEYS, "kind")}
+PROMPT_DEFENSES = ("pat++", "pat", "self_reminder")  # the textual defenses of VLMs (defense.prompt)
+HARDNESS = ("accuracy", "judge", "language")  # how PAT++ finds hard examples (tasks/vlm_defense.choose_examples)
 DEFENSE_KEYS = ("name", "transforms", "mixer", "callback")
 # The keys of a textual defense of VLMs (defense=pat++: tasks/vlm_defense.py), beside DEFENSE_KEYS.
 PROMPT_DEFENSE_KEYS = ("prompt", "alpha", "hard_target", "hardness", "pool_clips", "examples", "steps",

@@ -29,123 +29,28 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from lanevil_train.files.atomic import atomic_write_text
+from lanevil_train.tasks.builders import build_split, output_dir
+from lanevil_train.tasks.vlm_builders import (
+    add_defense_to_report,
+    build_judge,
+    build_vlm,
+    check_prompt_model,
+    prefixed,
+    prompt_settings,
+    spread,
+    with_prompt_defense,
+)
+from lanevil_train.tasks.vlm_evaluate import test_vlm
 
-PROMPT_DEFENSES = ("pat++", "pat", "self_reminder")
-HARDNESS = ("accuracy", "judge", "language")  # how PAT++ finds hard examples (choose_examples)
-TUNED = ("pat++", "pat")  # the prompt defenses whose prefix is tuned into prefix.json
 EXAMPLES_FILE = "examples.json"
-
-
-def is_prompt_defense(cfg: DictConfig) -> bool:
-    """Whether cfg.defense is (or has) a textual defense of VLMs (it names a `prompt` method)."""
-    return cfg.get("defense") is not None and cfg.defense.get("prompt") is not None
-
-
-def fine_tunes(defense: DictConfig) -> bool:
-    """Whether the defense changes the model's weights: a visual part (a callback or a mixer) that acts during
-    fine-tuning (defense=none, aam++, mida ...), not only a prompt for the model as it is (pat++, pat, ...)."""
-    return defense.get("prompt") is None or defense.get("callback") is not None or defense.get("mixer") is not None
-
-
-def prompt_settings(defense: DictConfig) -> dict:
-    """defense.* of a prompt defense as plain values, each present and good by config_check's rules; a ValueError
-    names the first bad key."""
-    from lanevil_train.tasks.config_check import value_problem
-
-    settings = OmegaConf.to_container(defense, resolve=True)
-    method = settings.get("prompt")
-    gcg = ("alpha", "steps", "prefix_length", "top_k", "num_candidates", "chunk", "examples", "pool_clips")
-    keys = ("prompt",) + {"self_reminder": ("before", "after"), "pat": gcg + ("suffix_length",),
-                          "pat++": gcg + ("hard_target", "hardness", "soft", "soft_lr")}.get(method, ())
-    for key in keys:
-        problem = value_problem(f"defense.{key}", settings.get(key))
-        if problem is not None:
-            raise ValueError(problem)
-    return settings
-
-
-def check_prompt_model(cfg: DictConfig) -> None:
-    """A prefix is tuned for a trained local model: model=vlm/hf or vlm/embedded, with model.path or ckpt_path."""
-    target = cfg.model.get("_target_")
-    if cfg.ckpt_path is None and target != "lanevil_train.vlm.backends.hf.HFVLM":
-        raise ValueError(f"model: defense={cfg.defense.name} splices a prefix into a local model's token ids; use "
-                         f"model=vlm/hf or model=vlm/embedded (got model._target_={target})")
-    if cfg.ckpt_path is None and cfg.model.get("path") is None:
-        raise ValueError(f"model.path: defense={cfg.defense.name} tunes a prefix for a trained model; give "
-                         f"model.path=RUN/model (task=train model=vlm/embedded writes one) or ckpt_path=...")
-
-
-def check_prompt_defense(cfg: DictConfig) -> None:
-    """task=evaluate, before the model loads: the defense's settings, and for pat++ the prefix to apply and a backend
-    it can be spliced into."""
-    settings = prompt_settings(cfg.defense)
-    if settings["prompt"] in TUNED:
-        if cfg.defense.get("prefix_path") is None:
-            raise ValueError(f"defense.prefix_path: task=evaluate defense={cfg.defense.name} applies a tuned prefix; "
-                             f"give defense.prefix_path=RUN/prefix.json (task=train defense={cfg.defense.name} writes "
-                             f"it)")
-        check_prompt_model(cfg)
-
-
-def with_prompt_defense(cfg: DictConfig, vlm):
-    """task=evaluate: the VLM with its questions wrapped in the reminders (self_reminder), or with the tuned prefix
-    of defense.prefix_path before every question (pat++)."""
-    from lanevil_train.vlm.defenses.pat import load_prefix
-    from lanevil_train.vlm.defenses.reminder import RemindedVLM
-
-    settings = prompt_settings(cfg.defense)
-    name = f"{vlm.name}+{cfg.defense.name}"
-    if settings["prompt"] == "self_reminder":
-        return RemindedVLM(vlm, settings["before"], settings["after"], name=name)
-    check_prompt_defense(cfg)
-    return prefixed(vlm, load_prefix(cfg.defense.prefix_path, getattr(getattr(vlm, "processor", None), "tokenizer",
-                                                                       None)), name)
-
-
-def prefixed(vlm, record: dict, name: str):
-    """The VLM with a tuned prefix.json `record` before every question (its token ids, or its soft vectors)."""
-    from lanevil_train.vlm.defenses.pat import PrefixedVLM
-
-    method = "PAT" if record.get("facts", {}).get("method") == "pat" else "PAT++"
-    return PrefixedVLM(vlm, record["ids"], name=name, embeddings=record.get("embeddings"), method=method)
-
-
-def describe_defense(vlm) -> str | None:
-    """A markdown section naming the textual defense a VLM answers with (its prefix, or its reminders), else None."""
-    from lanevil_train.vlm.defenses.pat import PrefixedVLM
-    from lanevil_train.vlm.defenses.reminder import RemindedVLM
-
-    if isinstance(vlm, PrefixedVLM) and vlm.embeddings is not None:
-        return (f"## Defense: {vlm.method} soft prefix\n\nBefore every question, {len(vlm.prefix_ids)} tuned vectors "
-                f"of width {vlm.embeddings.shape[1]} in place of the tokens {vlm.prefix_ids}\n")
-    if isinstance(vlm, PrefixedVLM):
-        text = vlm.vlm.processor.tokenizer.decode(vlm.prefix_ids)
-        return (f"## Defense: {vlm.method} prefix\n\nBefore every question, {len(vlm.prefix_ids)} tokens: "
-                f"`` {text} ``\n\nToken ids: {vlm.prefix_ids}\n")
-    if isinstance(vlm, RemindedVLM):
-        return (f"## Defense: Self-Reminder\n\nEvery question between\n\n> {vlm.before}\n\nand\n\n"
-                f"> {vlm.after}\n")
-    return None
-
-
-def add_defense_to_report(out: Path, vlm) -> None:
-    """Put the defense's section right after the title of out/report.md (when both exist)."""
-    report, section = out / "report.md", describe_defense(vlm)
-    if section is None or not report.is_file():
-        return
-    title, _, rest = report.read_text().partition("\n")
-    atomic_write_text(report, f"{title}\n\n{section}{rest}")
 
 
 def tune_prompt_defense(cfg: DictConfig) -> float | None:
     """task=train with a textual defense: for pat++ and pat the prefix tuned into the run's prefix.json, for
     self_reminder nothing; then the defended model tested. Returns the test score when tested."""
-    from lanevil_train.tasks.builders import build_split, output_dir
-    from lanevil_train.tasks.vlm_evaluate import build_vlm
-
     settings = prompt_settings(cfg.defense)
     if settings["prompt"] == "self_reminder":  # nothing to tune: the reminded model tested, as task=evaluate would
         defended = with_prompt_defense(cfg, build_vlm(cfg))
@@ -176,7 +81,6 @@ def tune_prompt_defense(cfg: DictConfig) -> float | None:
 
 def _tune_pat_plus_plus(cfg: DictConfig, settings: dict, vlm, train_set, out: Path) -> dict:
     """PAT++: hard examples found by asking the model, then the prefix tuned by GCG (or, soft, by Adam)."""
-    from lanevil_train.tasks.vlm_evaluate import build_judge
     from lanevil_train.vlm.defenses.pat import GCGSettings, PrefixObjective, SoftSettings, tune_prefix, tune_soft_prefix
 
     judge = build_judge(cfg, out) if settings["hardness"] == "judge" else None
@@ -233,7 +137,6 @@ def choose_pat_examples(train_set, settings: dict, path: Path, choosing: dict) -
     benign ones, from `pool_clips` variants spread over the train split (seed choosing["seed"]); kept in `path`."""
     import numpy as np
 
-    from lanevil_train.tasks.vlm_train import spread
     from lanevil_train.vlm.defenses.pat_baseline import wrong_answer
 
     stored = _stored_examples(path, choosing)
@@ -264,8 +167,6 @@ def choose_pat_examples(train_set, settings: dict, path: Path, choosing: dict) -
 
 def _test(cfg: DictConfig, defended, out: Path) -> float:
     """The defended VLM tested as task=evaluate would, its defense named in the report."""
-    from lanevil_train.tasks.vlm_train import test_vlm
-
     score = test_vlm(cfg, defended, cfg.task.get("label") or defended.name, out)
     add_defense_to_report(out, defended)
     return score
@@ -279,7 +180,6 @@ def choose_examples(vlm, train_set, settings: dict, judge, path: Path, choosing:
     import numpy as np
 
     from lanevil_train.progress import progress_counter
-    from lanevil_train.tasks.vlm_train import spread
     from lanevil_train.vlm.clips.qa_records import answer_is_correct, prompt_text
     from lanevil_train.vlm.defenses.pat import hard_mask
 

@@ -13,90 +13,23 @@ import json
 from pathlib import Path
 
 import pytorch_lightning as pl
-from omegaconf import DictConfig
+from omegaconf import DictConfig, open_dict
 
-from lanevil_train.errors import prefixed
 from lanevil_train.evaluation.results import log_results, write_results
 from lanevil_train.evaluation.streaming import claim_results
 from lanevil_train.files.atomic import atomic_write_text
-from lanevil_train.tasks.builders import build_logger, build_split, instantiate_at, output_dir
-from lanevil_train.tasks.vlm_defense import (
+from lanevil_train.tasks.builders import build_logger, output_dir
+from lanevil_train.tasks.vlm_builders import (
     add_defense_to_report,
+    build_judge,
+    build_vlm,
     check_prompt_defense,
+    clip_suite,
     is_prompt_defense,
     with_prompt_defense,
 )
 from lanevil_train.vlm.base import VLM, BlindVLM
 from lanevil_train.vlm.scoring.evaluation import ANSWERS, PER_ANSWER, evaluate_clips
-
-# Generation and prompt settings of a local backend that a trained model (ckpt_path) is evaluated with.
-GENERATION_KEYS = ("name", "max_new_tokens", "batch_size", "frames_as", "system_prompt", "do_sample", "temperature",
-                   "seed")
-
-
-def generation_settings(cfg: DictConfig) -> dict:
-    """The model node's generation and prompt settings (for a model trained here, loaded from its checkpoint)."""
-    return {key: cfg.model[key] for key in GENERATION_KEYS if key in cfg.model}
-
-
-def build_vlm(cfg: DictConfig) -> VLM:
-    """The VLM backend cfg.model configures (a node with a `_target_`; its training keys left out), or, with
-    ckpt_path, the model a task=train run saved in that checkpoint; built now: a bad path fails here."""
-    from lanevil_train.tasks.vlm_train import inference_node
-
-    if cfg.ckpt_path is not None:
-        from lanevil_train.vlm.training.finetune import load_finetuned
-
-        return load_finetuned(cfg.ckpt_path, "ckpt_path").vlm(**generation_settings(cfg))
-    vlm = instantiate_at(inference_node(cfg.model), "model")
-    if not isinstance(vlm, VLM):
-        raise ValueError(f"model._target_={cfg.model._target_}: built a {type(vlm).__name__}, expected a "
-                         f"lanevil_train.vlm.base.VLM")
-    return vlm
-
-
-def build_judge(cfg: DictConfig, out: Path):
-    """The judge cfg.judge configures, or None (judge=none); an LLM judge's reply cache defaults to
-    out/judge_cache.jsonl."""
-    node = cfg.get("judge")
-    if node is None or node.get("_target_") is None:
-        return None
-    extra = {"cache_path": str(out / "judge_cache.jsonl")} if "cache_path" in node and node.cache_path is None else {}
-    return instantiate_at(node, "judge", **extra)
-
-
-def clip_suite(cfg: DictConfig):
-    """(dataset, name) of the clips to evaluate on: task.suite=synthetic (task.cases scenes rendered on the fly with
-    task.illusions and task.severities; corruptions / combined: the corruption or illusion-pair suite of the
-    clips), a folder written by task=build data=clips, a DriveLM-style QA JSON file, or (task.suite=null)
-    data=clips' test split."""
-    from lanevil_train.vlm.clips.clip_set import ClipSetDataset, SyntheticClipSuite
-
-    suite, task, clips = cfg.task.suite, cfg.task, cfg.data.name == "clips"
-    if suite is None:
-        if not clips:
-            raise ValueError("task.suite: a VLM answers questions about clips: give task.suite=synthetic, a clip "
-                             "suite folder (task=build data=clips) or a DriveLM QA JSON file, or use data=clips")
-        return build_split(cfg, "test"), "clips-test"
-    if suite in ("synthetic", "corruptions", "combined"):
-        kind = {"synthetic": "illusions"}.get(suite, suite)
-        first_seed = cfg.data.test.first_seed if clips else 1000000
-        size = tuple(cfg.data.size) if clips else (360, 640)
-        illusions = "all" if task.illusions == "all" else list(task.illusions)
-        try:
-            dataset = SyntheticClipSuite(task.cases, first_seed, illusions, tuple(task.severities), size, kind=kind)
-        except ValueError as error:
-            raise prefixed(error, f"task.suite={suite}") from None
-        if kind != "illusions":
-            return dataset, f"synthetic-clips-{kind}"
-        return dataset, "synthetic-clips"
-    path = Path(suite)
-    try:
-        if path.is_file() and path.suffix == ".json":
-            return ClipSetDataset.from_drivelm(path), path.stem
-        return ClipSetDataset(path), path.name
-    except (FileNotFoundError, ValueError) as error:
-        raise prefixed(error, f"task.suite={suite}") from None
 
 
 def run_identity(vlm: VLM, judge, label: dict) -> dict:
@@ -198,3 +131,21 @@ def write_language_summary(results: list[Path], out: Path) -> Path:
     path = out / "language_scores.json"
     atomic_write_text(path, json.dumps(rows, indent=1) + "\n")
     return path
+
+
+def test_vlm(cfg: DictConfig, vlm, name: str, out: Path) -> float:
+    """The VLM on the test clips (task.suite, else task.cases scenes of data=clips' test split, rendered on the
+    fly), with its blind baseline when task.blind: the tables of task=evaluate in out/."""
+    from lanevil_train.vlm.base import BlindVLM
+
+    if cfg.task.suite is None:  # not the whole test split: the task.cases scenes of it, rendered on the fly
+        cfg = cfg.copy()
+        with open_dict(cfg):
+            cfg.task.suite = "synthetic"
+    dataset, dataset_name = clip_suite(cfg)
+    judge = build_judge(cfg, out)
+    files = [evaluate_into(vlm, dataset, judge, out, {"model": name, "dataset": dataset_name}, cfg.progress)]
+    if cfg.task.get("blind"):
+        files.append(evaluate_into(BlindVLM(vlm), dataset, judge, out / "blind",
+                                   {"model": f"{name}-blind", "dataset": dataset_name}, cfg.progress))
+    return write_results(files, out)

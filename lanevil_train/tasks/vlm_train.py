@@ -11,7 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytorch_lightning as pl
-from omegaconf import DictConfig, OmegaConf, open_dict
+from omegaconf import DictConfig, OmegaConf
 
 from lanevil_train.checkpoints import (
     EMBEDDED_BASE_FOLDER,
@@ -19,20 +19,21 @@ from lanevil_train.checkpoints import (
     read_lightning_checkpoint,
     remove_stale_checkpoint_temporaries,
 )
-from lanevil_train.evaluation.results import write_results
-from lanevil_train.tasks.builders import build_callbacks, build_split, build_trainer, output_dir
+from lanevil_train.tasks.builders import build_callbacks, build_split, build_trainer, instantiate_at, output_dir
+from lanevil_train.tasks.vlm_builders import (
+    MODEL_FOLDER,
+    check_vlm_run,
+    fine_tunes,
+    generation_settings,
+    is_prompt_defense,
+    spread,
+    trained_model,
+    with_model,
+)
+from lanevil_train.tasks.vlm_defense import tune_prompt_defense
+from lanevil_train.tasks.vlm_evaluate import test_vlm
 
-# Keys of a VLM model node read by the training code, not arguments of its inference `_target_`.
-TRAINING_KEYS = ("lora", "fine_tune", "embedded", "attention_layer")
 TOKENIZER_CLIPS = 600  # base clips of the train split whose QA texts train the embedded VLM's tokenizer
-MODEL_FOLDER = "model"  # the trained model (or adapter) in the Hugging Face format, in the run folder
-
-
-def inference_node(model: DictConfig) -> DictConfig:
-    """The model node without its training keys and its kind: what builds the inference backend."""
-    return OmegaConf.masked_copy(model, [key for key in model if key not in (*TRAINING_KEYS, "kind")])
-
-
 def lora_settings(cfg: DictConfig) -> dict | None:
     """model.lora as a plain dict, or None for full fine-tuning."""
     lora = cfg.model.get("lora")
@@ -72,11 +73,6 @@ def base_model_dir(cfg: DictConfig, train_set, out: Path) -> Path:
                             mirror=pretraining.get("mirror", True), seed=settings["seed"], progress=cfg.progress)
         save_model_dir(model, processor, init)
     return init
-
-
-def spread(items: list, count: int) -> list:
-    """About `count` of `items`, evenly spread over them."""
-    return items[::max(1, len(items) // count)]
 
 
 def render_workers(workers: int | str) -> int:
@@ -128,7 +124,6 @@ def train_vlm(cfg: DictConfig) -> float | None:
     defense with a textual part, tune that for the fine-tuned model (defense=mida: AAM++ then PAT++); a textual
     defense alone (pat++, pat, self_reminder) is tuned for the trained model given, which stays as it is. Returns
     the headline score on the perturbed test clips when the test runs, else None."""
-    from lanevil_train.tasks.vlm_defense import fine_tunes, is_prompt_defense, tune_prompt_defense
     from lanevil_train.vlm.clips.qa_data import ClipQADataset, MixingClipCollate, collate_clip_qa
     from lanevil_train.vlm.training.finetune import SkipTrainedBatches, VLMFineTuner
 
@@ -169,64 +164,6 @@ def train_vlm(cfg: DictConfig) -> float | None:
     return _test(cfg, saved, out / "test")
 
 
-def check_vlm_run(cfg: DictConfig) -> None:
-    """A VLM training run's data and defense, before anything loads (task=compare checks every run so): a textual
-    part's settings, and for a run that fine-tunes the clip suite's data and a visual part it can apply."""
-    from lanevil_train.tasks.vlm_defense import fine_tunes, is_prompt_defense, prompt_settings
-
-    if is_prompt_defense(cfg):
-        prompt_settings(cfg.defense)
-    if not fine_tunes(cfg.defense):
-        return
-    if cfg.data.name != "clips":
-        raise ValueError(f"data: a VLM trains on the clip suite's QA: use data=clips (got data={cfg.data.name})")
-    check_visual_defense(cfg)
-
-
-def check_visual_defense(cfg: DictConfig) -> None:
-    """VLM fine-tuning takes the defenses that act on a batch of frames: a Lightning callback (PGD, AAM, AAM++ or
-    the user's own) and MixUp; image transforms and Copy-Paste work on lane-detector samples and are refused. AAM's
-    attention layer `auto` must know the model's family (read from its config.json)."""
-    from hydra.utils import get_class
-
-    from lanevil_train.callbacks import AttentionAreaMixing
-    from lanevil_train.data.mixers import MixUp
-    from lanevil_train.vlm.training.vision_maps import vision_layer
-
-    defense = cfg.defense
-    if defense.get("transforms"):
-        raise ValueError(f"defense={defense.name}: its image transforms act on a lane detector's samples; VLM "
-                         f"fine-tuning takes defenses on the batch's frames: pgd, mixup, aam, aam++ (and mida, or a "
-                         f"textual defense: pat++, pat, self_reminder)")
-    mixer = defense.get("mixer")
-    if mixer is not None and not issubclass(get_class(mixer._target_), MixUp):
-        raise ValueError(f"defense={defense.name}: {mixer._target_} moves lanes with their labels in a lane "
-                         f"detector's batch; a clip's questions cannot follow it. VLM fine-tuning mixes clips with "
-                         f"mixup only")
-    callback = defense.get("callback")
-    if callback is not None and issubclass(get_class(callback._target_), AttentionAreaMixing) and \
-            cfg.model.get("attention_layer", "auto") == "auto":
-        try:
-            vision_layer(model_family(cfg))
-        except ValueError as error:
-            raise ValueError(f"defense={defense.name}: {error}") from None
-
-
-def model_family(cfg: DictConfig) -> str:
-    """The model_type of the VLM a run trains: the embedded VLM's, or that in model.path's config.json."""
-    import json
-
-    if cfg.model.get("embedded") is not None:
-        from lanevil_train.vlm.backends.embedded import FAMILY
-
-        return FAMILY
-    config = Path(str(cfg.model.path)) / "config.json"
-    try:
-        return str(json.loads(config.read_text()).get("model_type"))
-    except (OSError, ValueError) as error:
-        raise ValueError(f"model.path: cannot read {config} ({error}); expected a saved Hugging Face model") from None
-
-
 def visual_defense(cfg: DictConfig, module) -> tuple:
     """(callback, mixer) of the defense for a VLM being fine-tuned: AAM / AAM++ on the vision layer
     model.attention_layer names (its tokens laid on the frames by module.vision_maps) with each frame's lanes, PGD
@@ -234,8 +171,6 @@ def visual_defense(cfg: DictConfig, module) -> tuple:
     from hydra.utils import get_class
 
     from lanevil_train.callbacks import AttentionAreaMixing, BatchAdapter, PGDAdversarialTraining
-    from lanevil_train.tasks.builders import instantiate_at
-
     defense = cfg.defense
     mixer = instantiate_at(defense.mixer, "defense.mixer") if defense.get("mixer") is not None else None
     node = defense.get("callback")
@@ -266,23 +201,6 @@ def check_lanes_for_defense(cfg: DictConfig, train_set) -> None:
             not hasattr(train_set, "lanes_for"):
         raise ValueError(f"defense={cfg.defense.name}: AAM compares each frame's attention with its lanes, which "
                          f"{type(train_set).__name__} does not keep; train on a synthetic split (data=clips)")
-
-
-def trained_model(cfg: DictConfig, saved: Path) -> dict:
-    """model.path and model.adapter that load what a run saved in `saved`: its LoRA adapter on model.path, or the
-    saved (merged, fully trained or embedded) model."""
-    if cfg.model.get("embedded") is None and cfg.model.get("lora") is not None and \
-            not cfg.model.get("merge_adapter", False):
-        return {"path": str(cfg.model.path), "adapter": str(saved)}
-    return {"path": str(saved), "adapter": None}
-
-
-def with_model(cfg: DictConfig, model: dict) -> DictConfig:
-    """A copy of cfg whose model node loads `model` (trained_model's path and adapter)."""
-    cfg = cfg.copy()
-    with open_dict(cfg):
-        cfg.model.path, cfg.model.adapter = model["path"], model["adapter"]
-    return cfg
 
 
 def _save(cfg: DictConfig, trainer: pl.Trainer, module, folder: Path) -> Path:
@@ -323,7 +241,6 @@ def _loaders(cfg: DictConfig, train, val, collate, val_collate):
 
 def _test(cfg: DictConfig, saved: Path, out: Path) -> float:
     """The saved model on the test clips, loaded as task=evaluate would (test_vlm)."""
-    from lanevil_train.tasks.vlm_evaluate import generation_settings
     from lanevil_train.vlm.backends.hf import HFVLM
 
     settings = {**generation_settings(cfg), "dtype": cfg.model.get("dtype", "auto"),
@@ -334,20 +251,3 @@ def _test(cfg: DictConfig, saved: Path, out: Path) -> float:
     return test_vlm(cfg, vlm, cfg.task.get("label") or f"{vlm.name}{defense}", out)
 
 
-def test_vlm(cfg: DictConfig, vlm, name: str, out: Path) -> float:
-    """The VLM on the test clips (task.suite, else task.cases scenes of data=clips' test split, rendered on the
-    fly), with its blind baseline when task.blind: the tables of task=evaluate in out/."""
-    from lanevil_train.tasks.vlm_evaluate import build_judge, clip_suite, evaluate_into
-    from lanevil_train.vlm.base import BlindVLM
-
-    if cfg.task.suite is None:  # not the whole test split: the task.cases scenes of it, rendered on the fly
-        cfg = cfg.copy()
-        with open_dict(cfg):
-            cfg.task.suite = "synthetic"
-    dataset, dataset_name = clip_suite(cfg)
-    judge = build_judge(cfg, out)
-    files = [evaluate_into(vlm, dataset, judge, out, {"model": name, "dataset": dataset_name}, cfg.progress)]
-    if cfg.task.get("blind"):
-        files.append(evaluate_into(BlindVLM(vlm), dataset, judge, out / "blind",
-                                   {"model": f"{name}-blind", "dataset": dataset_name}, cfg.progress))
-    return write_results(files, out)
