@@ -37,13 +37,13 @@ def _batches(size: tuple[int, int], count: int, batch: int = 16) -> list[list[di
 
 def time_visual(model: str, method: str, steps: int) -> dict:
     """Seconds per fine-tuning step (the first, warm-up step left out) with the callback or mixer that
-    `defense=<method>` builds for a VLM (tasks/vlm_train.visual_defense, from the method's config)."""
+    `defense=<method>` builds for a VLM (tasks/vlm/train.visual_defense, from the method's config)."""
     import pytorch_lightning as pl
     import torch
     from hydra import compose, initialize_config_module
     from torch.utils.data import DataLoader
 
-    from lanevil_train.tasks.vlm_train import visual_defense
+    from lanevil_train.tasks.vlm.train import visual_defense
     from lanevil_train.vlm.clips.qa_data import MixingClipCollate, collate_clip_qa
     from lanevil_train.vlm.training.finetune import VLMFineTuner
 

@@ -61,7 +61,7 @@ def stream_evaluate(model: LaneDetector, dataset: Dataset, out_path: str | Path,
 def run_identity(model: LaneDetector, label: dict) -> dict:
     """What makes two evaluations the same: the label, the network's weights (a hash), input geometry and
     normalisation, decoding."""
-    weights = getattr(model, "weights_sha256", None)  # an ONNX model's: its file's hash (tasks/export.py)
+    weights = getattr(model, "weights_sha256", None)  # an ONNX model's: its file's hash (tasks/detector/export.py)
     if weights is None:
         digest = hashlib.sha256()
         for name, tensor in sorted(model.state_dict().items()):

@@ -29,7 +29,7 @@ from lanevil_train.results_log import ResultsLog
 from lanevil_train.sim.vehicle import MPH, VehicleParams
 from lanevil_train.tasks.builders import checkpoint_model, output_dir
 from lanevil_train.tasks.kinds import is_vlm
-from lanevil_train.tasks.vlm_builders import build_vlm, check_prompt_defense, is_prompt_defense, with_prompt_defense
+from lanevil_train.tasks.vlm.builders import build_vlm, check_prompt_defense, is_prompt_defense, with_prompt_defense
 from lanevil_train.taxonomy import ILLUSION_NAMES
 
 RUNS = "runs.jsonl"

@@ -37,7 +37,7 @@ from lanevil_train.tasks.builders import build_defense, build_model, model_confi
 from lanevil_train.tasks.config_check import check_config, interpolated_from, known_defenses
 from lanevil_train.tasks.kinds import is_vlm, task_target
 from lanevil_train.tasks.launch import launch_jobs, uses_job_launcher
-from lanevil_train.tasks.vlm_builders import MODEL_FOLDER, check_vlm_run, is_prompt_defense, trained_model
+from lanevil_train.tasks.vlm.builders import MODEL_FOLDER, check_vlm_run, is_prompt_defense, trained_model
 
 log = logging.getLogger(__name__)
 

@@ -45,9 +45,9 @@ SUPPLIED = {"model.head": ("in_channels", "in_strides", "image_size"), "model.ne
 TRAINING_KEYS = ("lora", "fine_tune", "embedded", "attention_layer")
 READ_BY_CODE = {"model": (*TRAINING_KEYS, "kind")}
 PROMPT_DEFENSES = ("pat++", "pat", "self_reminder")  # the textual defenses of VLMs (defense.prompt)
-HARDNESS = ("accuracy", "judge", "language")  # how PAT++ finds hard examples (tasks/vlm_defense.choose_examples)
+HARDNESS = ("accuracy", "judge", "language")  # how PAT++ finds hard examples (tasks/vlm/defense.choose_examples)
 DEFENSE_KEYS = ("name", "transforms", "mixer", "callback")
-# The keys of a textual defense of VLMs (defense=pat++: tasks/vlm_defense.py), beside DEFENSE_KEYS.
+# The keys of a textual defense of VLMs (defense=pat++: tasks/vlm/defense.py), beside DEFENSE_KEYS.
 PROMPT_DEFENSE_KEYS = ("prompt", "alpha", "hard_target", "hardness", "pool_clips", "examples", "steps",
                        "prefix_length", "suffix_length", "top_k", "num_candidates", "chunk", "soft", "soft_lr",
                        "prefix_path", "before", "after")
@@ -741,8 +741,8 @@ def check_feature_map(cfg: DictConfig) -> list[str]:
 
 def check_decode_options(cfg: DictConfig) -> list[str]:
     """model.decode may set only the decoding options of the family's head (its decode keywords). task.decode is
-    checked against the checkpoint's family when it is loaded (tasks/evaluate.load_checkpoint): the command line's
-    model need not be the checkpoint's."""
+    checked against the checkpoint's family when it is loaded (tasks/detector/evaluate.load_checkpoint): the command
+    line's model need not be the checkpoint's."""
     if _is_vlm(cfg):
         return []
     try:

@@ -18,7 +18,7 @@ from lanevil_train.data.normalization import NORMALIZATIONS, normalization, norm
 from lanevil_train.data.transforms import LaneSampleProcessor
 from lanevil_train.evaluation.streaming import stream_evaluate
 from lanevil_train.tasks.builders import build_defense, build_model, checkpoint_model
-from lanevil_train.tasks.train import check_same_network
+from lanevil_train.tasks.detector.train import check_same_network
 
 CONF = Path(lanevil_train.conf.__file__).parent
 

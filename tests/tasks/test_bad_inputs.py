@@ -17,8 +17,8 @@ from lanevil_train.data.datasets import EmptySplitError
 from lanevil_train.data.formats import write_culane, write_tusimple
 from lanevil_train.tasks.build import build
 from lanevil_train.tasks.builders import build_model, model_config
-from lanevil_train.tasks.evaluate import evaluate
-from lanevil_train.tasks.train import train
+from lanevil_train.tasks.detector.evaluate import evaluate
+from lanevil_train.tasks.detector.train import train
 from tests.tasks.cli_helpers import TINY, composed, write_photo_dataset
 
 
@@ -169,7 +169,7 @@ def test_an_empty_checkpoint_file(tmp_path):
 
 
 def test_trainer_arguments_lightning_refuses_are_reported_before_the_data_is_read(tmp_path, monkeypatch):
-    import lanevil_train.tasks.train as train_module
+    import lanevil_train.tasks.detector.train as train_module
 
     def no_data(*args, **kwargs):
         raise AssertionError("the datasets were read before the trainer's arguments were checked")

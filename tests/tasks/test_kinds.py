@@ -12,11 +12,11 @@ pytestmark = pytest.mark.usefixtures("hydra_conf")  # tests/conftest.py
 
 
 @pytest.mark.parametrize("task, model, expected", [
-    ("train", "laneatt", "lanevil_train.tasks.train.train"),
-    ("train", "vlm/embedded", "lanevil_train.tasks.vlm_train.train_vlm"),
-    ("evaluate", "clrnet", "lanevil_train.tasks.evaluate.evaluate"),
-    ("evaluate", "vlm/hf", "lanevil_train.tasks.vlm_evaluate.evaluate_vlm"),
-    ("export", "scnn", "lanevil_train.tasks.export.export"),
+    ("train", "laneatt", "lanevil_train.tasks.detector.train.train"),
+    ("train", "vlm/embedded", "lanevil_train.tasks.vlm.train.train_vlm"),
+    ("evaluate", "clrnet", "lanevil_train.tasks.detector.evaluate.evaluate"),
+    ("evaluate", "vlm/hf", "lanevil_train.tasks.vlm.evaluate.evaluate_vlm"),
+    ("export", "scnn", "lanevil_train.tasks.detector.export.export"),
     ("report", "vlm/openai", "lanevil_train.tasks.report.report"),  # one function for any model
     ("compare", "ufld", "lanevil_train.tasks.compare.compare"),
 ])
@@ -37,7 +37,8 @@ def test_every_shipped_model_names_its_kind():
         assert model_kind(cfg) == ("vlm" if option.startswith("vlm/") else "detector"), option
 
 
-def test_a_task_without_a_function_for_the_kind_says_which_kinds_it_runs():
-    cfg = compose(config_name="config", overrides=["task=export", "model=vlm/embedded"])
-    with pytest.raises(ValueError, match=r"task=export runs detector models; this model is a vlm"):
+@pytest.mark.parametrize("task", ["export", "cross_domain"])  # cross_domain inherits evaluate's config, drops its vlm
+def test_a_task_without_a_function_for_the_kind_says_which_kinds_it_runs(task):
+    cfg = compose(config_name="config", overrides=[f"task={task}", "model=vlm/embedded"])
+    with pytest.raises(ValueError, match=rf"task={task} runs detector models; this model is a vlm"):
         task_target(cfg)

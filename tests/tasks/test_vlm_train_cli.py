@@ -78,7 +78,7 @@ def test_scene_batches_draw_rendered_variants_with_their_scene_classes_and_need_
     scene classes; a suite on disk (no truth) is refused naming the setting."""
     import numpy as np
 
-    from lanevil_train.tasks.vlm_train import prepare_clips, scene_batches
+    from lanevil_train.tasks.vlm.train import prepare_clips, scene_batches
     from lanevil_train.vlm.clips.clip_set import ClipSetDataset, SyntheticClipSuite, build_clip_set
 
     suite = SyntheticClipSuite(2, 0, ["road_repair"], severities=[3], size=(32, 48))

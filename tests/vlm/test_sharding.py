@@ -137,7 +137,7 @@ def test_trainer_fsdp_builds_the_layer_wrap_strategy_full_shard_bf16(compose_roo
 
 
 def test_merging_lora_under_fsdp_is_refused_before_training_and_merging_elsewhere_is_not(compose_root):
-    from lanevil_train.tasks.vlm_train import check_sharded_merge
+    from lanevil_train.tasks.vlm.train import check_sharded_merge
 
     lora = ["model=vlm/hf", "model.path=unused"]  # model=vlm/hf trains LoRA by default
     with pytest.raises(ValueError, match=r"model.merge_adapter: true cannot merge under trainer=fsdp .* "

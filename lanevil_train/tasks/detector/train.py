@@ -21,7 +21,7 @@ from lanevil_train.tasks.builders import (
     model_config,
     output_dir,
 )
-from lanevil_train.tasks.evaluate import stream_dataset, test_dataset
+from lanevil_train.tasks.detector.evaluate import stream_dataset, test_dataset
 
 
 def train(cfg: DictConfig) -> float | None:

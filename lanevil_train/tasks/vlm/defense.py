@@ -1,7 +1,7 @@
 """Textual defenses of a VLM: PAT++ (defense=pat++) tunes a defense prefix for a trained, frozen VLM (discrete
 tokens, or with defense.soft continuous vectors); PAT (defense=pat, Mo et al. 2024) tunes one against an attack
 suffix tuned at the same time; Self-Reminder (defense=self_reminder) wraps every question in two reminders and needs
-no training. defense=mida fine-tunes with AAM++ on the frames first (tasks/vlm_train.py), then tunes PAT++ for the
+no training. defense=mida fine-tunes with AAM++ on the frames first (tasks/vlm/train.py), then tunes PAT++ for the
 fine-tuned model.
 
     python -m lanevil_train task=train model=vlm/hf model.path=RUN/model data.size=[64,112] defense=pat++
@@ -33,7 +33,7 @@ from omegaconf import DictConfig
 
 from lanevil_train.files.atomic import atomic_write_text
 from lanevil_train.tasks.builders import build_split, output_dir
-from lanevil_train.tasks.vlm_builders import (
+from lanevil_train.tasks.vlm.builders import (
     add_defense_to_report,
     build_judge,
     build_vlm,
@@ -43,7 +43,7 @@ from lanevil_train.tasks.vlm_builders import (
     spread,
     with_prompt_defense,
 )
-from lanevil_train.tasks.vlm_evaluate import test_vlm
+from lanevil_train.tasks.vlm.evaluate import test_vlm
 
 EXAMPLES_FILE = "examples.json"
 

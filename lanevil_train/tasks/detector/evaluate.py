@@ -20,7 +20,7 @@ from lanevil_train.models.detector import LaneDetector
 from lanevil_train.models.head import check_decode_options
 from lanevil_train.report.specs import LANE_SPEC
 from lanevil_train.tasks.builders import build_logger, build_split, checkpoint_model, output_dir
-from lanevil_train.tasks.export import OnnxLaneDetector
+from lanevil_train.tasks.detector.export import OnnxLaneDetector
 
 
 def load_checkpoint(cfg: DictConfig) -> LaneDetector:
@@ -71,7 +71,7 @@ def synthetic_suite(cfg: DictConfig, kind: str = "illusions") -> SyntheticIllusi
 
 def evaluate(cfg: DictConfig) -> float:
     """Score the checkpoint; returns the Accuracy (%) over the perturbed images (all images if none). (A VLM's
-    task=evaluate is tasks/vlm_evaluate.evaluate_vlm: conf/task/evaluate.yaml names one function per kind.)"""
+    task=evaluate is tasks/vlm/evaluate.evaluate_vlm: conf/task/evaluate.yaml names one function per kind.)"""
     pl.seed_everything(cfg.seed, workers=True)
     model = load_checkpoint(cfg)
     dataset, dataset_name = test_dataset(cfg)

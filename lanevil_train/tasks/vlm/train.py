@@ -20,7 +20,7 @@ from lanevil_train.checkpoints import (
     remove_stale_checkpoint_temporaries,
 )
 from lanevil_train.tasks.builders import build_callbacks, build_split, build_trainer, instantiate_at, output_dir
-from lanevil_train.tasks.vlm_builders import (
+from lanevil_train.tasks.vlm.builders import (
     MODEL_FOLDER,
     check_vlm_run,
     fine_tunes,
@@ -30,8 +30,8 @@ from lanevil_train.tasks.vlm_builders import (
     trained_model,
     with_model,
 )
-from lanevil_train.tasks.vlm_defense import tune_prompt_defense
-from lanevil_train.tasks.vlm_evaluate import test_vlm
+from lanevil_train.tasks.vlm.defense import tune_prompt_defense
+from lanevil_train.tasks.vlm.evaluate import test_vlm
 
 TOKENIZER_CLIPS = 600  # base clips of the train split whose QA texts train the embedded VLM's tokenizer
 def lora_settings(cfg: DictConfig) -> dict | None:

@@ -19,7 +19,7 @@ from lanevil_train.evaluation.results import log_results, write_results
 from lanevil_train.evaluation.streaming import claim_results
 from lanevil_train.files.atomic import atomic_write_text
 from lanevil_train.tasks.builders import build_logger, output_dir
-from lanevil_train.tasks.vlm_builders import (
+from lanevil_train.tasks.vlm.builders import (
     add_defense_to_report,
     build_judge,
     build_vlm,
