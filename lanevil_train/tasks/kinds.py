@@ -33,8 +33,8 @@ def task_target(cfg: DictConfig) -> str:
     target = cfg.task.get("_target_")
     if isinstance(target, Mapping):  # one function per kind of model
         kind = model_kind(cfg)
-        if kind not in target:
-            runs = " and ".join(f"{k} models" for k in target)
+        if target.get(kind) is None:  # absent, or null (a task config that inherits another's and drops a kind)
+            runs = " and ".join(f"{k} models" for k, function in target.items() if function is not None)
             raise ValueError(f"task: task={name} runs {runs}; this model is a {kind} (model.kind={kind})")
         target = target[kind]
     if not isinstance(target, str) or not target:
