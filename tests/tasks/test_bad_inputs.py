@@ -11,6 +11,7 @@ import pytest
 import pytorch_lightning as pl
 import torch
 from hydra import compose, initialize_config_module
+from hydra.utils import get_method
 
 from lanevil_train.checkpoints import CheckpointError
 from lanevil_train.data.datasets import EmptySplitError
@@ -19,6 +20,7 @@ from lanevil_train.tasks.build import build
 from lanevil_train.tasks.builders import build_model, model_config
 from lanevil_train.tasks.detector.evaluate import evaluate
 from lanevil_train.tasks.detector.train import train
+from lanevil_train.tasks.kinds import task_target
 from tests.tasks.cli_helpers import TINY, composed, write_photo_dataset
 
 
@@ -245,6 +247,6 @@ def test_a_detector_checkpoint_of_another_family_or_given_to_a_vlm_is_named(tmp_
                                                   r"\(ufld-resnet18\), "
                                                   r"not a VLM's; drop model=vlm/\.\.\.: detector tasks rebuild "
                                                   r"model=ufld backbone=resnet18 from it$"):
-            (evaluate if task == "task=evaluate" else train)(composed(
-                [task, "model=vlm/hf", f"model.path={model_dir}", f"ckpt_path={path}", "data.train.num_cases=1",
-                 "task.cases=1", "logger=none", f"output_dir={tmp_path / 'run'}"]))
+            cfg = composed([task, "model=vlm/hf", f"model.path={model_dir}", f"ckpt_path={path}",
+                            "data.train.num_cases=1", "task.cases=1", "logger=none", f"output_dir={tmp_path / 'run'}"])
+            get_method(task_target(cfg))(cfg)  # the task's function for a VLM, as run_task picks it

@@ -149,7 +149,16 @@ def test_the_command_line_shortens_openmp_spinning_before_torch_loads_unless_the
     env = {k: v for k, v in os.environ.items() if k != "GOMP_SPINCOUNT"}
     if exported is not None:
         env["GOMP_SPINCOUNT"] = exported
-    script = ("import os, sys; import lanevil_train.__main__; "
-              "print('torch' in sys.modules, os.environ['GOMP_SPINCOUNT'])")
+    # the value in the environment at the moment torch is first imported (libgomp reads it then)
+    script = ("import os, sys\n"
+              "seen = []\n"
+              "class Watch:\n"
+              "    def find_spec(self, name, path=None, target=None):\n"
+              "        if name == 'torch' and not seen:\n"
+              "            seen.append(os.environ.get('GOMP_SPINCOUNT'))\n"
+              "sys.meta_path.insert(0, Watch())\n"
+              "import lanevil_train.__main__\n"
+              "import torch\n"
+              "print(seen[0])\n")
     out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, check=True)
-    assert out.stdout.split() == ["False", expected]  # set while torch is not loaded yet: libgomp will read it
+    assert out.stdout.split() == [expected]
