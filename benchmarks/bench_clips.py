@@ -1,4 +1,4 @@
-"""Benchmark: 6-frame clips/s from the simulator (vlm.clips.render_clip), clean and with the illusion.
+"""Benchmark: 6-frame clips/s from the simulator (vlm.clips.clips.render_clip), clean and with the illusion.
 
 Run: ``python benchmarks/bench_clips.py [--cases 14] [--first-seed 1000000] [--height 360 --width 640]``.
 Cases cycle through all 14 illusion types; every case renders its 3 segments. "clean" renders severity 0
@@ -14,7 +14,7 @@ import json
 import time
 
 from lanevil_train.taxonomy import ILLUSION_NAMES
-from lanevil_train.vlm import clips
+from lanevil_train.vlm.clips import clips
 
 
 def rate(cases: list[clips.ClipCase], severities: list[int], size: tuple[int, int]) -> float:

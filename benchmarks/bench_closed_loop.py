@@ -17,7 +17,7 @@ from omegaconf import OmegaConf
 import lanevil_train.closed_loop.episode as episode
 from lanevil_train.closed_loop import DetectorPolicy, LoopSettings, Run
 from lanevil_train.closed_loop.episode import drive, illusion_region
-from lanevil_train.tasks.evaluate import checkpoint_model
+from lanevil_train.tasks.builders import checkpoint_model
 
 
 def timed(totals: dict, name: str, function):

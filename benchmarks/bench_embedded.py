@@ -32,16 +32,22 @@ from pathlib import Path
 
 import numpy as np
 
-from lanevil_train.data.formats.atomic import atomic_write_bytes, atomic_write_text
-from lanevil_train.vlm import clips as geometry
-from lanevil_train.vlm.clip_set import SEGMENTS, base_clip_id
-from lanevil_train.vlm.embedded import (GREY, build_embedded_vlm, count_parameters, fit_answers, pretrain_vision,
-                                        qa_corpus)
-from lanevil_train.vlm.hf import HFVLM
-from lanevil_train.vlm.qa import make_qa, scene_classes, training_aids
-from lanevil_train.vlm.qa_facts import WEATHER_TEXT
-from lanevil_train.vlm.qa_records import answer_is_correct, chosen_letter, prompt_text
+from lanevil_train.files.atomic import atomic_write_bytes, atomic_write_text
 from lanevil_train.taxonomy import ILLUSION_NAMES
+from lanevil_train.vlm.backends.embedded import (
+    GREY,
+    build_embedded_vlm,
+    count_parameters,
+    fit_answers,
+    pretrain_vision,
+    qa_corpus,
+)
+from lanevil_train.vlm.backends.hf import HFVLM
+from lanevil_train.vlm.clips import clips as geometry
+from lanevil_train.vlm.clips.clip_set import SEGMENTS, base_clip_id
+from lanevil_train.vlm.clips.qa import make_qa, scene_classes, training_aids
+from lanevil_train.vlm.clips.qa_facts import WEATHER_TEXT
+from lanevil_train.vlm.clips.qa_records import answer_is_correct, chosen_letter, prompt_text
 
 TEST_FIRST_SEED = 1_000_000
 CHUNK = 25  # cases per cache file

@@ -32,8 +32,8 @@ def run_one(cases: int, batch: int, workers: int) -> dict:
     import torch
 
     from lanevil_train.data.suites import SyntheticIllusionSuite
+    from lanevil_train.evaluation.streaming import stream_evaluate
     from lanevil_train.tasks.builders import build_model
-    from lanevil_train.tasks.streaming import stream_evaluate
 
     torch.set_num_threads(2)
     model = build_model(SPEC)

@@ -36,7 +36,7 @@ def road_frame(seed: int, height: int, width: int) -> np.ndarray:
 def run(concurrency: int, image_format: str, requests: int, questions_per_clip: int, url: str,
         frames: tuple[int, int]) -> dict:
     """Time `requests` requests at `concurrency`; requests/s and the payload size."""
-    from lanevil_train.vlm.openai import OpenAIVLM, encode_frame
+    from lanevil_train.vlm.backends.openai import OpenAIVLM, encode_frame
 
     clips_needed = -(-requests // questions_per_clip)
     clips = [[road_frame(100 * c + f, *frames) for f in range(6)] for c in range(clips_needed)]
@@ -64,7 +64,7 @@ def main() -> None:
     parser.add_argument("--questions-per-clip", type=int, default=5)
     parser.add_argument("--size", type=int, nargs=2, default=[360, 640], metavar=("HEIGHT", "WIDTH"))
     args = parser.parse_args()
-    from lanevil_train.vlm.fake_server import FakeServer
+    from lanevil_train.testing.fake_server import FakeServer
 
     with FakeServer("--delay-ms", str(args.delay_ms), "--no-decode", idle_exit_s=120) as server:
         for image_format in args.formats:

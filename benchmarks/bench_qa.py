@@ -1,4 +1,4 @@
-"""QA generation rate: QA per second from scene-truth dicts (vlm/qa.make_qa), truths taken from the real renderer.
+"""QA generation rate: QA per second from scene-truth dicts (vlm/clips/qa.make_qa), truths taken from the real renderer.
 
     python benchmarks/bench_qa.py [--cases 20] [--repeat 200]
 """
@@ -9,8 +9,8 @@ import argparse
 import time
 
 from lanevil_train.taxonomy import ILLUSION_NAMES
-from lanevil_train.vlm.clips import SEGMENTS, clip_cases, clip_truth
-from lanevil_train.vlm.qa import make_qa
+from lanevil_train.vlm.clips.clips import SEGMENTS, clip_cases, clip_truth
+from lanevil_train.vlm.clips.qa import make_qa
 
 
 def main() -> None:

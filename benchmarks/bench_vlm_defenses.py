@@ -25,8 +25,8 @@ TEXTUAL = ("pat++", "pat++ soft", "pat")
 
 def _batches(size: tuple[int, int], count: int, batch: int = 16) -> list[list[dict]]:
     """`count` batches of (clip, QA) items of the train split (clean and severity 3), rendered now."""
-    from lanevil_train.vlm.clip_set import SyntheticClipSuite
-    from lanevil_train.vlm.qa_data import ClipQADataset
+    from lanevil_train.vlm.clips.clip_set import SyntheticClipSuite
+    from lanevil_train.vlm.clips.qa_data import ClipQADataset
 
     suite = SyntheticClipSuite(8, 0, severities=(3,), size=size, per_clip=5)
     data = ClipQADataset(suite, "all")
@@ -37,15 +37,15 @@ def _batches(size: tuple[int, int], count: int, batch: int = 16) -> list[list[di
 
 def time_visual(model: str, method: str, steps: int) -> dict:
     """Seconds per fine-tuning step (the first, warm-up step left out) with the callback or mixer that
-    `defense=<method>` builds for a VLM (tasks/vlm_train.visual_defense, from the method's config)."""
+    `defense=<method>` builds for a VLM (tasks/vlm/train.visual_defense, from the method's config)."""
     import pytorch_lightning as pl
     import torch
     from hydra import compose, initialize_config_module
     from torch.utils.data import DataLoader
 
-    from lanevil_train.tasks.vlm_train import visual_defense
-    from lanevil_train.vlm.qa_data import MixingClipCollate, collate_clip_qa
-    from lanevil_train.vlm.training import VLMFineTuner
+    from lanevil_train.tasks.vlm.train import visual_defense
+    from lanevil_train.vlm.clips.qa_data import MixingClipCollate, collate_clip_qa
+    from lanevil_train.vlm.training.finetune import VLMFineTuner
 
     torch.manual_seed(0)
     module = VLMFineTuner(model, lora=None, lr=3e-4, frames_as="video")
@@ -76,11 +76,17 @@ def time_textual(model: str, method: str, steps: int) -> dict:
 
     import numpy as np
 
-    from lanevil_train.vlm.gcg import Examples
-    from lanevil_train.vlm.hf import HFVLM
-    from lanevil_train.vlm.pat import RES_GOAL, GCGSettings, PrefixObjective, SoftSettings, tune_prefix, \
-        tune_soft_prefix
-    from lanevil_train.vlm.pat_baseline import PATSettings, tune_pat
+    from lanevil_train.vlm.backends.hf import HFVLM
+    from lanevil_train.vlm.defenses.gcg import Examples
+    from lanevil_train.vlm.defenses.pat import (
+        RES_GOAL,
+        GCGSettings,
+        PrefixObjective,
+        SoftSettings,
+        tune_prefix,
+        tune_soft_prefix,
+    )
+    from lanevil_train.vlm.defenses.pat_baseline import PATSettings, tune_pat
 
     vlm = HFVLM(model, dtype="float32", device="cpu", frames_as="video")
     vlm.model.requires_grad_(False)

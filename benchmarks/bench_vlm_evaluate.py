@@ -15,13 +15,13 @@ import tempfile
 import time
 from pathlib import Path
 
-from lanevil_train.tasks.results import write_results
-from lanevil_train.vlm.clip_set import ClipSetDataset, build_clip_set
-from lanevil_train.vlm.clips import clip_cases
-from lanevil_train.vlm.evaluation import evaluate_clips
-from lanevil_train.vlm.fake_server import FakeServer
-from lanevil_train.vlm.hf import HFVLM
-from lanevil_train.vlm.openai import OpenAIVLM
+from lanevil_train.evaluation.results import write_results
+from lanevil_train.testing.fake_server import FakeServer
+from lanevil_train.vlm.backends.hf import HFVLM
+from lanevil_train.vlm.backends.openai import OpenAIVLM
+from lanevil_train.vlm.clips.clip_set import ClipSetDataset, build_clip_set
+from lanevil_train.vlm.clips.clips import clip_cases
+from lanevil_train.vlm.scoring.evaluation import evaluate_clips
 from lanevil_train.vlm.tiny import build_tiny_vlm
 
 
@@ -53,7 +53,7 @@ def main() -> None:
         suite = ClipSetDataset(work / "suite")
         judge = None
         if args.judge == "minilm":
-            from lanevil_train.vlm.judge import EmbeddingJudge
+            from lanevil_train.vlm.scoring.judge import EmbeddingJudge
 
             judge = EmbeddingJudge()
         hf = HFVLM(build_tiny_vlm("qwen2_vl", work / "tiny"), max_new_tokens=16, batch_size=4)

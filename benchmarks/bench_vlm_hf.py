@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from lanevil_train.vlm.hf import HFVLM
+from lanevil_train.vlm.backends.hf import HFVLM
 from lanevil_train.vlm.tiny import build_tiny_vlm
 
 QUESTIONS = ("How many lanes does the road have?", "Is the dark straight line in the left lane a lane marking?",

@@ -25,9 +25,9 @@ def build(workers: str, steps: int, out: Path) -> dict:
     the weights' digest."""
     from hydra import compose, initialize_config_module
 
-    import lanevil_train.tasks.vlm_train as vlm_train
+    import lanevil_train.tasks.vlm.train as vlm_train
     from lanevil_train.tasks.builders import build_split
-    from lanevil_train.vlm import embedded
+    from lanevil_train.vlm.backends import embedded
 
     with initialize_config_module(config_module="lanevil_train.conf", version_base="1.3"):
         cfg = compose(config_name="config", overrides=[

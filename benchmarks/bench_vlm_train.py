@@ -26,7 +26,7 @@ def run_one(family: str, mode: str, steps: int, warmup: int, batch: int, size: t
     import torch
 
     from lanevil_train.vlm.tiny import build_tiny_vlm
-    from lanevil_train.vlm.training import VLMFineTuner, collate_clip_qa
+    from lanevil_train.vlm.training.finetune import VLMFineTuner, collate_clip_qa
 
     torch.manual_seed(0)
     model_dir = build_tiny_vlm(family, Path(tempfile.mkdtemp()) / family)

@@ -15,10 +15,10 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from aam_step import observed_step  # noqa: E402  (docs/, beside this script)
 from hydra import compose, initialize_config_module  # noqa: E402
 from matplotlib.patches import Rectangle  # noqa: E402
 
-from aam_step import observed_step  # noqa: E402  (docs/, beside this script)
 from lanevil_train.callbacks.regions import HAA, LAA, extract_regions  # noqa: E402
 from lanevil_train.data.normalization import unnormalize_image  # noqa: E402
 from lanevil_train.tasks.builders import build_datamodule, build_defense, build_model, model_config  # noqa: E402
@@ -38,8 +38,9 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=3)
     args = parser.parse_args()
     with initialize_config_module(config_module="lanevil_train.conf", version_base="1.3"):
-        cfg = compose(config_name="config", overrides=["experiment=quickstart", "defense=aam++", "data.train.num_scenes=64",
-                                                       "output_dir=/tmp/aam_figure", f"seed={args.seed}"])
+        cfg = compose(config_name="config", overrides=["experiment=quickstart", "defense=aam++",
+                                                       "data.train.num_scenes=64", "output_dir=/tmp/aam_figure",
+                                                       f"seed={args.seed}"])
     torch.manual_seed(args.seed)
     model = build_model(model_config(cfg))
     model.load_state_dict(torch.load(args.ckpt, map_location="cpu", weights_only=False)["state_dict"])

@@ -13,8 +13,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from lanevil_train.vlm.clips import SEGMENTS, ClipCase, clip_truth, render_clip
-from lanevil_train.vlm.qa import make_qa
+from lanevil_train.vlm.clips.clips import SEGMENTS, ClipCase, clip_truth, render_clip
+from lanevil_train.vlm.clips.qa import make_qa
 
 DOCS = Path(__file__).resolve().parent
 

@@ -19,8 +19,13 @@ import cv2
 import numpy as np
 
 from lanevil_train.illusions import CATEGORIES, ILLUSIONS, context_from_scene
-from lanevil_train.illusions.visibility import (MIN_CHANGED_FRACTION, VisibilityCase, measure, photo_case,
-                                                simulated_cases)
+from lanevil_train.illusions.visibility import (
+    MIN_CHANGED_FRACTION,
+    VisibilityCase,
+    measure,
+    photo_case,
+    simulated_cases,
+)
 from lanevil_train.sim import ROAD_KINDS, SCENE_KIND_NAMES, WEATHER_NAMES, SceneParams, build_scene, render_scene
 from lanevil_train.sim.params import sample_scene_params
 

@@ -1,5 +1,5 @@
 """Draw what AAM++ does to a VLM's frames in one fine-tuning step: for the hardest clips of a batch, each frame's
-attention (Grad-CAM at the family's vision output, laid on the frame by vlm/vision_maps.py) with its mismatched
+attention (Grad-CAM at the family's vision output, laid on the frame by vlm/training/vision_maps.py) with its mismatched
 high- (red) and low-attention (blue) regions, and frames of the next batch after mixing (the blended areas
 outlined).
 
@@ -18,15 +18,15 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from aam_step import observed_step  # noqa: E402  (docs/, beside this script)
 from matplotlib.patches import Rectangle  # noqa: E402
 from torch.utils.data import DataLoader  # noqa: E402
 
 from lanevil_train.callbacks import AttentionAreaMixing, BatchAdapter  # noqa: E402
-from aam_step import observed_step  # noqa: E402  (docs/, beside this script)
 from lanevil_train.callbacks.regions import HAA, LAA, extract_regions  # noqa: E402
-from lanevil_train.vlm.clip_set import SyntheticClipSuite  # noqa: E402
-from lanevil_train.vlm.qa_data import ClipQADataset, collate_clip_qa  # noqa: E402
-from lanevil_train.vlm.training import VLMFineTuner  # noqa: E402
+from lanevil_train.vlm.clips.clip_set import SyntheticClipSuite  # noqa: E402
+from lanevil_train.vlm.clips.qa_data import ClipQADataset, collate_clip_qa  # noqa: E402
+from lanevil_train.vlm.training.finetune import VLMFineTuner  # noqa: E402
 
 COLOURS = {HAA: "red", LAA: "deepskyblue"}
 

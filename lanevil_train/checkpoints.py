@@ -19,9 +19,10 @@ import zipfile
 from pathlib import Path
 from typing import Any
 
+import pytorch_lightning as pl
 from pytorch_lightning.plugins.io import TorchCheckpointIO
 
-from lanevil_train.data.formats.atomic import atomic_write_bytes
+from lanevil_train.files.atomic import atomic_write_bytes, remove_temporaries
 
 _UNSAFE_GLOBAL = re.compile(r"Unsupported global: GLOBAL ([\w.]+)")
 _ZIP_MAGIC = b"PK\x03\x04"  # torch.save (since torch 1.6) writes a zip archive
@@ -192,3 +193,11 @@ class AtomicCheckpointIO(TorchCheckpointIO):
         buffer = io.BytesIO()
         torch.save(checkpoint, buffer)
         atomic_write_bytes(path, buffer.getbuffer())
+
+
+def remove_stale_checkpoint_temporaries(callbacks: list) -> None:
+    """Delete the `.partial` files a run killed while saving a checkpoint left in the checkpoint folders (nothing
+    writes there before fit starts)."""
+    for callback in callbacks:
+        if isinstance(callback, pl.callbacks.ModelCheckpoint) and callback.dirpath and Path(callback.dirpath).is_dir():
+            remove_temporaries(callback.dirpath)

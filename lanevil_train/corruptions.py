@@ -69,8 +69,8 @@ CORRUPTION_NAMES: tuple[str, ...] = tuple(name for names in CORRUPTION_CATEGORIE
 # name -> five parameter dicts (severity 1..5); the builders below turn one into a transform
 LEVELS: Mapping[str, tuple[dict, ...]] = MappingProxyType({
     "snow": tuple({"snow_point": s, "brightness_coeff": b, "flakes": t, "flake_width": w} for s, b, t, w in zip(
-        (0.10, 0.20, 0.30, 0.40, 0.50), (1.2, 1.4, 1.6, 1.8, 2.0), ("drizzle", "default", "heavy", "heavy", "torrential"),
-        (2, 2, 3, 3, 4))),
+        (0.10, 0.20, 0.30, 0.40, 0.50), (1.2, 1.4, 1.6, 1.8, 2.0),
+        ("drizzle", "default", "heavy", "heavy", "torrential"), (2, 2, 3, 3, 4))),
     "rain": tuple({"rain_type": t, "drop_width": w, "brightness": b} for t, w, b in zip(
         ("drizzle", "default", "heavy", "heavy", "torrential"), (1, 1, 1, 2, 2), (0.90, 0.85, 0.80, 0.75, 0.70))),
     "fog": tuple({"fog_coef": f, "alpha_coef": a} for f, a in zip(

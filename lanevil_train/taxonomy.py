@@ -25,10 +25,12 @@ ILLUSION_CATEGORY = MappingProxyType({name: category for category, names in CATE
 # combined illusions (paper §5.6): a pair is named "<a>+<b>", its category "<category a>+<category b>", and the
 # paper's tables write the category pair short, e.g. RD+TO
 PAIR = "+"
-CATEGORY_SHORT = MappingProxyType({"road_damage": "RD", "traffic_obstruction": "TO", "shadow": "SH", "reflection": "RF"})
+CATEGORY_SHORT = MappingProxyType({"road_damage": "RD", "traffic_obstruction": "TO", "shadow": "SH",
+                                   "reflection": "RF"})
 
 
-PAIR_CATEGORIES: tuple[str, ...] = tuple(f"{a}{PAIR}{b}" for i, a in enumerate(CATEGORIES) for b in tuple(CATEGORIES)[i + 1:])
+PAIR_CATEGORIES: tuple[str, ...] = tuple(f"{a}{PAIR}{b}" for i, a in enumerate(CATEGORIES)
+                                         for b in tuple(CATEGORIES)[i + 1:])
 
 
 def pair_label(category: str) -> str:

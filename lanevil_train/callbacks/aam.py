@@ -18,7 +18,7 @@ attribute has it switched on, so it can add per-image accuracy when it is able t
 behind frozen weights (a VLM's frozen vision tower) still receives them.
 
 A layer whose output is not a (B, C, H, W) map of the batch images (a vision transformer's tokens) takes a
-`feature_map` callable that lays its output out as one: a VLM's tokens on its frames (vlm/vision_maps.py).
+`feature_map` callable that lays its output out as one: a VLM's tokens on its frames (vlm/training/vision_maps.py).
 """
 
 from __future__ import annotations
@@ -35,8 +35,16 @@ import torch.distributed as dist
 import torch.nn.functional as F
 
 from lanevil_train.callbacks.adapter import BatchAdapter
-from lanevil_train.callbacks.regions import (HAA, LAA, blend_region, choose_place, extract_regions, grad_cam,
-                                             hard_examples, target_area)
+from lanevil_train.callbacks.regions import (
+    HAA,
+    LAA,
+    blend_region,
+    choose_place,
+    extract_regions,
+    grad_cam,
+    hard_examples,
+    target_area,
+)
 
 MODES = {"aam": (HAA,), "aam++": (HAA, LAA)}
 HARDNESS = ("auto", "accuracy", "loss")
@@ -121,8 +129,9 @@ class AttentionAreaMixing(pl.Callback):
             raise ValueError(f"AttentionAreaMixing: feature_map must be a callable (layer output -> (B, C, h, w) "
                              f"map), got {type(feature_map).__name__}")
         # t_haa < t_laa is allowed (the paper's sensitivity grid has T_HAA 0.2 with T_LAA 0.4): the masks overlap
-        for name, value in (("t_haa", t_haa), ("t_laa", t_laa), ("beta", beta), ("mix_prob", mix_prob), ("overlap_threshold", overlap_threshold),
-                            ("min_area", min_area), ("max_region_fraction", max_region_fraction)):
+        for name, value in (("t_haa", t_haa), ("t_laa", t_laa), ("beta", beta), ("mix_prob", mix_prob),
+                            ("overlap_threshold", overlap_threshold), ("min_area", min_area),
+                            ("max_region_fraction", max_region_fraction)):
             if not _is_number(value) or not 0.0 <= value <= 1.0:
                 raise ValueError(f"AttentionAreaMixing: {name} must be a number in [0, 1], got {value!r}")
         if not _is_number(sigma) or sigma < 0:

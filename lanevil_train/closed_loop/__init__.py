@@ -8,8 +8,14 @@ severities and repeats, resumable, and report/closed_loop.py writes its tables a
 
 from lanevil_train.closed_loop.controller import PurePursuit
 from lanevil_train.closed_loop.episode import LoopSettings, Run, drive
-from lanevil_train.closed_loop.policies import (DRIVING_QUESTION, DetectorPolicy, Observation, TruthPolicy, VLMPolicy,
-                                                parse_direction)
+from lanevil_train.closed_loop.policies import (
+                                                DRIVING_QUESTION,
+                                                DetectorPolicy,
+                                                Observation,
+                                                TruthPolicy,
+                                                VLMPolicy,
+                                                parse_direction,
+)
 from lanevil_train.closed_loop.scoring import ASR_THRESHOLD_M, ASR_WINDOW_S, run_scores, wilson_interval
 
 __all__ = ["PurePursuit", "LoopSettings", "Run", "drive", "DRIVING_QUESTION", "DetectorPolicy", "Observation",

@@ -58,7 +58,8 @@ class Run:
     def as_dict(self) -> dict:
         return {"run": self.key, "case_id": self.case_id, "seed": self.seed, "illusion": self.illusion,
                 "category": self.category, "severity": self.severity, "perturbed": self.severity > 0,
-                "repeat": self.repeat, "start_m": round(self.start_m, 4), "region_m": [round(v, 4) for v in self.region]}
+                "repeat": self.repeat, "start_m": round(self.start_m, 4),
+                "region_m": [round(v, 4) for v in self.region]}
 
 
 @dataclass(frozen=True)

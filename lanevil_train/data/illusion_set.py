@@ -4,7 +4,7 @@ Output (root/): images/<case>/<variant>.png, labels (TuSimple JSON lines `labels
 `.lines.txt` beside each image plus `list/test.txt`), and `manifest.jsonl` (data/formats/manifest.py).
 
 Safe to kill at any instant, and a rerun with the same root finishes the set as if nothing had happened:
-- every file is written atomically (data/formats/atomic.py), and a rerun first deletes the temporaries a kill
+- every file is written atomically (files/atomic.py), and a rerun first deletes the temporaries a kill
   left behind;
 - per image, the image (and its .lines.txt) comes first, then its labels.json line, then its manifest line,
   each durable before the next, so a manifest line promises everything before it;
@@ -29,12 +29,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from lanevil_train.data.formats import load_image, write_culane_lanes
-from lanevil_train.data.formats import builds
-from lanevil_train.data.formats.atomic import atomic_write_bytes, atomic_write_text
+from lanevil_train.data.formats import builds, load_image, write_culane_lanes
 from lanevil_train.data.formats.builds import map_jobs, write_build_record
 from lanevil_train.data.formats.manifest import manifest_record, read_manifest
 from lanevil_train.errors import prefixed
+from lanevil_train.files.atomic import atomic_write_bytes, atomic_write_text
 from lanevil_train.illusions import GroundPlaneError, context_from_lanes, context_from_scene, fallback_context
 from lanevil_train.lanes import default_h_samples, lanes_to_rows
 from lanevil_train.perturbations import case_perturbations, get_perturbation, suite_names
@@ -81,7 +80,7 @@ def dataset_cases(records: list[dict]) -> list[Case]:
     out = []
     for i, record in enumerate(records):
         name = str(record.get("raw_file") or record.get("rel_path") or record["image_path"])
-        out.append(Case(name, i, 0, str(record["image_path"]), tuple(np.asarray(l) for l in record["lanes"]),
+        out.append(Case(name, i, 0, str(record["image_path"]), tuple(np.asarray(lane) for lane in record["lanes"]),
                         record.get("source")))
     return out
 
@@ -187,7 +186,8 @@ def render_case(args: tuple[Case, Plan, str, frozenset]) -> list[dict]:
         return []
     image, lanes, ctx = case_source(case, plan)
     h_samples = default_h_samples(image.shape[0])
-    label = {"lanes": lanes_to_rows(lanes, h_samples).round().astype(int).tolist(), "h_samples": h_samples.astype(int).tolist()}
+    label = {"lanes": lanes_to_rows(lanes, h_samples).round().astype(int).tolist(),
+             "h_samples": h_samples.astype(int).tolist()}
     out = []
     for record in todo:
         try:

@@ -13,13 +13,13 @@ from torch.utils.data import Dataset
 
 from lanevil_train.data.datasets import EmptySplitError
 from lanevil_train.data.formats import load_image, read_culane, read_tusimple
-from lanevil_train.data.formats.manifest import read_manifest
 from lanevil_train.data.formats.builds import BUILD_FILE
+from lanevil_train.data.formats.manifest import read_manifest
 from lanevil_train.data.illusion_set import Plan, case_source, read_build_record, synthetic_cases, variants
 from lanevil_train.errors import prefixed
 from lanevil_train.illusions.registry import check_severity
-from lanevil_train.perturbations import get_perturbation, suite_names
 from lanevil_train.lanes import default_h_samples
+from lanevil_train.perturbations import get_perturbation, suite_names
 
 _VARIANT_KEYS = ("case_id", "illusion", "category", "severity", "seed")
 

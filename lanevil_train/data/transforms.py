@@ -94,7 +94,8 @@ def clip_lane_to_image(lane: np.ndarray, height: int, width: int) -> np.ndarray:
     return np.array(kept, dtype=np.float64).reshape(-1, 2)
 
 
-def apply_pipeline(pipeline: A.Compose, image: np.ndarray, lanes: list[np.ndarray]) -> tuple[np.ndarray, list[np.ndarray]]:
+def apply_pipeline(pipeline: A.Compose, image: np.ndarray,
+                   lanes: list[np.ndarray]) -> tuple[np.ndarray, list[np.ndarray]]:
     """Run an albumentations pipeline on an image and its lanes; lanes come back in output pixels.
 
     Lanes are first cut at the image border (clip_lane_to_image): points outside the image never reach
@@ -149,7 +150,8 @@ class LaneSampleProcessor:
         self.normalize = normalize
 
     def __call__(self, sample: dict) -> dict:
-        image, lanes = crop_top_rows(sample["image"], sample["lanes"], crop_rows(self.crop_top, sample["image"].shape[0]))
+        image, lanes = crop_top_rows(sample["image"], sample["lanes"],
+                                     crop_rows(self.crop_top, sample["image"].shape[0]))
         image, lanes = apply_pipeline(self.pipeline, image, lanes)
         item = {
             "image": normalize_image(image, self.normalize),

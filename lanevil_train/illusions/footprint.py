@@ -1,7 +1,7 @@
 """Where an illusion lies on the road: the road span (arc lengths from the camera) and the lane of the pixels it
 changes in a render, inverse-projected onto the scene's road.
 
-Clips place their camera by it (vlm/clips.py) and the closed loop starts its car 5-10 m before it and times the
+Clips place their camera by it (vlm/clips/clips.py) and the closed loop starts its car 5-10 m before it and times the
 attack window from where the car enters it (closed_loop/).
 """
 

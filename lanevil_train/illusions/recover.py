@@ -23,9 +23,9 @@ import math
 import numpy as np
 
 from lanevil_train.illusions.context import IllusionContext
-from lanevil_train.lanes import INVALID_X, lane_extent_problem
+
 # re-exported: the margins, documented in lanevil_train.lanes (illusions/api.py refers to them here)
-from lanevil_train.lanes import LANE_X_MARGIN_FRAC, LANE_Y_MARGIN_FRAC  # noqa: F401
+from lanevil_train.lanes import INVALID_X, LANE_X_MARGIN_FRAC, LANE_Y_MARGIN_FRAC, lane_extent_problem  # noqa: F401
 from lanevil_train.sim import Camera, RoadGeometry
 from lanevil_train.sim.presets import MARKING_STRIPES
 from lanevil_train.sim.road import Boundary

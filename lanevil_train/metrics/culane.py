@@ -20,8 +20,8 @@ Procedure of the official tool (evaluate.cpp, counter.cpp, lane_compare.cpp, spl
 
 Why the widely copied Python port (``culane_metric`` with scipy ``splprep``) gives different counts:
 it fits FITPACK's interpolating B-spline (``splprep(s=0)``: its own end conditions, parameter =
-normalised cumulative chord length) instead of the natural cubic spline, samples 5 points per segment instead of 50 (a coarser polyline),
-truncates coordinates to int (``astype(np.int32)``) instead of rounding, and matches with the exact
+normalised cumulative chord length) instead of the natural cubic spline, samples 5 points per segment instead of 50 (a
+coarser polyline), truncates coordinates to int (``astype(np.int32)``) instead of rounding, and matches with the exact
 ``linear_sum_assignment`` instead of the 1e-2-tolerant Kuhn-Munkres. Each of these moves masks or matches by
 a pixel or a near-tie, which flips IoU > 0.5 decisions on some lanes (measured here: 1 of 300 synthetic
 CULane-like images got different counts).

@@ -53,7 +53,8 @@ class LaneDetector(pl.LightningModule):
         self.lr_scaling = lr_scaling
         self.lr_multipliers = check_lr_multipliers(self, dict(lr_multipliers or {}))
         if gradient_clip_norm is not None and not gradient_clip_norm > 0:
-            raise ValueError(f"gradient_clip_norm: expected null or a positive maximum norm, got {gradient_clip_norm!r}")
+            raise ValueError(f"gradient_clip_norm: expected null or a positive maximum norm, "
+                             f"got {gradient_clip_norm!r}")
         self.gradient_clip_norm = gradient_clip_norm
         self.decode_kwargs = dict(decode or {})
         check_decode_options(head, self.decode_kwargs, "model.decode")

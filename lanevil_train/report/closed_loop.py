@@ -20,7 +20,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from lanevil_train.closed_loop.scoring import ASR_THRESHOLD_M, ASR_WINDOW_S, wilson_interval  # noqa: E402
-from lanevil_train.data.formats.atomic import atomic_write_text  # noqa: E402
+from lanevil_train.files.atomic import atomic_write_text  # noqa: E402
 from lanevil_train.report.plots import save_figure  # noqa: E402
 from lanevil_train.report.records import ordered  # noqa: E402
 from lanevil_train.report.tables import markdown_table, write_table  # noqa: E402

@@ -17,7 +17,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from lanevil_train.data.formats.atomic import atomic_write_text
+from lanevil_train.files.atomic import atomic_write_text
 from lanevil_train.report.records import AVERAGE, RecordSet, RecordSpec, item_of
 from lanevil_train.report.robustness import main_table
 from lanevil_train.report.specs import spec_for
@@ -197,9 +197,9 @@ def gain_plot(gain_rows: list[dict], path: str | Path, metrics: str | list[str] 
     """Grouped bars, one panel per score of `metrics`: x = category and average, one bar per defense, y = gain over
     the reference in points (the paper's Fig. enhance); where the rows hold intervals, whiskers span them and a bar
     whose interval excludes zero is drawn solid, the others hatched and pale."""
-    from lanevil_train.report.plots import save_figure  # sets the Agg backend
-
     import matplotlib.pyplot as plt
+
+    from lanevil_train.report.plots import save_figure  # sets the Agg backend
 
     metrics = [metrics] if isinstance(metrics, str) else list(metrics)
     groups = [g for g in dict.fromkeys(r["category"] for r in gain_rows) if g != ORIGINAL]

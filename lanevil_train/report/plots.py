@@ -15,7 +15,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from lanevil_train.data.formats.atomic import atomic_write_bytes  # noqa: E402
+from lanevil_train.files.atomic import atomic_write_bytes  # noqa: E402
 from lanevil_train.report.records import item_of  # noqa: E402
 from lanevil_train.report.specs import record_set  # noqa: E402
 

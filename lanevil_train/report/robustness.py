@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from lanevil_train.data.formats.atomic import atomic_write_text
+from lanevil_train.files.atomic import atomic_write_text
 from lanevil_train.report.records import AVERAGE, KINDS, NAN, ModelRecords, RecordSet, mean
 from lanevil_train.report.specs import record_set
 from lanevil_train.report.tables import markdown_table, write_table

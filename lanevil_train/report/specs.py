@@ -7,9 +7,9 @@ from __future__ import annotations
 import math
 from typing import Sequence
 
-from lanevil_train.metrics import tusimple_summary
 import numpy as np
 
+from lanevil_train.metrics import tusimple_summary
 from lanevil_train.report.records import NAN, Additive, Field, RecordSet, RecordSpec, Score, mean_of, ratio
 
 
@@ -143,7 +143,7 @@ _VQA_SCORES = (Score("GPT_score", mean_present("gpt_score"), needs_any=("gpt_sco
                Score("Language", language_part("Language"), needs=_TOKENS),
                Score("Accuracy", mean_present("correct", 100.0), needs_any=("correct",)))
 
-# One record per answer of a VLM to one QA of one clip variant (tasks/vlm_evaluate.py). The item is the QA of a base
+# One record per answer of a VLM to one QA of one clip variant (tasks/vlm/evaluate.py). The item is the QA of a base
 # clip (case_id = base_clip_id, item_key = qa_id), so Original is the same question on the clean clip. GPT_score:
 # an LLM judge on an OpenAI-compatible endpoint (DriveLM's 0-100 rubric); MiniLM_score: the offline embedding judge
 # (cosine of all-MiniLM-L6-v2 embeddings x 100), never called a GPT score; Language: DriveLM's weighted sum of

@@ -11,7 +11,7 @@ import io
 import json
 from pathlib import Path
 
-from lanevil_train.data.formats.atomic import atomic_write_text
+from lanevil_train.files.atomic import atomic_write_text
 
 
 def _fmt(value, digits: int) -> str:

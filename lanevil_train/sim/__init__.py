@@ -3,8 +3,8 @@
 Public API: render_scene(seed, params=None, width, height) -> {"image", "lanes", "meta"};
 SceneParams / sample_scene_params; build_scene -> Scene (camera + road geometry, for illusions);
 Camera; RoadGeometry; scene_at(scene, s0) -> the scene from s0 metres along the road (a driving
-camera, sim/sequence.py) with FrameView / PoseCamera; preset names (ROAD_KINDS, MARKING_TYPES, WEATHER_NAMES, SCENE_KIND_NAMES).
-Depends on numpy and opencv only.
+camera, sim/sequence.py) with FrameView / PoseCamera; preset names (ROAD_KINDS, MARKING_TYPES, WEATHER_NAMES,
+SCENE_KIND_NAMES). Depends on numpy and opencv only.
 """
 
 from lanevil_train.sim.camera import Camera

@@ -8,7 +8,12 @@ from dataclasses import asdict, dataclass, replace
 import numpy as np
 
 from lanevil_train.sim.presets import (
-    MARKING_STRIPES, MARKING_TYPES, ROAD_KINDS, SCENE_KIND_NAMES, SCENE_KINDS, WEATHER_NAMES,
+    MARKING_STRIPES,
+    MARKING_TYPES,
+    ROAD_KINDS,
+    SCENE_KIND_NAMES,
+    SCENE_KINDS,
+    WEATHER_NAMES,
 )
 
 

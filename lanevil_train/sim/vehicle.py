@@ -25,7 +25,8 @@ INTEGRATION_STEP_S = 0.01  # RK4 sub-step
 
 
 def check_positive(label: str, value) -> float:
-    """`value` as a float if it is a finite number > 0, else a ValueError naming `label` (e.g. VehicleParams.speed_mps)."""
+    """`value` as a float if it is a finite number > 0, else a ValueError naming `label`
+    (e.g. VehicleParams.speed_mps)."""
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
         raise ValueError(f"{label}: expected a positive number, got {value!r}")
     return float(value)

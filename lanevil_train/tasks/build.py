@@ -39,12 +39,12 @@ def build(cfg: DictConfig) -> None:
 
 def build_clips(cfg: DictConfig, names: tuple[str, ...], kind: str = "illusions") -> None:
     """data=clips: task.cases scene videos from data.test.first_seed, each cut into 3 clips (clean + every
-    severity), with their QA; `data.paraphrase` (a _target_ node, e.g. vlm.paraphrase.OpenAIParaphraser) rewords
+    severity), with their QA; `data.paraphrase` (a _target_ node, e.g. vlm.clips.paraphrase.OpenAIParaphraser) rewords
     questions and open answers, its replies cached in the out_dir."""
     from hydra.utils import instantiate
 
-    from lanevil_train.vlm.clip_set import build_clip_set
-    from lanevil_train.vlm.clips import suite_cases
+    from lanevil_train.vlm.clips.clip_set import build_clip_set
+    from lanevil_train.vlm.clips.clips import suite_cases
 
     task = cfg.task
     root = Path(task.out_dir) if task.out_dir else output_dir(cfg) / "clip_set"
@@ -64,12 +64,13 @@ def build_clips(cfg: DictConfig, names: tuple[str, ...], kind: str = "illusions"
 
 
 def write_suite_drivelm(root: Path) -> Path:
-    """root/drivelm.json: the finished suite's QA in the DriveLM-nuScenes layout (vlm/drivelm.py), for tools that
+    """root/drivelm.json: the finished suite's QA in the DriveLM-nuScenes layout (vlm/clips/drivelm.py), for tools that
     read DriveLM data; rewritten from clips.jsonl and qa.jsonl after every build."""
     from lanevil_train.results_log import ResultsLog
-    from lanevil_train.vlm.clip_set import CLIPS_FILE, QA_FILE
-    from lanevil_train.vlm.drivelm import write_drivelm
+    from lanevil_train.vlm.clips.clip_set import CLIPS_FILE, QA_FILE
+    from lanevil_train.vlm.clips.drivelm import write_drivelm
 
     path = root / "drivelm.json"
-    write_drivelm(path, ResultsLog(root / CLIPS_FILE, "clip_id").records(), ResultsLog(root / QA_FILE, "qa_id").records())
+    clips = ResultsLog(root / CLIPS_FILE, "clip_id").records()
+    write_drivelm(path, clips, ResultsLog(root / QA_FILE, "qa_id").records())
     return path

@@ -11,7 +11,12 @@ from hydra.utils import instantiate
 from lightning_fabric.utilities.exceptions import MisconfigurationException
 from omegaconf import DictConfig, OmegaConf
 
-from lanevil_train.checkpoints import AtomicCheckpointIO
+from lanevil_train.checkpoints import (
+    AtomicCheckpointIO,
+    check_detector_checkpoint,
+    fit_weights,
+    read_lightning_checkpoint,
+)
 from lanevil_train.data.datamodule import LaneDataModule
 from lanevil_train.data.datasets import EmptySplitError
 from lanevil_train.data.normalization import DEFAULT_NORMALIZATION, Normalization, normalization, spec_normalization
@@ -33,12 +38,6 @@ def model_config(cfg: DictConfig) -> dict:
     out["normalize"] = str(cfg.data.get("normalize") or DEFAULT_NORMALIZATION)
     normalization(out["normalize"])
     return out
-
-
-def is_vlm(cfg: DictConfig) -> bool:
-    """Whether the model is a VLM backend (model=vlm/<backend>: a model node with its own `_target_`) rather than
-    a lane detector (a backbone and a head)."""
-    return cfg.get("model") is not None and cfg.model.get("_target_") is not None
 
 
 def instantiate_at(node, key: str, **kwargs):
@@ -216,7 +215,7 @@ def build_callbacks(cfg: DictConfig) -> list[pl.Callback]:
 
 def build_trainer(cfg: DictConfig, callbacks: list | None = None, logger=True) -> pl.Trainer:
     """A Lightning Trainer from cfg.trainer, with the configured progress display and logger."""
-    from lanevil_train.tasks.trainer_progress import progress_callback
+    from lanevil_train.trainer_progress import progress_callback
 
     args = OmegaConf.to_container(cfg.trainer, resolve=True)
     if isinstance(args.get("strategy"), dict):  # a strategy object from its config node (trainer=fsdp, deepspeed)
@@ -249,3 +248,13 @@ def output_dir(cfg: DictConfig) -> Path:
     path = Path(cfg.output_dir)
     path.mkdir(parents=True, exist_ok=True)
     return path
+
+
+def checkpoint_model(cfg: DictConfig) -> LaneDetector:
+    """The network of the checkpoint at ckpt_path (its stored build config; the command line's for checkpoints
+    without one) with its weights."""
+    checkpoint = read_lightning_checkpoint(cfg.ckpt_path, "ckpt_path")
+    check_detector_checkpoint(checkpoint, f"ckpt_path={cfg.ckpt_path}")  # a VLM's names the model= it needs
+    model = build_model(checkpoint.get("lanevil_model") or model_config(cfg))
+    fit_weights(model, checkpoint["state_dict"], f"ckpt_path={cfg.ckpt_path}")
+    return model

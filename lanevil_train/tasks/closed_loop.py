@@ -5,8 +5,9 @@ For every case (a scene seed), every illusion of task.illusions and every repeat
 each severity and once clean (the twin): closed_loop/episode.py. Each model (ckpt_path, or several in task.models,
 label: checkpoint) drives every run. Finished runs are appended to <out>/runs.jsonl with their scores, after their
 traces (one JSON line per control step) were written whole to <out>/traces/<model>/; a rerun with the same out_dir
-skips them, and a model added to task.models later drives only its own runs (the settings must be the same). The report (closed_loop.md, asr_by_*.{md,csv,json}, asr.png, deviation.png, worst_run.gif) is built
-from runs.jsonl and the traces alone.
+skips them, and a model added to task.models later drives only its own runs (the settings must be the same). The
+report (closed_loop.md, asr_by_*.{md,csv,json}, asr.png, deviation.png, worst_run.gif) is built from runs.jsonl and
+the traces alone.
 """
 
 from __future__ import annotations
@@ -21,12 +22,14 @@ from lanevil_train.closed_loop.controller import PurePursuit
 from lanevil_train.closed_loop.episode import LoopSettings, Run, case_scene, drive, ego_lane, illusion_region
 from lanevil_train.closed_loop.policies import DetectorPolicy, TruthPolicy, VLMPolicy
 from lanevil_train.closed_loop.scoring import run_scores
-from lanevil_train.data.formats.atomic import atomic_write_text
+from lanevil_train.evaluation.streaming import claim_results
+from lanevil_train.files.atomic import atomic_write_text
 from lanevil_train.progress import progress_counter
 from lanevil_train.results_log import ResultsLog
 from lanevil_train.sim.vehicle import MPH, VehicleParams
-from lanevil_train.tasks.builders import is_vlm, output_dir
-from lanevil_train.tasks.streaming import claim_results
+from lanevil_train.tasks.builders import checkpoint_model, output_dir
+from lanevil_train.tasks.kinds import is_vlm
+from lanevil_train.tasks.vlm.builders import build_vlm, check_prompt_defense, is_prompt_defense, with_prompt_defense
 from lanevil_train.taxonomy import ILLUSION_NAMES
 
 RUNS = "runs.jsonl"
@@ -58,9 +61,6 @@ def build_policies(cfg: DictConfig) -> list[tuple[object, dict]]:
     if kind == "truth":
         return [(TruthPolicy(controller(cfg.task), name=cfg.task.label or "ground-truth"), {"policy": "truth"})]
     if kind == "vlm":
-        from lanevil_train.tasks.vlm_defense import check_prompt_defense, is_prompt_defense, with_prompt_defense
-        from lanevil_train.tasks.vlm_evaluate import build_vlm
-
         if is_prompt_defense(cfg):
             check_prompt_defense(cfg)  # before the model loads
         vlm = build_vlm(cfg)
@@ -69,8 +69,7 @@ def build_policies(cfg: DictConfig) -> list[tuple[object, dict]]:
         policy = VLMPolicy(vlm, cfg.task.vlm.question, cfg.task.vlm.steer_deg, cfg.task.vlm.frames,
                            name=cfg.task.label or vlm.name)
         return [(policy, {"policy": "vlm", **vlm.identity(), **OmegaConf.to_container(cfg.task.vlm)})]
-    from lanevil_train.tasks.evaluate import checkpoint_model
-    from lanevil_train.tasks.streaming import run_identity
+    from lanevil_train.evaluation.streaming import run_identity
 
     models = dict(cfg.task.models or {})
     if not models:

@@ -17,16 +17,27 @@ import json
 import logging
 from pathlib import Path
 
+from hydra.utils import get_method
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from lanevil_train.data.formats.atomic import atomic_write_text
-from lanevil_train.report.defenses import (REFERENCE, best_defense, defense_gain, defense_scores, gain_pivot,
-                                           headline_of, write_defense_report)
+from lanevil_train.evaluation.scoring import read_records
+from lanevil_train.files.atomic import atomic_write_text
+from lanevil_train.report.defenses import (
+    REFERENCE,
+    best_defense,
+    defense_gain,
+    defense_scores,
+    gain_pivot,
+    headline_of,
+    write_defense_report,
+)
 from lanevil_train.report.specs import spec_for
 from lanevil_train.report.tables import print_table
-from lanevil_train.tasks.builders import build_defense, build_model, is_vlm, model_config, output_dir
+from lanevil_train.tasks.builders import build_defense, build_model, model_config, output_dir
 from lanevil_train.tasks.config_check import check_config, interpolated_from, known_defenses
-from lanevil_train.tasks.scoring import read_records
+from lanevil_train.tasks.kinds import is_vlm, task_target
+from lanevil_train.tasks.launch import launch_jobs, uses_job_launcher
+from lanevil_train.tasks.vlm.builders import MODEL_FOLDER, check_vlm_run, is_prompt_defense, trained_model
 
 log = logging.getLogger(__name__)
 
@@ -91,8 +102,6 @@ def compose_run(cfg: DictConfig, defense: str, overrides: list[str], run_dir: Pa
         run_cfg.ckpt_path = str(last) if last.is_file() else None
     check_config(run_cfg, where=f"the config of the defense={defense} run")
     if source is not None:
-        from lanevil_train.tasks.vlm_train import MODEL_FOLDER, trained_model
-
         model = trained_model(run_cfg, source / MODEL_FOLDER)
         with open_dict(run_cfg):
             run_cfg.defense.callback, run_cfg.defense.mixer = None, None
@@ -112,8 +121,6 @@ def vlm_sources(configs: dict[str, DictConfig]) -> dict[str, str | None]:
     """For each defense of a VLM compare, the listed defense whose fine-tuned model its textual part is tuned for:
     the first one without a textual part that does the same to the frames; None for a defense that fine-tunes
     itself."""
-    from lanevil_train.tasks.vlm_defense import is_prompt_defense
-
     plain = [d for d, run_cfg in configs.items() if not is_prompt_defense(run_cfg)]
     return {d: (next((p for p in plain if visual_part(configs[p]) == visual_part(run_cfg)), None)
                 if is_prompt_defense(run_cfg) else None) for d, run_cfg in configs.items()}
@@ -161,8 +168,6 @@ def done_marker(run_dir: Path, vlm: bool) -> Path:
 def run_defense(cfg: DictConfig, defense: str, overrides: list[str], run_dir: Path,
                 source: Path | None = None) -> None:
     """Train and score one defense into run_dir, unless a finished result is there (then nothing is done)."""
-    from lanevil_train.tasks.train import train
-
     done = done_marker(run_dir, is_vlm(cfg))
     if done.is_file():
         log.info("compare: defense=%s already done (%s), skipped", defense, done)
@@ -173,7 +178,7 @@ def run_defense(cfg: DictConfig, defense: str, overrides: list[str], run_dir: Pa
     log.info("compare: defense=%s %s in %s", defense, state, run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     OmegaConf.save(run_cfg, run_dir / "config.yaml")
-    result = train(run_cfg)
+    result = get_method(task_target(run_cfg))(run_cfg)  # task=train for the model's kind
     _finish_wandb()
     if not _is_rank_zero():
         return
@@ -380,8 +385,6 @@ def _sources(cfg: DictConfig, defenses: list[str], configs: dict[str, DictConfig
     """Checks each defense against the model before anything trains; for a VLM, the defense whose fine-tuned model
     each textual defense is tuned for (vlm_sources), else None for every defense."""
     if is_vlm(cfg):
-        from lanevil_train.tasks.vlm_train import check_vlm_run
-
         for defense, run_cfg in configs.items():
             try:
                 check_vlm_run(run_cfg)
@@ -401,8 +404,6 @@ def _launching() -> bool:
 
     if not HydraConfig.initialized():
         return False
-    from lanevil_train.tasks.launch import uses_job_launcher
-
     return uses_job_launcher()
 
 
@@ -411,8 +412,6 @@ def launch_runs(user: list[str], todo: list[tuple[str, int]], sources: dict[str,
     """Each unfinished run of `todo` as one job of the current launcher (task=compare with task.run_only), into
     <out>/jobs/<defense>@<seed>/ (the job's log; the run itself writes runs/...); a textual defense's jobs after the
     jobs of the models they are tuned for. Returns the runs that failed."""
-    from lanevil_train.tasks.launch import launch_jobs
-
     failed = []
     waves = [[(d, s) for d, s in todo if sources[d] is None], [(d, s) for d, s in todo if sources[d] is not None]]
     for wave in waves:

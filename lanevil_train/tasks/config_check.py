@@ -33,18 +33,21 @@ from lanevil_train.models.head import decode_option_problems
 from lanevil_train.models.schedules import LR_SCALINGS
 from lanevil_train.perturbations import SUITE_KINDS, suite_names
 from lanevil_train.progress import MODES
-from lanevil_train.tasks.vlm_defense import HARDNESS, PROMPT_DEFENSES
-from lanevil_train.tasks.vlm_train import TRAINING_KEYS
-from lanevil_train.vlm.pat import HARD_TARGETS
+from lanevil_train.tasks.kinds import task_target
+from lanevil_train.vlm.defenses.pat import HARD_TARGETS
 
 # Keys of a `_target_` node that Hydra reads itself (not passed to the target).
 HYDRA_KEYS = {"_target_", "_recursive_", "_convert_", "_partial_", "_args_"}
 # Arguments the code passes to a target itself: a config value for them would be ignored.
 SUPPLIED = {"model.head": ("in_channels", "in_strides", "image_size"), "model.neck": ("in_channels", "in_strides")}
 # Keys of a target node that the code reads itself (not arguments of its target): a VLM's training settings.
-READ_BY_CODE = {"model": TRAINING_KEYS}
+# Keys of a VLM model node read by the training code, not arguments of its inference `_target_`.
+TRAINING_KEYS = ("lora", "fine_tune", "embedded", "attention_layer")
+READ_BY_CODE = {"model": (*TRAINING_KEYS, "kind")}
+PROMPT_DEFENSES = ("pat++", "pat", "self_reminder")  # the textual defenses of VLMs (defense.prompt)
+HARDNESS = ("accuracy", "judge", "language")  # how PAT++ finds hard examples (tasks/vlm/defense.choose_examples)
 DEFENSE_KEYS = ("name", "transforms", "mixer", "callback")
-# The keys of a textual defense of VLMs (defense=pat++: tasks/vlm_defense.py), beside DEFENSE_KEYS.
+# The keys of a textual defense of VLMs (defense=pat++: tasks/vlm/defense.py), beside DEFENSE_KEYS.
 PROMPT_DEFENSE_KEYS = ("prompt", "alpha", "hard_target", "hardness", "pool_clips", "examples", "steps",
                        "prefix_length", "suffix_length", "top_k", "num_candidates", "chunk", "soft", "soft_lr",
                        "prefix_path", "before", "after")
@@ -738,8 +741,8 @@ def check_feature_map(cfg: DictConfig) -> list[str]:
 
 def check_decode_options(cfg: DictConfig) -> list[str]:
     """model.decode may set only the decoding options of the family's head (its decode keywords). task.decode is
-    checked against the checkpoint's family when it is loaded (tasks/evaluate.load_checkpoint): the command line's
-    model need not be the checkpoint's."""
+    checked against the checkpoint's family when it is loaded (tasks/detector/evaluate.load_checkpoint): the command
+    line's model need not be the checkpoint's."""
     if _is_vlm(cfg):
         return []
     try:
@@ -794,9 +797,18 @@ def check_suite_names(cfg: DictConfig) -> list[str]:
 
 
 def _is_vlm(cfg: DictConfig) -> bool:
-    """model=vlm/<backend>: a model node with its own _target_ (tasks.builders.is_vlm)."""
+    """model.kind=vlm (model=vlm/<backend>; a bad kind is reported by check_task_kind)."""
     model = _get(cfg, "model")
-    return isinstance(model, dict) and model.get("_target_") is not None
+    return isinstance(model, dict) and model.get("kind") == "vlm"
+
+
+def check_task_kind(cfg: DictConfig) -> list[str]:
+    """model.kind names a kind, and task=<name> has a function for that kind (tasks/kinds.py)."""
+    try:
+        task_target(cfg)
+    except ValueError as error:
+        return [str(error)]
+    return []
 
 
 def check_vlm_task(cfg: DictConfig) -> list[str]:
@@ -808,10 +820,6 @@ def check_vlm_task(cfg: DictConfig) -> list[str]:
                              "that is a VLM clip suite: evaluate it with model=vlm/<backend>")]
         return []
     task = _get(cfg, "task.name")
-    if task not in ("train", "evaluate", "report", "compare", "closed_loop"):
-        return [f"task: task={task} with a VLM (model={_get(cfg, 'model._target_')}) is not available; VLMs are "
-                f"trained with task=train, evaluated with task=evaluate, compared with task=compare, reported "
-                f"with task=report and driven with task=closed_loop"]
     if task in ("train", "compare") and _get(cfg, "model.base_url") is not _ABSENT:
         return [f"task: task=train with model={_get(cfg, 'model._target_')}: a model behind a server cannot be "
                 f"trained here; fine-tune a local one (model=vlm/hf model.path=DIR, or model=vlm/embedded)"]
@@ -845,7 +853,8 @@ def check_split_seeds(cfg: DictConfig) -> list[str]:
         for b, b0, b1 in ranges[i + 1:]:
             if a0 < b1 and b0 < a1:
                 problems.append(f"data.{b}.first_seed: the {b} split's seeds [{b0}, {b1}) overlap the {a} split's "
-                                f"[{a0}, {a1}); splits must not share scenes: move data.{b}.first_seed or shrink a split")
+                                f"[{a0}, {a1}); splits must not share scenes: move data.{b}.first_seed or shrink a "
+                                f"split")
     return problems
 
 
@@ -874,14 +883,15 @@ def check_training_ends(cfg: DictConfig) -> list[str]:
     return []
 
 
-CROSS_CHECKS = (check_feature_map, check_decode_options, check_backbone_weights, check_cases, check_checkpoint_given, check_training_ends,
-                check_vlm_task, check_split_seeds, check_suite_names)
+CROSS_CHECKS = (check_feature_map, check_decode_options, check_backbone_weights, check_cases, check_checkpoint_given,
+                check_training_ends, check_task_kind, check_vlm_task, check_split_seeds, check_suite_names)
 
 
 # ---------------------------------------------------------------------------------------------- _target_ nodes
 
 # Where config nodes with a `_target_` are: single nodes, lists of them, and mappings of named ones.
-TARGET_NODES = ("model", "model.head", "model.neck", "model.optimizer", "model.scheduler", "backbone", "defense.mixer", "defense.callback", "logger", "judge",
+TARGET_NODES = ("model", "model.head", "model.neck", "model.optimizer", "model.scheduler", "backbone", "defense.mixer",
+                "defense.callback", "logger", "judge",
                 *(f"data.{split}" for split in SPLITS))
 TARGET_LISTS = ("data.train_transforms", "defense.transforms")
 TARGET_MAPS = ("callbacks",)

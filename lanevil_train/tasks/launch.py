@@ -20,6 +20,8 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf, open_dict, read_write
 
+from lanevil_train.tasks import run_task
+
 log = logging.getLogger(__name__)
 
 BASIC_LAUNCHER = "hydra._internal.core_plugins.basic_launcher.BasicLauncher"
@@ -109,8 +111,6 @@ def run_launched_job(cfg: DictConfig) -> JobOutcome:
     """A launched job's task function (module level: submitit pickles it): run_task(cfg), with any exception turned
     into a failed outcome, so one job's error never makes the launcher stop waiting for the others."""
     from hydra.core.hydra_config import HydraConfig
-
-    from lanevil_train.tasks import run_task
 
     hydra = HydraConfig.get()
     name = str(hydra.sweep.subdir)

@@ -6,10 +6,11 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
+from lanevil_train.evaluation.results import log_results, write_results
+from lanevil_train.evaluation.scoring import RESULTS
 from lanevil_train.tasks.builders import build_logger, output_dir
-from lanevil_train.tasks.results import log_results, write_results
-from lanevil_train.tasks.scoring import RESULTS
-from lanevil_train.vlm.evaluation import PER_ANSWER
+from lanevil_train.tasks.seed_report import relabels, seed_runs, write_seed_report
+from lanevil_train.vlm.scoring.evaluation import PER_ANSWER
 
 RESULT_FILES = (RESULTS, PER_ANSWER)  # a lane detector's per-image scores, a VLM's per-answer scores
 
@@ -52,8 +53,6 @@ def write_run_reports(files: list[Path], out: Path, baseline: str | None = None,
                       confidence: float = 0.95, seed: int = 0) -> float:
     """The report of several runs' results (write_results), each seed run of a repeated label as its own row, and
     seeds.md when labels repeat; returns write_results' headline value."""
-    from lanevil_train.tasks.seed_report import relabels, seed_runs, write_seed_report
-
     groups = seed_runs(files)
     labels = relabels(groups)
     repeated = {label for label, _ in groups}

@@ -18,6 +18,9 @@ from pathlib import Path
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
+from lanevil_train.tasks.report import RESULT_FILES, path_order, write_run_reports
+from lanevil_train.tasks.seed_report import seed_runs
+
 log = logging.getLogger(__name__)
 
 
@@ -25,9 +28,6 @@ class ReportSweep(Callback):
     """After a multirun: the report of every job's results in <sweep dir>/report."""
 
     def on_multirun_end(self, config: DictConfig, **kwargs) -> None:
-        from lanevil_train.tasks.report import RESULT_FILES, path_order, write_run_reports
-        from lanevil_train.tasks.seed_report import seed_runs
-
         sweep = Path(config.hydra.sweep.dir)
         if not sweep.is_dir():
             return

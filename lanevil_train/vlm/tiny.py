@@ -188,13 +188,13 @@ def _llava_config(tokenizer, size: int):
 
 def _onevision_processor(tokenizer, size: int):
     """LLaVA-OneVision: SigLIP-style image and video processors, `<image>`/`<video>` placeholders."""
-    from transformers import (LlavaOnevisionImageProcessor, LlavaOnevisionProcessor,
-                              LlavaOnevisionVideoProcessor)
+    from transformers import LlavaOnevisionImageProcessor, LlavaOnevisionProcessor, LlavaOnevisionVideoProcessor
     square = {"height": size, "width": size}
     images = LlavaOnevisionImageProcessor(size=square, image_grid_pinpoints=_onevision_pinpoints(size))
     videos = LlavaOnevisionVideoProcessor(size=square)
-    return LlavaOnevisionProcessor(images, tokenizer, videos, num_image_tokens=16, vision_feature_select_strategy="full",
-                                   chat_template=_TEMPLATES["llava_onevision"], vision_aspect_ratio="anyres_max_9")
+    return LlavaOnevisionProcessor(images, tokenizer, videos, num_image_tokens=16,
+                                   vision_feature_select_strategy="full", chat_template=_TEMPLATES["llava_onevision"],
+                                   vision_aspect_ratio="anyres_max_9")
 
 
 def _onevision_pinpoints(size: int) -> list[list[int]]:

@@ -50,7 +50,8 @@ class TinySegmenter(pl.LightningModule):
     def __init__(self, seed: int = 0):
         super().__init__()
         torch.manual_seed(seed)
-        self.features = nn.Sequential(nn.Conv2d(3, 8, 3, padding=1), nn.ReLU(), nn.Conv2d(8, 8, 3, stride=2, padding=1), nn.ReLU())
+        self.features = nn.Sequential(nn.Conv2d(3, 8, 3, padding=1), nn.ReLU(),
+                                      nn.Conv2d(8, 8, 3, stride=2, padding=1), nn.ReLU())
         self.classifier = nn.Conv2d(8, 1, 1)
         self.forward_calls = 0
         self.seen: list[torch.Tensor] = []

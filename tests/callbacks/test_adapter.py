@@ -66,7 +66,8 @@ def test_a_missing_location_names_what_was_expected_where():
 ])
 def test_a_mask_passed_as_lanes_is_refused_and_lane_mask_is_suggested(lanes, what):
     with pytest.raises(ValueError, match=f"BatchAdapter: {what}; lanes must be a list of \\(N, 2\\) x, y "
-                                         f"point arrays \\(input pixels\\) per image. Pass .*as lane_mask=1 instead of lanes=1"):
+                                         f"point arrays \\(input pixels\\) per image. "
+                                         f"Pass .*as lane_mask=1 instead of lanes=1"):
         BatchAdapter(images=0, lanes=1).lane_masks((IMAGES, lanes), (8, 10), width=1)
 
 

@@ -31,8 +31,8 @@ def test_pgd_stays_within_eps_and_the_pixel_range_and_raises_the_loss():
     module = TinySegmenter(seed=1)
     b = batch()
     clean = b[0].clone()
-    pgd = PGDAdversarialTraining(eps=8 / 255, step_size=2 / 255, steps=5, adapter=BatchAdapter(images=0, lane_mask=1, lanes=None),
-                                 loss_fn=loss_of)
+    pgd = PGDAdversarialTraining(eps=8 / 255, step_size=2 / 255, steps=5,
+                                 adapter=BatchAdapter(images=0, lane_mask=1, lanes=None), loss_fn=loss_of)
     adversarial = pgd.attack(module, b, b[0])
     assert torch.equal(b[0], clean)                                   # attack() leaves the batch as it was
     pixel_delta = (adversarial - clean) * STD                          # back in [0, 1] pixel units
@@ -49,8 +49,8 @@ def test_callback_replaces_the_chosen_fraction_of_the_batch_in_place():
     module = TinySegmenter(seed=1)
     b = batch()
     clean = b[0].clone()
-    pgd = PGDAdversarialTraining(eps=4 / 255, steps=2, fraction=0.5, adapter=BatchAdapter(images=0, lane_mask=1, lanes=None),
-                                 loss_fn=loss_of)
+    pgd = PGDAdversarialTraining(eps=4 / 255, steps=2, fraction=0.5,
+                                 adapter=BatchAdapter(images=0, lane_mask=1, lanes=None), loss_fn=loss_of)
     pgd.on_train_batch_start(None, module, b, 0)
     changed = (b[0] != clean).flatten(1).any(dim=1)
     assert changed.tolist() == [True, True, False, False]

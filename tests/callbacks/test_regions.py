@@ -4,9 +4,21 @@ import numpy as np
 import pytest
 import torch
 
-from lanevil_train.callbacks.regions import (HAA, LAA, Box, attention_masks, blend_region, blur_and_normalise,
-                                             choose_place, extract_regions, grad_cam, hard_examples, lane_mask,
-                                             mismatched_regions, target_area)
+from lanevil_train.callbacks.regions import (
+    HAA,
+    LAA,
+    Box,
+    attention_masks,
+    blend_region,
+    blur_and_normalise,
+    choose_place,
+    extract_regions,
+    grad_cam,
+    hard_examples,
+    lane_mask,
+    mismatched_regions,
+    target_area,
+)
 
 
 def blob_map(shape=(60, 100)):

@@ -8,8 +8,18 @@ import math
 import numpy as np
 import pytest
 
-from lanevil_train.closed_loop import (LoopSettings, Observation, PurePursuit, Run, TruthPolicy, VLMPolicy, drive,
-                                       parse_direction, run_scores, wilson_interval)
+from lanevil_train.closed_loop import (
+    LoopSettings,
+    Observation,
+    PurePursuit,
+    Run,
+    TruthPolicy,
+    VLMPolicy,
+    drive,
+    parse_direction,
+    run_scores,
+    wilson_interval,
+)
 from lanevil_train.closed_loop.episode import case_scene, ego_lane, illusion_region
 from lanevil_train.closed_loop.scoring import attack_fired_at, departures, entry_time
 from lanevil_train.sim import Camera

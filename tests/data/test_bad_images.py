@@ -41,7 +41,8 @@ def test_culane_reader_names_list_line_and_image(tmp_path, spoil):
     write_culane(write_photo_dataset(root, [f"d/v.MP4/{i:05d}.jpg" for i in range(3)]), root, root / "list/test.txt")
     content, problem = SPOILERS[spoil]
     (root / "d/v.MP4/00002.jpg").write_bytes(content)
-    with pytest.raises(ValueError, match="^" + re.escape(f"{root / 'list/test.txt'}:3: image {root / 'd/v.MP4/00002.jpg'} {problem}")):
+    with pytest.raises(ValueError, match="^" + re.escape(f"{root / 'list/test.txt'}:3: "
+                                                         f"image {root / 'd/v.MP4/00002.jpg'} {problem}")):
         read_culane(root / "list/test.txt", root)
 
 
@@ -93,6 +94,7 @@ def test_a_directory_where_an_image_or_annotation_should_be_is_named_as_one(tmp_
         read_culane(root / "list/test.txt", root)
     (root / "d/v.MP4/00000.jpg").unlink()
     (root / "d/v.MP4/00000.jpg").mkdir()
-    with pytest.raises(ValueError, match="^" + re.escape(f"{root / 'list/test.txt'}:1: image {root / 'd/v.MP4/00000.jpg'} "
+    with pytest.raises(ValueError, match="^" + re.escape(f"{root / 'list/test.txt'}:1: "
+                                                         f"image {root / 'd/v.MP4/00000.jpg'} "
                                                          f"is a directory, not an image file")):
         read_culane(root / "list/test.txt", root)

@@ -20,12 +20,12 @@ from pathlib import Path
 
 import pytest
 
-import lanevil_train.data.formats.atomic as atomic
 import lanevil_train.data.formats.builds as builds
 import lanevil_train.data.illusion_set as illusion_set
-from lanevil_train.data.formats.atomic import atomic_write_bytes, atomic_write_text, temporary_path
+import lanevil_train.files.atomic as atomic
 from lanevil_train.data.formats.manifest import read_manifest
 from lanevil_train.data.illusion_set import Plan, build_illusion_set, synthetic_cases
+from lanevil_train.files.atomic import atomic_write_bytes, atomic_write_text, temporary_path
 from lanevil_train.results_log import ResultsLog
 
 CASES = (3, 4000)  # synthetic_cases(num_cases, first_seed)

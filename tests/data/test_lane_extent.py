@@ -14,7 +14,7 @@ from lanevil_train.data.datasets import CULaneDataset, TuSimpleDataset
 from lanevil_train.data.formats import write_culane
 from lanevil_train.data.transforms import LaneSampleProcessor, clip_lane_to_image
 from lanevil_train.lanes import scale_lanes
-from lanevil_train.models.laneatt_anchors import encode_lanes
+from lanevil_train.models.laneatt.anchors import encode_lanes
 
 H, W = 180, 320           # image
 INPUT = (64, 160)         # network input (H, W)

@@ -137,7 +137,8 @@ def test_copypaste_respects_max_lanes_and_max_paste():
 
 
 def test_copypaste_batch_call_never_exceeds_max_lanes_and_keeps_gaps():
-    items = [_item(float(i), [_vertical(20.0 + 25 * (i % 3) + 40 * k) for k in range(1 + i % 3)], seed=i) for i in range(8)]
+    items = [_item(float(i), [_vertical(20.0 + 25 * (i % 3) + 40 * k) for k in range(1 + i % 3)], seed=i)
+             for i in range(8)]
     mixer = LaneCopyPaste(p=1.0, band=4.0, min_gap=12.0, max_lanes=3, max_paste=2, seed=0)
     out = mixer(items)
     grew = 0

@@ -16,10 +16,9 @@ from lanevil_train.data.datasets import SyntheticLaneDataset
 from lanevil_train.data.defenses import fill_holes
 from lanevil_train.data.normalization import NORMALIZATIONS, normalization, normalize_image, unnormalize_image
 from lanevil_train.data.transforms import LaneSampleProcessor
-from lanevil_train.tasks.builders import build_defense, build_model
-from lanevil_train.tasks.evaluate import checkpoint_model
-from lanevil_train.tasks.streaming import stream_evaluate
-from lanevil_train.tasks.train import check_same_network
+from lanevil_train.evaluation.streaming import stream_evaluate
+from lanevil_train.tasks.builders import build_defense, build_model, checkpoint_model
+from lanevil_train.tasks.detector.train import check_same_network
 
 CONF = Path(lanevil_train.conf.__file__).parent
 
@@ -135,13 +134,13 @@ def test_a_checkpoint_evaluates_with_the_normalisation_it_was_trained_with(tmp_p
     assert model.build_config["normalize"] == "laneatt"
 
     seen = []
-    predict = model.predict_lanes
+    forward = model.forward
 
-    def spy(images, sizes):
+    def spy(images):
         seen.append(images.clone())
-        return predict(images, sizes)
+        return forward(images)
 
-    monkeypatch.setattr(model, "predict_lanes", spy)
+    monkeypatch.setattr(model, "forward", spy)
     dataset = SyntheticLaneDataset(num_scenes=1, first_seed=0, size=(90, 160), cache=False)
     stream_evaluate(model, dataset, tmp_path / "per_image.jsonl", {"model": "m", "dataset": "d"}, progress="none")
     fed = seen[0][0].numpy()

@@ -50,7 +50,8 @@ def test_train_augmentation_moves_lanes_with_the_image():
 
 def test_flip_reverses_order_and_mirrors_x():
     sample = _painted_sample()
-    flip = A.Compose([A.HorizontalFlip(p=1.0)], keypoint_params=A.KeypointParams(format="xy", label_fields=["lane_ids"]))
+    flip = A.Compose([A.HorizontalFlip(p=1.0)],
+                     keypoint_params=A.KeypointParams(format="xy", label_fields=["lane_ids"]))
     image, lanes = apply_pipeline(flip, sample["image"], sample["lanes"])
     assert np.array_equal(image, sample["image"][:, ::-1])
     assert _fraction_on_paint(image, lanes) > 0.99

@@ -11,7 +11,7 @@ from lanevil_train.corruptions import CORRUPTION_NAMES, CORRUPTIONS
 from lanevil_train.data.illusion_set import Plan, build_illusion_set, synthetic_cases
 from lanevil_train.data.suites import IllusionSetDataset, SyntheticIllusionSuite
 from lanevil_train.illusions import ILLUSIONS
-from lanevil_train.perturbations import (case_perturbations, combined_choice, get_perturbation, suite_names)
+from lanevil_train.perturbations import case_perturbations, combined_choice, get_perturbation, suite_names
 from lanevil_train.report.combined import combined_table
 from lanevil_train.report.specs import record_set
 from lanevil_train.taxonomy import CATEGORIES, ILLUSION_CATEGORY, PAIR_CATEGORIES
@@ -126,4 +126,5 @@ def test_combined_table_reads_each_pair_against_the_original_and_its_single_illu
     assert row["Accuracy/Original"] == pytest.approx(90.0) and row["Accuracy/Perturbed"] == pytest.approx(60.0)
     assert row["Accuracy/Gap"] == pytest.approx(-30.0)
     assert row["Accuracy/first alone"] == pytest.approx(80.0) and row["Accuracy/second alone"] == pytest.approx(70.0)
-    assert row["Accuracy/Gap vs first"] == pytest.approx(-20.0) and row["Accuracy/Gap vs second"] == pytest.approx(-10.0)
+    assert row["Accuracy/Gap vs first"] == pytest.approx(-20.0) and \
+        row["Accuracy/Gap vs second"] == pytest.approx(-10.0)

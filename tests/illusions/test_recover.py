@@ -5,10 +5,14 @@ import math
 import numpy as np
 import pytest
 
-from lanevil_train.illusions.context import IllusionContext, context_from_scene
 from lanevil_train.illusions import apply_illusion, apply_illusions
+from lanevil_train.illusions.context import IllusionContext, context_from_scene
 from lanevil_train.illusions.recover import (
-    LANE_X_MARGIN_FRAC, LANE_Y_MARGIN_FRAC, GroundPlaneError, context_from_lanes, fallback_context,
+    LANE_X_MARGIN_FRAC,
+    LANE_Y_MARGIN_FRAC,
+    GroundPlaneError,
+    context_from_lanes,
+    fallback_context,
 )
 from lanevil_train.lanes import TUSIMPLE_H_SAMPLES, lanes_to_rows, rows_to_lane
 from lanevil_train.sim import SceneParams, build_scene

@@ -6,8 +6,15 @@ import albumentations as A
 import numpy as np
 import pytest
 
-from lanevil_train.illusions import (CATEGORIES, ILLUSIONS, GroundPlaneError, IllusionTransform, apply_illusion,
-                                     apply_illusions, context_from_scene)
+from lanevil_train.illusions import (
+    CATEGORIES,
+    ILLUSIONS,
+    GroundPlaneError,
+    IllusionTransform,
+    apply_illusion,
+    apply_illusions,
+    context_from_scene,
+)
 from lanevil_train.sim import SceneParams, build_scene, render_scene
 
 EXPECTED = {
@@ -83,7 +90,8 @@ def test_bad_names_severities_and_images_are_clear_errors():
 
 
 def _pipeline(**kwargs):
-    return A.Compose([IllusionTransform(**kwargs)], keypoint_params=A.KeypointParams(format="xy", label_fields=["lane_ids"]))
+    return A.Compose([IllusionTransform(**kwargs)],
+                     keypoint_params=A.KeypointParams(format="xy", label_fields=["lane_ids"]))
 
 
 def test_illusion_transform_inside_an_albumentations_pipeline():

@@ -138,10 +138,12 @@ def _rail_hull(ctx, severity: int, seed: int) -> np.ndarray:
     zs = np.geomspace(p["z_start_m"] - 0.2, RAIL_Z_FAR + 1.0, 200)
     for d_rail, _ in rails:
         for za, zb in zip(zs[:-1], zs[1:]):
-            for da, db in ((d_rail - 0.35, d_rail + 0.35), (d_rail - 0.35, d_rail - 0.35), (d_rail + 0.35, d_rail + 0.35)):
+            for da, db in ((d_rail - 0.35, d_rail + 0.35), (d_rail - 0.35, d_rail - 0.35),
+                           (d_rail + 0.35, d_rail + 0.35)):
                 for ya, yb in ((0.0, 0.0), (1.2, 1.2), (0.0, 1.2)):
                     corners = draw.road_points(ctx, np.array([da, db, db, da]), np.array([za, za, zb, zb]),
-                                               lift=np.array([ya, ya, yb, yb]) if ya == yb else np.array([ya, yb, yb, ya]))
+                                               lift=np.array([ya, ya, yb, yb]) if ya == yb
+                                               else np.array([ya, yb, yb, ya]))
                     pix = draw.project(ctx, corners)[0]
                     draw.fill_polygons((h, w), [pix], mask=mask)
     return mask > 0

@@ -13,8 +13,14 @@ import numpy as np
 import pytest
 
 from lanevil_train.illusions import ILLUSIONS, apply_illusion, context_from_lanes
-from lanevil_train.illusions.visibility import (MIN_CHANGED_FRACTION, changed_fraction, changed_pixels,
-                                                photo_case, simulated_cases, synthetic_road_photo)
+from lanevil_train.illusions.visibility import (
+    MIN_CHANGED_FRACTION,
+    changed_fraction,
+    changed_pixels,
+    photo_case,
+    simulated_cases,
+    synthetic_road_photo,
+)
 from lanevil_train.sim import SceneParams
 
 NAMES = sorted(ILLUSIONS)

@@ -10,8 +10,7 @@ import pytest
 import torch
 from scipy.optimize import linear_sum_assignment
 
-from lanevil_train.metrics import CULaneMetric, culane_image_counts, culane_summary
-from lanevil_train.metrics import culane
+from lanevil_train.metrics import CULaneMetric, culane, culane_image_counts, culane_summary
 from lanevil_train.metrics.culane import LaneCanvases, lane_polyline, official_km_match, spline_interp_times
 
 W, H, LW = 1640, 590, 30

@@ -47,7 +47,8 @@ def test_dirs_hand_counts(tree: tuple[Path, Path, Path]) -> None:
 def test_metric_equals_file_level(tree: tuple[Path, Path, Path]) -> None:
     pred, gt, lst = tree
     m = CULaneMetric()
-    m.update([[np.array(l) for l in PRED_A], PRED_B], [[np.array(l) for l in GT_A], [np.array(l) for l in GT_B]])
+    m.update([[np.array(lane) for lane in PRED_A], PRED_B],
+             [[np.array(lane) for lane in GT_A], [np.array(lane) for lane in GT_B]])
     assert m.compute() == evaluate_culane_dirs(str(pred), str(gt), str(lst))
 
 
@@ -79,7 +80,7 @@ def test_reader_matches_official_stream_semantics(tmp_path: Path) -> None:
     f = tmp_path / "x.lines.txt"
     f.write_text("1 2 3 4 5\n\n10.5 20.25 30 40 \n")
     lanes = read_lines_file(str(f))
-    assert [l.shape for l in lanes] == [(2, 2), (0, 2), (2, 2)]  # odd tail dropped, blank line is a lane
+    assert [lane.shape for lane in lanes] == [(2, 2), (0, 2), (2, 2)]  # odd tail dropped, blank line is a lane
     assert lanes[2][0].tolist() == [10.5, 20.25]
     assert read_lines_file(str(tmp_path / "missing.lines.txt")) == []
     assert culane_image_counts(lanes, lanes) == (2, 1, 1)  # the 0-point lane is an FP and an FN

@@ -7,10 +7,9 @@ import math
 import numpy as np
 import pytest
 import torch
-
-from lanevil_train.lanes import TUSIMPLE_H_SAMPLES, rows_to_lane
 from scipy.optimize import linear_sum_assignment
 
+from lanevil_train.lanes import TUSIMPLE_H_SAMPLES, rows_to_lane
 from lanevil_train.metrics import TuSimpleMetric, tusimple_count_f1, tusimple_image_scores, tusimple_summary
 
 # --------------------------------------------------------------------------------------------

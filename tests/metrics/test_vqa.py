@@ -14,9 +14,19 @@ import numpy as np
 import pytest
 
 from lanevil_train.metrics import ptb, vqa
-from lanevil_train.metrics.vqa import (Corpus, accuracy, bleu, bleu_per_item, cider_d, cider_d_per_item,
-                                       language_per_answer, language_score, language_scores, rouge_l,
-                                       rouge_l_per_item)
+from lanevil_train.metrics.vqa import (
+    Corpus,
+    accuracy,
+    bleu,
+    bleu_per_item,
+    cider_d,
+    cider_d_per_item,
+    language_per_answer,
+    language_score,
+    language_scores,
+    rouge_l,
+    rouge_l_per_item,
+)
 
 REPO = Path(__file__).resolve().parents[2]
 JAVA = ptb.java_executable()

@@ -7,7 +7,8 @@ import numpy as np
 from lanevil_train.lanes import INVALID_X, default_h_samples, lane_x_at
 
 
-def synthetic_lanes(rng: np.random.Generator, image_size: tuple[int, int], n_lanes: int, curved: bool) -> list[np.ndarray]:
+def synthetic_lanes(rng: np.random.Generator, image_size: tuple[int, int], n_lanes: int,
+                    curved: bool) -> list[np.ndarray]:
     """n_lanes lanes converging to a vanishing point, straight or gently curved, left to right."""
     h, w = image_size
     vp_x = w * (0.5 + rng.uniform(-0.08, 0.08))

@@ -10,19 +10,19 @@ import torch.nn.functional as F
 from hydra import compose
 
 from lanevil_train.models.backbones import build_backbone
-from lanevil_train.models.bezier import (
+from lanevil_train.models.bezierlanenet.bezier import (
     bernstein,
     fit_bezier,
     sample_bezier,
     sub_curve,
     x_at_rows,
 )
-from lanevil_train.models.bezierlanenet import (
+from lanevil_train.models.bezierlanenet.head import (
     BezierLaneNetHead,
     FeatureFlipFusion,
     ModulatedDeformConv3x3,
 )
-from lanevil_train.models.bezierlanenet_loss import (
+from lanevil_train.models.bezierlanenet.loss import (
     assign,
     bezier_losses,
     encode_targets,

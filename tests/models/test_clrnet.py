@@ -8,13 +8,13 @@ import torch
 
 from lanevil_train.models.backbones import build_backbone
 from lanevil_train.models.clrnet import CLRNetHead
-from lanevil_train.models.clrnet_codec import (
+from lanevil_train.models.clrnet.codec import (
     TARGET_META,
     UNDEFINED_X,
     clrnet_nms,
     encode_lanes,
 )
-from lanevil_train.models.clrnet_loss import (
+from lanevil_train.models.clrnet.loss import (
     IGNORE_LABEL,
     assign,
     clrnet_losses,
@@ -22,7 +22,7 @@ from lanevil_train.models.clrnet_loss import (
     pairwise_line_iou,
     segmentation_loss,
 )
-from lanevil_train.models.clrnet_priors import (
+from lanevil_train.models.clrnet.priors import (
     init_prior_embeddings,
     line_xs,
     row_fractions,

@@ -15,7 +15,7 @@ import lanevil_train.conf
 from lanevil_train.callbacks import AttentionAreaMixing
 from lanevil_train.models.head import LaneHead, targets_to
 from lanevil_train.tasks.builders import build_model, model_config
-from lanevil_train.tasks.export import OnnxLaneDetector, export_onnx
+from lanevil_train.tasks.detector.export import OnnxLaneDetector, export_onnx
 from tests.models._lanes_fixture import synthetic_lanes
 from tests.tasks.cli_helpers import TINY, run_in_process
 

@@ -11,9 +11,9 @@ import torch.nn.functional as F
 
 from lanevil_train.models.backbones import build_backbone
 from lanevil_train.models.ganet import GANetHead
-from lanevil_train.models.ganet_codec import gaussian_kernel, lane_keypoints, row_peaks
-from lanevil_train.models.ganet_loss import heatmap_focal_loss, lfa_loss, masked_l1
-from lanevil_train.models.ganet_neck import LaneAwareAggregator, SelfAttention, sine_position_embedding
+from lanevil_train.models.ganet.codec import gaussian_kernel, lane_keypoints, row_peaks
+from lanevil_train.models.ganet.loss import heatmap_focal_loss, lfa_loss, masked_l1
+from lanevil_train.models.ganet.neck import LaneAwareAggregator, SelfAttention, sine_position_embedding
 
 from ._head_overfit import head_only_fit
 from ._lanes_fixture import assert_lanes_inside, assert_round_trip, synthetic_lanes, train_steps

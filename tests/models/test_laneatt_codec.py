@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from lanevil_train.models.laneatt import LaneATTHead
-from lanevil_train.models.laneatt_anchors import TARGET_META, UNDEFINED_X, encode_lane, row_ys
+from lanevil_train.models.laneatt.anchors import TARGET_META, UNDEFINED_X, encode_lane, row_ys
 
 from ._lanes_fixture import assert_round_trip, synthetic_lanes
 
@@ -13,13 +13,14 @@ from ._lanes_fixture import assert_round_trip, synthetic_lanes
 def _perfect_raw(head: LaneATTHead, targets: np.ndarray) -> dict[str, torch.Tensor]:
     """Raw outputs where each GT's closest anchor regresses it exactly with a high score."""
     t = torch.from_numpy(targets)
-    b, a, s = t.shape[0], head.n_anchors, head.n_offsets
+    b, a = t.shape[0], head.n_anchors
     cls = torch.tensor([4.0, -4.0]).repeat(b, a, 1)
     length = torch.zeros(b, a)
     xs = head.anchor_xs.repeat(b, 1, 1).clone()
     from lanevil_train.models.losses import anchor_target_distances
 
-    dist = anchor_target_distances(head.anchor_xs, head.anchor_starts, t[..., 0], t[..., 1], t[..., 2], t[..., TARGET_META:])
+    dist = anchor_target_distances(head.anchor_xs, head.anchor_starts, t[..., 0], t[..., 1], t[..., 2],
+                                   t[..., TARGET_META:])
     for i in range(b):
         for j in range(t.shape[1]):
             if t[i, j, 0] == 0:

@@ -6,8 +6,8 @@ import torch
 
 from lanevil_train.models.backbones import build_backbone
 from lanevil_train.models.laneatt import LaneATTHead
-from lanevil_train.models.laneatt_anchors import BOTTOM_ANGLES, LEFT_ANGLES, generate_anchors, row_ys
-from lanevil_train.models.laneatt_frequency import FREQUENCY_FILE, top_anchors
+from lanevil_train.models.laneatt.anchors import BOTTOM_ANGLES, LEFT_ANGLES, generate_anchors, row_ys
+from lanevil_train.models.laneatt.frequency import FREQUENCY_FILE, top_anchors
 from lanevil_train.models.losses import focal_loss
 from lanevil_train.models.nms import lane_nms, lane_nms_batched
 
@@ -230,7 +230,8 @@ def test_loss_parts_are_consistent():
     # without the training NMS, over every anchor
     head.train_nms_threshold = None
     all_anchors = head.loss(raw, {"lanes": targets})["per_sample"][2]
-    torch.testing.assert_close(all_anchors, focal_loss(raw["cls_logits"][2], torch.zeros(head.n_anchors).long()).sum() * 10)
+    torch.testing.assert_close(all_anchors,
+                               focal_loss(raw["cls_logits"][2], torch.zeros(head.n_anchors).long()).sum() * 10)
 
 
 def test_a_few_adam_steps_reduce_the_loss(one_thread):

@@ -5,8 +5,8 @@ import pytest
 import torch
 
 from lanevil_train.models.backbones import build_backbone
-from lanevil_train.models.laneformer import Y_MARGIN, LaneFormerHead, y_from_logit, y_to_logit
-from lanevil_train.models.laneformer_loss import assign, encode_lanes, matching_cost
+from lanevil_train.models.laneformer.head import Y_MARGIN, LaneFormerHead, y_from_logit, y_to_logit
+from lanevil_train.models.laneformer.loss import assign, encode_lanes, matching_cost
 from lanevil_train.tasks.builders import build_model, model_config
 
 from ._head_overfit import FIRST_SEED, _batch, _config, _optimizer, head_only_fit

@@ -52,5 +52,6 @@ def test_lane_nms_suppresses_near_duplicates_only():
     # 3 (best) covers rows 3-4 and is within 1-2 px of 0 and 1 there -> both suppressed
     assert lane_nms(xs, starts, lengths, scores, threshold=5.0).tolist() == [3, 2]
     # shorten 0-2 to rows 0..2: lane 3 (rows 3..4) shares no row with them, so it suppresses nothing
-    assert lane_nms(xs, torch.tensor([0, 0, 0, 3]), torch.tensor([3.0, 3.0, 3.0, 2.0]), scores, 5.0).tolist() == [3, 0, 2]
+    assert lane_nms(xs, torch.tensor([0, 0, 0, 3]), torch.tensor([3.0, 3.0, 3.0, 2.0]), scores,
+                    5.0).tolist() == [3, 0, 2]
     assert lane_nms(xs[:0], starts[:0], lengths[:0], scores[:0], 5.0).numel() == 0

@@ -10,14 +10,13 @@ import torch
 import torch.nn.functional as F
 import yaml
 
-from lanevil_train.models.backbones import build_backbone, indices_for_strides
-from lanevil_train.models.scnn import SCNNHead, SpatialMessagePassing
 from lanevil_train.lanes import assign_slots
-from lanevil_train.models.scnn_codec import bottom_x
+from lanevil_train.models.backbones import build_backbone, indices_for_strides
+from lanevil_train.models.scnn.codec import bottom_x
+from lanevil_train.models.scnn.head import SCNNHead, SpatialMessagePassing
 
 from ._head_overfit import head_only_fit
 from ._lanes_fixture import assert_lanes_inside, assert_round_trip, synthetic_lanes, train_steps
-
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # tests/models/conftest.py
 

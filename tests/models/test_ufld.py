@@ -10,7 +10,7 @@ import torch.nn.functional as F
 from lanevil_train.lanes import assign_slots
 from lanevil_train.models.backbones import build_backbone
 from lanevil_train.models.ufld import UFLDHead
-from lanevil_train.models.ufld_codec import (
+from lanevil_train.models.ufld.codec import (
     cell_to_x,
     cell_width,
     draw_seg_mask,
@@ -18,7 +18,7 @@ from lanevil_train.models.ufld_codec import (
     row_ys,
     x_to_cell,
 )
-from lanevil_train.models.ufld_losses import (
+from lanevil_train.models.ufld.losses import (
     classification_loss,
     expected_locations,
     shape_loss,

@@ -5,8 +5,14 @@ from __future__ import annotations
 import cv2
 import pytest
 
-from lanevil_train.report.defenses import (best_defense, check_comparable, defense_gain, defense_scores, gain_pivot,
-                                           write_defense_report)
+from lanevil_train.report.defenses import (
+    best_defense,
+    check_comparable,
+    defense_gain,
+    defense_scores,
+    gain_pivot,
+    write_defense_report,
+)
 from lanevil_train.report.specs import LANE_SPEC
 
 

@@ -1,4 +1,5 @@
-"""report/intervals.py: seed spread and paired-bootstrap intervals of gains, on constructed records with known answers."""
+"""report/intervals.py: seed spread and paired-bootstrap intervals of gains, on constructed records with known
+answers."""
 
 from __future__ import annotations
 
@@ -80,7 +81,8 @@ def test_seed_spread_alone_makes_an_interval():
 
 
 def test_seed_rows_give_each_seed_its_score_and_the_mean_and_std():
-    runs = SeedRuns({"none": {0: _records("m", [0.5, 0.7]), 1: _records("m", [0.6, 0.8]), 2: _records("m", [0.7, 0.9])}})
+    runs = SeedRuns({"none": {0: _records("m", [0.5, 0.7]), 1: _records("m", [0.6, 0.8]),
+                              2: _records("m", [0.7, 0.9])}})
     row = next(r for r in seed_rows(runs) if r["category"] == "shadow")
     assert row["Accuracy/runs"] == [60.0, 70.0, 80.0]
     assert row["Accuracy"] == pytest.approx(70.0) and row["Accuracy/std"] == pytest.approx(10.0)

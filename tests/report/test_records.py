@@ -7,11 +7,11 @@ import json
 
 import pytest
 
+from lanevil_train.evaluation.results import write_results
 from lanevil_train.report import specs
 from lanevil_train.report.defenses import best_defense, defense_gain, defense_scores
 from lanevil_train.report.records import Field, RecordSet, RecordSpec, Score, mean_of, validate_records
 from lanevil_train.report.robustness import group_table, main_table, relative_table, severity_table, type_table
-from lanevil_train.tasks.results import write_results
 
 VQA = RecordSpec(
     name="vqa-test",

@@ -4,7 +4,12 @@ import numpy as np
 import pytest
 
 from lanevil_train.sim import (
-    MARKING_TYPES, ROAD_KINDS, SCENE_KIND_NAMES, WEATHER_NAMES, SceneParams, render_scene,
+    MARKING_TYPES,
+    ROAD_KINDS,
+    SCENE_KIND_NAMES,
+    WEATHER_NAMES,
+    SceneParams,
+    render_scene,
 )
 
 W, H = 160, 90

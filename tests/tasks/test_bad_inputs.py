@@ -11,14 +11,16 @@ import pytest
 import pytorch_lightning as pl
 import torch
 from hydra import compose, initialize_config_module
+from hydra.utils import get_method
 
 from lanevil_train.checkpoints import CheckpointError
 from lanevil_train.data.datasets import EmptySplitError
 from lanevil_train.data.formats import write_culane, write_tusimple
 from lanevil_train.tasks.build import build
 from lanevil_train.tasks.builders import build_model, model_config
-from lanevil_train.tasks.evaluate import evaluate
-from lanevil_train.tasks.train import train
+from lanevil_train.tasks.detector.evaluate import evaluate
+from lanevil_train.tasks.detector.train import train
+from lanevil_train.tasks.kinds import task_target
 from tests.tasks.cli_helpers import TINY, composed, write_photo_dataset
 
 
@@ -88,7 +90,8 @@ def test_an_empty_illusion_suite_is_refused_before_training(tmp_path):
 def test_build_refuses_an_empty_source(tmp_path):
     root, data = _tusimple(tmp_path, train_lines=2, test_lines=0)
     out = tmp_path / "set"
-    with pytest.raises(EmptySplitError, match=rf"^data\.test\.label_files: the test split is empty: .*{root / 'test.json'}"):
+    with pytest.raises(EmptySplitError, match=rf"^data\.test\.label_files: the test split is empty: "
+                                              rf".*{root / 'test.json'}"):
         build(_config(tmp_path, "task=build", f"task.out_dir={out}", *data))
     assert not out.exists()
     with pytest.raises(ValueError, match=r"^task\.cases: .*>= 1, got 0"):
@@ -168,7 +171,7 @@ def test_an_empty_checkpoint_file(tmp_path):
 
 
 def test_trainer_arguments_lightning_refuses_are_reported_before_the_data_is_read(tmp_path, monkeypatch):
-    import lanevil_train.tasks.train as train_module
+    import lanevil_train.tasks.detector.train as train_module
 
     def no_data(*args, **kwargs):
         raise AssertionError("the datasets were read before the trainer's arguments were checked")
@@ -189,7 +192,7 @@ def test_resuming_with_another_input_geometry_is_refused(tmp_path):
         train(_config(tmp_path, f"ckpt_path={path}", "data.crop_top=0.4"))
 
 
-# ---------------------------------------------------------------------------------------------- a checkpoint of the other kind
+# --------------------------------------------------------------------------------------- a checkpoint of the other kind
 
 @pytest.fixture(scope="module")
 def vlm_checkpoints(tmp_path_factory):
@@ -198,7 +201,7 @@ def vlm_checkpoints(tmp_path_factory):
     import shutil
 
     from lanevil_train.vlm.tiny import build_tiny_vlm
-    from lanevil_train.vlm.training import VLMFineTuner
+    from lanevil_train.vlm.training.finetune import VLMFineTuner
 
     root = tmp_path_factory.mktemp("vlm_runs")
     hf = build_tiny_vlm("qwen2_vl", root / "tiny-qwen2-vl")
@@ -225,7 +228,8 @@ def test_a_vlm_checkpoint_given_to_a_detector_task_names_the_model_it_needs(tmp_
                                  f"a lane detector's; give it with model=vlm/hf model.path={model_dir}")
     path, model_dir = vlm_checkpoints["embedded"]
     with pytest.raises(CheckpointError, match=rf"^{option}={path}: a VLM's checkpoint \(qwen2_vl fine-tuned from "
-                                              rf"{model_dir}\), not a lane detector's; give it with model=vlm/embedded$"):
+                                              rf"{model_dir}\), not a lane detector's; "
+                                              r"give it with model=vlm/embedded$"):
         run(_config(tmp_path, task, f"{option}={path}", "task.cases=1"))
 
 
@@ -239,9 +243,10 @@ def test_a_detector_checkpoint_of_another_family_or_given_to_a_vlm_is_named(tmp_
             train(_config(tmp_path, f"{option}={path}"))
     _, model_dir = vlm_checkpoints["hf"]
     for task in ("task=evaluate", "task=train"):
-        with pytest.raises(CheckpointError, match=rf"^ckpt_path={path}: a lane detector's checkpoint \(ufld-resnet18\), "
+        with pytest.raises(CheckpointError, match=rf"^ckpt_path={path}: a lane detector's checkpoint "
+                                                  r"\(ufld-resnet18\), "
                                                   r"not a VLM's; drop model=vlm/\.\.\.: detector tasks rebuild "
                                                   r"model=ufld backbone=resnet18 from it$"):
-            (evaluate if task == "task=evaluate" else train)(composed(
-                [task, "model=vlm/hf", f"model.path={model_dir}", f"ckpt_path={path}", "data.train.num_cases=1",
-                 "task.cases=1", "logger=none", f"output_dir={tmp_path / 'run'}"]))
+            cfg = composed([task, "model=vlm/hf", f"model.path={model_dir}", f"ckpt_path={path}",
+                            "data.train.num_cases=1", "task.cases=1", "logger=none", f"output_dir={tmp_path / 'run'}"])
+            get_method(task_target(cfg))(cfg)  # the task's function for a VLM, as run_task picks it

@@ -34,7 +34,8 @@ def test_build_from_tusimple_and_culane_folders(tmp_path):
     assert {r["case_id"] for r in manifest} == {"clips/a/0/20.jpg", "clips/a/1/20.jpg"}
 
     culane = tmp_path / "culane"
-    write_culane(write_photo_dataset(culane, [f"driver_1/v.MP4/{i:05d}.jpg" for i in range(2)]), culane, culane / "list" / "test.txt")
+    write_culane(write_photo_dataset(culane, [f"driver_1/v.MP4/{i:05d}.jpg" for i in range(2)]), culane,
+                 culane / "list" / "test.txt")
     out = tmp_path / "culane_set"
     run_cli([*common, "data=culane", f"data.root={culane}", f"task.out_dir={out}"], tmp_path / "run2")
     records = read_culane(out / "list" / "test.txt", out)

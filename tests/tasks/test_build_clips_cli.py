@@ -11,8 +11,8 @@ import time
 
 import pytest
 
-from lanevil_train.vlm.clip_set import ClipSetDataset
-from lanevil_train.vlm.qa_records import QA_CATEGORIES
+from lanevil_train.vlm.clips.clip_set import ClipSetDataset
+from lanevil_train.vlm.clips.qa_records import QA_CATEGORIES
 from tests.tasks.cli_helpers import REPO, run_cli
 
 ARGS = ["task=build", "data=clips", "task.cases=2", "task.illusions=[rail_shadow,vehicle]", "task.severities=[3]",

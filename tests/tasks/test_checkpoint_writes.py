@@ -14,7 +14,7 @@ from hydra import compose, initialize_config_module
 
 from lanevil_train.checkpoints import AtomicCheckpointIO, read_lightning_checkpoint
 from lanevil_train.tasks.builders import build_trainer
-from lanevil_train.tasks.train import train
+from lanevil_train.tasks.detector.train import train
 from tests.tasks.cli_helpers import REPO, TINY
 
 

@@ -7,13 +7,14 @@ import json
 import pytest
 import torch
 
-from lanevil_train.tasks.scoring import read_records
+from lanevil_train.evaluation.scoring import read_records
 from tests.tasks.cli_helpers import TINY, run_cli
 
 
 def test_help_lists_config_groups(tmp_path):
     out = run_cli(["--help"], tmp_path / "run").stdout
-    for group in ("task:", "data:", "model:", "backbone:", "defense:", "trainer:", "callbacks:", "logger:", "experiment:"):
+    for group in ("task:", "data:", "model:", "backbone:", "defense:", "trainer:", "callbacks:", "logger:",
+                  "experiment:"):
         assert group in out, group
     assert "laneatt" in out and "quickstart" in out and "ddp_spawn" in out
 
@@ -148,7 +149,16 @@ def test_the_command_line_shortens_openmp_spinning_before_torch_loads_unless_the
     env = {k: v for k, v in os.environ.items() if k != "GOMP_SPINCOUNT"}
     if exported is not None:
         env["GOMP_SPINCOUNT"] = exported
-    script = ("import os, sys; import lanevil_train.__main__; "
-              "print('torch' in sys.modules, os.environ['GOMP_SPINCOUNT'])")
+    # the value in the environment at the moment torch is first imported (libgomp reads it then)
+    script = ("import os, sys\n"
+              "seen = []\n"
+              "class Watch:\n"
+              "    def find_spec(self, name, path=None, target=None):\n"
+              "        if name == 'torch' and not seen:\n"
+              "            seen.append(os.environ.get('GOMP_SPINCOUNT'))\n"
+              "sys.meta_path.insert(0, Watch())\n"
+              "import lanevil_train.__main__\n"
+              "import torch\n"
+              "print(seen[0])\n")
     out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, check=True)
-    assert out.stdout.split() == ["False", expected]  # set while torch is not loaded yet: libgomp will read it
+    assert out.stdout.split() == [expected]

@@ -101,8 +101,8 @@ def test_a_local_vlm_with_a_textual_defense_drives_the_loop_from_its_answers(tmp
     model = build_tiny_vlm("qwen2_vl", tmp_path / "tiny-qwen2-vl")
     out = tmp_path / "loop"
     run_in_process(["task=closed_loop", "model=vlm/hf", f"model.path={model}", "model.max_new_tokens=6",
-                    "model.device=cpu", "defense=self_reminder", *SMALL, "task.illusions=[tire_marks]", "task.vlm.frames=2",
-                    "task.animate=false", f"task.out_dir={out}"], tmp_path / "run")
+                    "model.device=cpu", "defense=self_reminder", *SMALL, "task.illusions=[tire_marks]",
+                    "task.vlm.frames=2", "task.animate=false", f"task.out_dir={out}"], tmp_path / "run")
     records = ResultsLog(out / "runs.jsonl").records()
     assert [(r["severity"], r["perturbed"]) for r in records] == [(0, False), (3, True)]
     assert all(r["model"].endswith("+self_reminder") for r in records)  # the defended model drove

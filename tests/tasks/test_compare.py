@@ -10,10 +10,10 @@ from hydra import compose, initialize_config_module
 from hydra.core.global_hydra import GlobalHydra
 from omegaconf import OmegaConf
 
+from lanevil_train.evaluation.scoring import read_records
 from lanevil_train.tasks.compare import check_defenses, compare, compose_run, records_from_runs, run_overrides
-from lanevil_train.tasks.scoring import read_records
-from tests.tasks.cli_helpers import TINY, run_cli
 from tests.report.test_defenses import RECORDS
+from tests.tasks.cli_helpers import TINY, run_cli
 
 COMPARE = ["task=compare", "task.defenses=[none,aam++]", *TINY, "trainer.max_steps=2", "trainer.limit_val_batches=0",
            "task.cases=1", "task.illusions=[rail_shadow]", "task.severities=[3]"]

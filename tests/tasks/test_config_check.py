@@ -59,7 +59,8 @@ def shipped_options() -> list[tuple[str, str]]:
 
 def needs(group: str, option: str, files: Path) -> list[str]:
     """What an option needs from the user by design: a dataset root (???), a checkpoint to score."""
-    if (group == "data" and option in ("tusimple", "culane")) or (group == "experiment" and option.startswith("paper_")):
+    if (group == "data" and option in ("tusimple", "culane")) or \
+            (group == "experiment" and option.startswith("paper_")):
         return [f"data.root={files / 'dataset'}"]
     if group == "task" and option in ("evaluate", "cross_domain", "closed_loop"):
         return [f"ckpt_path={files / 'model.ckpt'}"]
@@ -172,7 +173,8 @@ BAD = [
     (["model.optimizer.lr=1e-3x"], "model.optimizer.lr: expected a number > 0, got '1e-3x'"),
     (["model.optimizer.weight_decay=-0.1"], "model.optimizer.weight_decay: expected a number >= 0, got -0.1"),
     (["model.scheduler=step"],
-     "model.scheduler: expected null or a mapping with a _target_ (the dotted name of a class or function), got 'step'"),
+     "model.scheduler: expected null or a mapping with a _target_ (the dotted name of a class or function), "
+     "got 'step'"),
     (["model.scheduler._target_=torch.optim.NoSuchSchedule"],
      "model.scheduler._target_: cannot import 'torch.optim.NoSuchSchedule'"),
     (["+model.optimizer.momentum=0.9"],
@@ -215,10 +217,14 @@ BAD = [
     (["task=evaluate", "model=vlm/openai", "model.base_url=http://h/v1", "model.name=m", "model.concurrency=0"],
      "model.concurrency: expected an integer >= 1, got 0"),
     (["task=train", "model=vlm/openai", "model.base_url=http://h/v1", "model.name=m"],
-     "task: task=train with model=lanevil_train.vlm.openai.OpenAIVLM: a model behind a server cannot be trained "
-     "here; fine-tune a local one"),
-    (["task=build", "model=vlm/openai", "model.base_url=http://h/v1", "model.name=m"],
-     "task: task=build with a VLM (model=lanevil_train.vlm.openai.OpenAIVLM) is not available"),
+     "task: task=train with model=lanevil_train.vlm.backends.openai.OpenAIVLM: a model behind a server cannot be "
+     "trained here; fine-tune a local one"),
+    # the kind of model decides the task's function (tasks/kinds.py)
+    (["task=export", "model=vlm/openai", "model.base_url=http://h/v1", "model.name=m"],
+     "task: task=export runs detector models; this model is a vlm (model.kind=vlm)"),
+    (["~model.kind"], "model.kind: expected one of detector, vlm (a lane detector's conf/model/<family>.yaml says "
+     "`kind: detector`, a VLM backend's conf/model/vlm/<backend>.yaml `kind: vlm`), got None"),
+    (["model.kind=detectr"], "model.kind: expected one of detector, vlm"),
     (["task=train", "model=vlm/hf", "model.path=/tmp", "data=synthetic"],
      "data: expected clips (a VLM trains on the clip suite's QA), got 'synthetic' (model=vlm/<backend> selects "
      "data=clips unless another data= is given: drop it)"),
@@ -229,7 +235,7 @@ BAD = [
     (["task=train", "data=clips", "model=vlm/hf", "model.path=/tmp", "model.fine_tune.variants=some"],
      "model.fine_tune.variants: expected one of all, clean, got 'some'"),
     (["task=evaluate", "model=vlm/openai", "model.base_url=http://h/v1", "model.name=m", "+model.top_p=0.9"],
-     "model.top_p: not a parameter of lanevil_train.vlm.openai.OpenAIVLM; it accepts base_url"),
+     "model.top_p: not a parameter of lanevil_train.vlm.backends.openai.OpenAIVLM; it accepts base_url"),
     (["task=evaluate", "model=vlm/openai", "model.base_url=http://h/v1", "model.name=m", "judge=openai",
       "judge.model=gpt-4o-mini", "judge.api_key_env=null"],
      "judge.base_url: is not set (??? in the config); set it to an http(s) URL, e.g. http://127.0.0.1:8000/v1: "
@@ -299,10 +305,12 @@ BAD = [
     (["task=build", "task.fallback=1"], "task.fallback: expected true or false, got 1"),
     (["task=build", "task.cases=0"], "task.cases: expected an integer >= 1, the number of simulated scenes"),
     (["task=evaluate"],
-     "ckpt_path: task=evaluate scores a checkpoint; expected the path of a Lightning checkpoint file (or task.onnx=model.onnx), got null"),
+     "ckpt_path: task=evaluate scores a checkpoint; expected the path of a Lightning checkpoint file "
+     "(or task.onnx=model.onnx), got null"),
     (["task=cross_domain"], "ckpt_path: task=cross_domain scores a checkpoint"),
     (["task=report", "task.runs=[1]"], "task.runs: expected a list of strings, got [1]"),
-    (["task=compare", "task.defenses=[none,aam+]"], f"{DEFENSES}, got ['none', 'aam+'] (unknown: aam+; known: aam, aam++, copypaste, cutout, hsv, mida, mixup, "
+    (["task=compare", "task.defenses=[none,aam+]"],
+     f"{DEFENSES}, got ['none', 'aam+'] (unknown: aam+; known: aam, aam++, copypaste, cutout, hsv, mida, mixup, "
      f"none, pat, pat++, pgd, self_reminder)"),
     (["task=compare", "task.defenses=[aam,aam++]"],
      f"{DEFENSES}, got ['aam', 'aam++'] ('none' is missing: it is the reference every gain is measured against)"),

@@ -11,8 +11,8 @@ import torch
 import torch.distributed as dist
 import torch.multiprocessing as mp
 
+from lanevil_train.evaluation.scoring import read_records
 from lanevil_train.metrics import TuSimpleMetric
-from lanevil_train.tasks.scoring import read_records
 from tests.tasks.cli_helpers import TINY, run_cli
 
 

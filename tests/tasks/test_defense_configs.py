@@ -12,7 +12,7 @@ from lanevil_train.callbacks import AttentionAreaMixing, PGDAdversarialTraining
 from lanevil_train.data.defenses import LaneCutout
 from lanevil_train.data.mixers import LaneCopyPaste, MixUp
 from lanevil_train.tasks.builders import build_defense
-from lanevil_train.tasks.train import train
+from lanevil_train.tasks.detector.train import train
 from tests.tasks.cli_helpers import TINY
 
 DEFENSE_DIR = Path(__file__).resolve().parents[2] / "lanevil_train" / "conf" / "defense"

@@ -8,14 +8,14 @@ import numpy as np
 import onnx
 import pytest
 
-from lanevil_train.tasks.scoring import read_records
+from lanevil_train.evaluation.scoring import read_records
 from tests.tasks.cli_helpers import TINY, run_cli, run_in_process
 
 
 def test_export_then_evaluate_the_onnx_model_gives_the_checkpoints_scores(tmp_path):
     train_dir = tmp_path / "train"
-    run_cli([*TINY, "model=scnn", "trainer.max_steps=3", "trainer.limit_val_batches=1", "trainer.max_epochs=10", "logger=none"],
-            train_dir)
+    run_cli([*TINY, "model=scnn", "trainer.max_steps=3", "trainer.limit_val_batches=1", "trainer.max_epochs=10",
+             "logger=none"], train_dir)
     last = train_dir / "checkpoints" / "last.ckpt"
     out = tmp_path / "export" / "model.onnx"
     worst = run_in_process(["task=export", f"ckpt_path={last}", f"task.out={out}"], tmp_path / "export_run")
@@ -56,7 +56,8 @@ def test_export_without_checkpoint_and_bad_onnx_files(tmp_path):
     out_value = h.make_tensor_value_info("out", onnx.TensorProto.FLOAT, [1, 3, 64, 160])
     graph = h.make_graph([h.make_node("Identity", ["images"], ["out"])], "g", [value], [out_value])
     onnx.save(h.make_model(graph, opset_imports=[h.make_opsetid("", 17)]), str(plain))  # a valid model, not ours
-    with pytest.raises(ValueError, match="plain.onnx: no 'lanevil_model' metadata; expected an ONNX model written by task=export"):
+    with pytest.raises(ValueError, match="plain.onnx: no 'lanevil_model' metadata; "
+                                         "expected an ONNX model written by task=export"):
         run_in_process(["task=evaluate", f"task.onnx={plain}", *TINY], tmp_path / "eval")
     with pytest.raises(ValueError, match="task.onnx: expected null or the path of an existing ONNX model"):
         run_in_process(["task=evaluate", f"task.onnx={tmp_path / 'none.onnx'}", *TINY], tmp_path / "eval")

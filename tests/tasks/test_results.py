@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
+from lanevil_train.evaluation.results import write_results
+from lanevil_train.evaluation.scoring import lane_record
 from lanevil_train.lanes import default_h_samples
-from lanevil_train.tasks.results import write_results
-from lanevil_train.tasks.scoring import lane_record
 
 
 def _lane(x: float) -> np.ndarray:

@@ -8,9 +8,9 @@ import pytest
 import torch
 
 from lanevil_train.data.suites import SyntheticIllusionSuite
+from lanevil_train.evaluation.scoring import read_records
+from lanevil_train.evaluation.streaming import stream_evaluate
 from lanevil_train.tasks.builders import build_model
-from lanevil_train.tasks.scoring import read_records
-from lanevil_train.tasks.streaming import stream_evaluate
 
 SPEC = {
     "model": {"name": "laneatt", "head": {"_target_": "lanevil_train.models.laneatt.LaneATTHead", "max_lanes": 6},

@@ -205,7 +205,7 @@ def test_a_bad_value_in_a_later_job_stops_the_sweep_before_the_first_job(tmp_pat
 
 
 def test_the_pat_alpha_sweep_is_the_papers_grid_and_every_point_a_valid_pat_plus_plus():
-    from lanevil_train.tasks.vlm_defense import prompt_settings
+    from lanevil_train.tasks.vlm.builders import prompt_settings
 
     cfg = compose_root(["hparams_search=pat_alpha", "model=vlm/hf", "model.path=/models/some-vlm", "data=clips"])
     assert cfg.hydra.mode == RunMode.MULTIRUN
@@ -221,7 +221,7 @@ def test_the_pat_alpha_sweep_is_the_papers_grid_and_every_point_a_valid_pat_plus
 
 
 def test_the_pat_prefix_length_sweep_gives_valid_pat_plus_plus_points():
-    from lanevil_train.tasks.vlm_defense import prompt_settings
+    from lanevil_train.tasks.vlm.builders import prompt_settings
 
     cfg = compose_root(["hparams_search=pat_prefix_length", "model=vlm/hf", "model.path=/models/some-vlm",
                         "data=clips"])

@@ -10,8 +10,8 @@ import shutil
 import pytest
 
 from lanevil_train.results_log import ResultsLog
-from lanevil_train.vlm.drivelm import read_drivelm
-from lanevil_train.vlm.fake_server import FakeServer
+from lanevil_train.testing.fake_server import FakeServer
+from lanevil_train.vlm.clips.drivelm import read_drivelm
 from lanevil_train.vlm.tiny import build_tiny_vlm
 from tests.tasks.cli_helpers import run_cli, run_in_process
 

@@ -65,8 +65,8 @@ def test_pat_plus_plus_tunes_a_prefix_tests_it_resumes_and_evaluates_with_it(tin
 
 
 def test_defense_misuse_is_refused_naming_the_key_before_any_work(tiny_model, tmp_path):
-    from lanevil_train.tasks.vlm_evaluate import evaluate_vlm
-    from lanevil_train.tasks.vlm_train import check_lanes_for_defense, train_vlm
+    from lanevil_train.tasks.vlm.evaluate import evaluate_vlm
+    from lanevil_train.tasks.vlm.train import check_lanes_for_defense, train_vlm
 
     common = ["model=vlm/hf", f"model.path={tiny_model}", *TINY_CLIPS, f"output_dir={tmp_path / 'run'}"]
     with pytest.raises(ValueError, match="defense.prefix_path: task=evaluate defense=pat\\+\\+ applies a tuned prefix"):
@@ -99,7 +99,7 @@ VLM_DEFENSES = {"none": "model", "pgd": "model", "mixup": "model", "aam": "model
 
 @pytest.mark.parametrize("defense", list(VLM_DEFENSES))
 def test_every_vlm_defense_config_runs_a_step(defense, tiny_model, tmp_path):
-    from lanevil_train.tasks.vlm_train import train_vlm
+    from lanevil_train.tasks.vlm.train import train_vlm
 
     run = tmp_path / "run"
     tiny_prompt = ["defense.steps=1", "defense.prefix_length=2", "defense.top_k=4", "defense.num_candidates=3",
@@ -190,7 +190,7 @@ def test_each_textual_defense_is_tuned_for_the_model_of_the_defense_with_its_vis
 
 def test_pat_plus_plus_finds_hard_examples_by_each_answers_language_score(tiny_model, tmp_path, monkeypatch):
     from lanevil_train.metrics import vqa
-    from lanevil_train.tasks.vlm_train import train_vlm
+    from lanevil_train.tasks.vlm.train import train_vlm
 
     seen = {}
 
@@ -208,7 +208,8 @@ def test_pat_plus_plus_finds_hard_examples_by_each_answers_language_score(tiny_m
                        "defense.examples=2", "defense.pool_clips=3", "defense.chunk=4", f"output_dir={run}"]))
     chosen = json.loads((run / "examples.json").read_text())
     examples = chosen["examples"]
-    assert chosen["choosing"]["hardness"] == "language" and sorted(e["hard"] for e in examples) == [False] * 2 + [True] * 2
+    assert chosen["choosing"]["hardness"] == "language" and \
+        sorted(e["hard"] for e in examples) == [False] * 2 + [True] * 2
     values = [v for k, v in seen.items() if k != "pairs"]
     assert len(values) == chosen["pool"] == len(seen["pairs"]) and chosen["mean_score"] == pytest.approx(
         sum(values) / len(values))

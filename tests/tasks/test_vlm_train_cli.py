@@ -78,8 +78,8 @@ def test_scene_batches_draw_rendered_variants_with_their_scene_classes_and_need_
     scene classes; a suite on disk (no truth) is refused naming the setting."""
     import numpy as np
 
-    from lanevil_train.tasks.vlm_train import prepare_clips, scene_batches
-    from lanevil_train.vlm.clip_set import ClipSetDataset, SyntheticClipSuite, build_clip_set
+    from lanevil_train.tasks.vlm.train import prepare_clips, scene_batches
+    from lanevil_train.vlm.clips.clip_set import ClipSetDataset, SyntheticClipSuite, build_clip_set
 
     suite = SyntheticClipSuite(2, 0, ["road_repair"], severities=[3], size=(32, 48))
     bases = [suite.clip_meta(i)["base_clip_id"] for i in range(0, len(suite), 2)]

@@ -37,7 +37,7 @@ def tiny_vlm_dir(tmp_path_factory):
 @pytest.fixture(scope="session")
 def tiny_hf_vlm(tiny_vlm_dir):
     """family -> an HFVLM on its tiny model (float32, CPU, 4 new tokens), loaded once per session."""
-    from lanevil_train.vlm.hf import HFVLM
+    from lanevil_train.vlm.backends.hf import HFVLM
 
     loaded: dict[str, HFVLM] = {}
 

@@ -1,4 +1,4 @@
-"""A stand-in for vlm/clips.py (the renderer) with its API: tiny deterministic frames and a fixed truth."""
+"""A stand-in for vlm/clips/clips.py (the renderer) with its API: tiny deterministic frames and a fixed truth."""
 
 from __future__ import annotations
 

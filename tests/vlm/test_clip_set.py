@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from lanevil_train.vlm import clip_set
-from lanevil_train.vlm.clip_set import ClipSetDataset, SyntheticClipSuite, build_clip_set
-from lanevil_train.vlm.qa_records import QA_CATEGORIES
+from lanevil_train.vlm.clips import clip_set
+from lanevil_train.vlm.clips.clip_set import ClipSetDataset, SyntheticClipSuite, build_clip_set
+from lanevil_train.vlm.clips.qa_records import QA_CATEGORIES
 from tests.vlm import fake_clips
 
 SIZE = (24, 40)
@@ -172,7 +172,7 @@ def test_a_window_shuffle_renders_each_base_clip_once_per_epoch_and_mixes_clips_
     suite keeping 4 base clips' renders: every pair once per epoch, each base clip rendered once, windows of 4 base
     clips (20 consecutive pairs span several clips), a new order next epoch, the same order for the same epoch;
     with a 1-clip cache the same order renders far more."""
-    from lanevil_train.vlm.qa_data import ClipQADataset, WindowShuffleSampler
+    from lanevil_train.vlm.clips.qa_data import ClipQADataset, WindowShuffleSampler
 
     suite = SyntheticClipSuite(6, 500, ["rail_shadow", "vehicle"], [2, 4], SIZE, cache_clips=4)
     pairs = ClipQADataset(suite, "all")
@@ -206,8 +206,8 @@ def test_a_window_shuffle_renders_each_base_clip_once_per_epoch_and_mixes_clips_
 def test_aids_add_training_aid_pairs_a_set_on_disk_cannot_give(tmp_path):
     """ClipQADataset(aids=2): each clip variant's 5 QA plus each of its base clip's 5 training aids (description and
     fact questions) twice, as the truth gives them; a built set has no truth, so aids are refused there, naming why."""
-    from lanevil_train.vlm.qa import DESCRIBE_QUESTION, training_aids
-    from lanevil_train.vlm.qa_data import ClipQADataset
+    from lanevil_train.vlm.clips.qa import DESCRIBE_QUESTION, training_aids
+    from lanevil_train.vlm.clips.qa_data import ClipQADataset
 
     suite = SyntheticClipSuite(1, 500, ["rail_shadow"], [2], SIZE)
     pairs = ClipQADataset(suite, "all", aids=2)

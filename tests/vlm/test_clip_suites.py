@@ -1,5 +1,5 @@
-"""The corruption and combined-illusion clip suites (vlm/clips.py render_variants, vlm/clip_set.py kinds), with the
-real renderer at a tiny size."""
+"""The corruption and combined-illusion clip suites (vlm/clips/clips.py render_variants, vlm/clips/clip_set.py
+kinds), with the real renderer at a tiny size."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ from lanevil_train.illusions import get_illusion
 from lanevil_train.illusions.context import context_for_frame
 from lanevil_train.perturbations import combined_choice
 from lanevil_train.taxonomy import CATEGORIES, ILLUSION_CATEGORY
-from lanevil_train.vlm import clips
-from lanevil_train.vlm.clip_set import (
+from lanevil_train.vlm.clips import clips
+from lanevil_train.vlm.clips.clip_set import (
     ClipSetDataset,
     SyntheticClipSuite,
     build_clip_set,
@@ -22,7 +22,7 @@ from lanevil_train.vlm.clip_set import (
     suite_qa,
     variant_records,
 )
-from lanevil_train.vlm.clips import (
+from lanevil_train.vlm.clips.clips import (
     SEGMENTS,
     ClipCase,
     combined_clip_cases,
@@ -32,7 +32,7 @@ from lanevil_train.vlm.clips import (
     segment_positions,
     suite_cases,
 )
-from lanevil_train.vlm.qa import case_plan, make_qa
+from lanevil_train.vlm.clips.qa import case_plan, make_qa
 from tests.vlm.truth_fixture import truth
 
 SIZE = (48, 80)
@@ -124,7 +124,7 @@ def test_the_pair_variant_draws_the_second_illusion_over_the_first():
 def test_corruption_suite_qa_leaves_out_what_the_frames_no_longer_show():
     """A kept question's template works on a truth without the illusion, weather and light (so it cannot read the
     illusion, which is not drawn, nor what weather and brightness corruptions change); a left-out one needs them."""
-    from lanevil_train.vlm.qa import KINDS
+    from lanevil_train.vlm.clips.qa import KINDS
 
     kept_total = 0
     for seed in range(40):

@@ -1,4 +1,4 @@
-"""vlm.clips: clips of a driving camera, clean and perturbed, and their ground truth."""
+"""vlm.clips.clips: clips of a driving camera, clean and perturbed, and their ground truth."""
 
 from __future__ import annotations
 
@@ -14,10 +14,18 @@ from lanevil_train.illusions.visibility import changed_pixels
 from lanevil_train.sim import render_scene, sample_scene_params
 from lanevil_train.sim.sequence import scene_at
 from lanevil_train.taxonomy import ILLUSION_NAMES
-from lanevil_train.vlm import clips
-from lanevil_train.vlm.clips import (
-    FRAMES_PER_CLIP, SEGMENTS, ClipCase, changed_road_points, clip_cases, clip_truth, lane_of, reference_scene,
-    render_clip, segment_positions,
+from lanevil_train.vlm.clips import clips
+from lanevil_train.vlm.clips.clips import (
+    FRAMES_PER_CLIP,
+    SEGMENTS,
+    ClipCase,
+    changed_road_points,
+    clip_cases,
+    clip_truth,
+    lane_of,
+    reference_scene,
+    render_clip,
+    segment_positions,
 )
 
 SIZE = (144, 256)

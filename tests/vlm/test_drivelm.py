@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from lanevil_train.vlm import clip_set
-from lanevil_train.vlm.clip_set import ClipSetDataset, build_clip_set
-from lanevil_train.vlm.drivelm import read_drivelm, to_drivelm, write_drivelm
+from lanevil_train.vlm.clips import clip_set
+from lanevil_train.vlm.clips.clip_set import ClipSetDataset, build_clip_set
+from lanevil_train.vlm.clips.drivelm import read_drivelm, to_drivelm, write_drivelm
 from tests.vlm import fake_clips
 
 
@@ -77,7 +77,8 @@ def test_a_drivelm_file_reads_as_one_clean_clip_per_key_frame(tmp_path):
 
 @pytest.mark.parametrize("breakage, message", [
     (lambda d: d["scene-a"].pop("key_frames"), "scene scene-a: missing 'key_frames'"),
-    (lambda d: d["scene-a"]["key_frames"]["tok1"].pop("image_paths"), "scene scene-a frame tok1: missing 'image_paths'"),
+    (lambda d: d["scene-a"]["key_frames"]["tok1"].pop("image_paths"),
+     "scene scene-a frame tok1: missing 'image_paths'"),
     (lambda d: d["scene-a"]["key_frames"]["tok1"]["QA"]["perception"][0].pop("A"),
      r"scene scene-a frame tok1: QA.perception\[0\]: A: expected a non-empty string"),
     (lambda d: d["scene-a"]["key_frames"]["tok1"]["QA"].update(weather=[]), "QA.weather: unknown section"),

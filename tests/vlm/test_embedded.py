@@ -6,11 +6,21 @@ import numpy as np
 import pytest
 import torch
 
-from lanevil_train.vlm.embedded import (DEFAULT_FRAME_SIZE, PARAMETER_RANGE, build_embedded_vlm, check_frame_size,
-                                        check_sizes, count_parameters, fit_answers, make_embedded_vlm, pretrain_vision,
-                                        qa_corpus, vision_tokens)
-from lanevil_train.vlm.hf import HFVLM
-from lanevil_train.vlm.qa_records import prompt_text
+from lanevil_train.vlm.backends.embedded import (
+    DEFAULT_FRAME_SIZE,
+    PARAMETER_RANGE,
+    build_embedded_vlm,
+    check_frame_size,
+    check_sizes,
+    count_parameters,
+    fit_answers,
+    make_embedded_vlm,
+    pretrain_vision,
+    qa_corpus,
+    vision_tokens,
+)
+from lanevil_train.vlm.backends.hf import HFVLM
+from lanevil_train.vlm.clips.qa_records import prompt_text
 
 QAS = [
     {"type": "yes_no", "question": "Is the road surface wet?", "answer": "No. The road surface is dry."},
@@ -128,7 +138,7 @@ def test_training_steps_reduce_the_answer_loss_on_a_fixed_batch(model_dir):
 def test_vision_pretraining_teaches_the_tower_the_scene_classes_and_leaves_the_decoder_alone(model_dir):
     """pretrain_vision trains the tower (its probe's loss falls on a fixed batch) and nothing else: the decoder, the
     embeddings and the head keep their weights, so the saved model is the same Qwen2-VL with a trained tower."""
-    from lanevil_train.vlm.qa import SCENE_CLASSES
+    from lanevil_train.vlm.clips.qa import SCENE_CLASSES
 
     vlm = HFVLM(model_dir, device="cpu")
     before = {name: p.detach().clone() for name, p in vlm.model.named_parameters()}
@@ -152,8 +162,8 @@ def test_vision_pretraining_teaches_the_tower_the_scene_classes_and_leaves_the_d
 
 
 def test_mirrored_batch_flips_the_chosen_clips_and_mirrors_their_classes():
-    from lanevil_train.vlm.embedded import mirrored_batch
-    from lanevil_train.vlm.qa import mirror_scene_classes
+    from lanevil_train.vlm.backends.embedded import mirrored_batch
+    from lanevil_train.vlm.clips.qa import mirror_scene_classes
 
     clips = [_clip(0), _clip(1)]
     classes = [[1, 0, 1, 0, 0, 0, 0, 1, 0], [0, 1, 2, 1, 1, 1, 1, 0, 2]]

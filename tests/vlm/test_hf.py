@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from lanevil_train.vlm.hf import IGNORE_INDEX, HFVLM, model_dir_hash
+from lanevil_train.vlm.backends.hf import HFVLM, IGNORE_INDEX, model_dir_hash
 from lanevil_train.vlm.tiny import FAMILIES, make_tiny_vlm
 
 QUESTIONS = ["How many lanes does the road have in front of the ego vehicle?", "Is it wet?"]

@@ -2,8 +2,8 @@
 
 import pytest
 
-from lanevil_train.vlm.fake_server import FakeServer
-from lanevil_train.vlm.paraphrase import OpenAIParaphraser, clean_reply, is_yes_no, option_letters, rejection
+from lanevil_train.testing.fake_server import FakeServer
+from lanevil_train.vlm.clips.paraphrase import OpenAIParaphraser, clean_reply, is_yes_no, option_letters, rejection
 
 
 @pytest.fixture

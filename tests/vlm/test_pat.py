@@ -9,9 +9,16 @@ import numpy as np
 import pytest
 import torch
 
-from lanevil_train.vlm.hf import IGNORE_INDEX, HFVLM
-from lanevil_train.vlm.gcg import Examples, allowed_tokens, gcg_step, initial_prefix, retokenises, splice_prefix
-from lanevil_train.vlm.pat import RES_GOAL, PrefixObjective, hard_mask, hard_target, load_prefix, save_prefix
+from lanevil_train.vlm.backends.hf import HFVLM, IGNORE_INDEX
+from lanevil_train.vlm.defenses.gcg import (
+    Examples,
+    allowed_tokens,
+    gcg_step,
+    initial_prefix,
+    retokenises,
+    splice_prefix,
+)
+from lanevil_train.vlm.defenses.pat import RES_GOAL, PrefixObjective, hard_mask, hard_target, load_prefix, save_prefix
 from lanevil_train.vlm.tiny import FAMILIES
 
 QUESTIONS = ["How many lanes does the road have in front of the ego vehicle?", "Is it wet?"]
@@ -65,7 +72,7 @@ def test_the_prefix_sits_after_the_frames_and_before_the_question_in_each_family
 
 
 def test_the_prefix_comes_before_the_question_and_so_the_video_in_the_embedded_vlm(tmp_path):
-    from lanevil_train.vlm.embedded import DEFAULT_FRAME_SIZE, build_embedded_vlm
+    from lanevil_train.vlm.backends.embedded import DEFAULT_FRAME_SIZE, build_embedded_vlm
 
     model_dir = build_embedded_vlm(tmp_path / "model", QUESTIONS + ANSWERS, seed=1)
     vlm = HFVLM(model_dir, dtype="float32", device="cpu")
@@ -219,8 +226,8 @@ def test_prefix_json_round_trips_and_a_foreign_prefix_is_refused(tiny_hf_vlm, tm
 
 def test_tuning_keeps_the_best_prefix_and_a_stopped_run_resumes_where_it_was(tiny_hf_vlm, small_clips, tmp_path,
                                                                               monkeypatch):
-    from lanevil_train.vlm import pat
-    from lanevil_train.vlm.pat import GCGSettings, tune_prefix
+    from lanevil_train.vlm.defenses import pat
+    from lanevil_train.vlm.defenses.pat import GCGSettings, tune_prefix
 
     vlm = tiny_hf_vlm("qwen2_vl")
     objective = PrefixObjective(vlm, Examples(small_clips, QUESTIONS, ANSWERS),
@@ -250,7 +257,7 @@ def test_tuning_keeps_the_best_prefix_and_a_stopped_run_resumes_where_it_was(tin
 
 @pytest.mark.parametrize("family", ["qwen2_vl", "idefics3"])
 def test_a_prefixed_vlm_answers_and_scores_with_the_prefix_spliced_in(family, tiny_hf_vlm, small_clips):
-    from lanevil_train.vlm.pat import PrefixedVLM
+    from lanevil_train.vlm.defenses.pat import PrefixedVLM
 
     vlm = tiny_hf_vlm(family)
     prefix = vlm.processor.tokenizer("keep to the lane", add_special_tokens=False)["input_ids"]
@@ -272,7 +279,7 @@ def test_a_prefixed_vlm_answers_and_scores_with_the_prefix_spliced_in(family, ti
 
 
 def test_a_soft_prefix_lowers_the_loss_keeps_its_best_vectors_and_resumes_exactly(tiny_hf_vlm, small_clips, tmp_path):
-    from lanevil_train.vlm.pat import SoftSettings, tune_soft_prefix
+    from lanevil_train.vlm.defenses.pat import SoftSettings, tune_soft_prefix
 
     vlm = tiny_hf_vlm("qwen2_vl")
     objective = PrefixObjective(vlm, Examples(small_clips, QUESTIONS, ANSWERS),
@@ -300,7 +307,7 @@ def test_a_soft_prefix_lowers_the_loss_keeps_its_best_vectors_and_resumes_exactl
 
 
 def test_a_prefixed_vlm_with_soft_vectors_embeds_them_in_the_prompt_pass_only(tiny_hf_vlm, small_clips):
-    from lanevil_train.vlm.pat import PrefixedVLM
+    from lanevil_train.vlm.defenses.pat import PrefixedVLM
 
     vlm = tiny_hf_vlm("qwen2_vl")
     ids = _prefix_for(vlm, 3)

@@ -6,10 +6,17 @@ from __future__ import annotations
 import pytest
 import torch
 
-from lanevil_train.vlm.gcg import ControlObjective, Examples, Part, allowed_tokens, initial_prefix, splice_prefix, \
-    splice_suffix
-from lanevil_train.vlm.hf import IGNORE_INDEX
-from lanevil_train.vlm.pat_baseline import PATSettings, tune_pat, wrong_answer
+from lanevil_train.vlm.backends.hf import IGNORE_INDEX
+from lanevil_train.vlm.defenses.gcg import (
+    ControlObjective,
+    Examples,
+    Part,
+    allowed_tokens,
+    initial_prefix,
+    splice_prefix,
+    splice_suffix,
+)
+from lanevil_train.vlm.defenses.pat_baseline import PATSettings, tune_pat, wrong_answer
 
 QUESTIONS = ["Is the dark line in the left lane a lane marking?", "How many lanes are there?"]
 ANSWERS = ["No. It is the shadow of a rail.", "B. Three lanes."]
@@ -55,7 +62,7 @@ def test_the_attack_suffix_follows_the_question_and_the_prefix_precedes_it(famil
 
 def test_pat_alternates_attack_and_defense_and_resumes_where_it_stopped(tiny_hf_vlm, small_clips, tmp_path,
                                                                         monkeypatch):
-    from lanevil_train.vlm import pat_baseline
+    from lanevil_train.vlm.defenses import pat_baseline
 
     vlm = tiny_hf_vlm("qwen2_vl")
     attacked = Examples(small_clips, QUESTIONS, ANSWERS)

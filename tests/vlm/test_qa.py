@@ -5,12 +5,11 @@ from __future__ import annotations
 import itertools
 
 import numpy as np
-
 import pytest
 
-from lanevil_train.vlm import qa as qa_module
-from lanevil_train.vlm.qa import clip_categories, make_qa
-from lanevil_train.vlm.qa_records import QA_CATEGORIES, answer_is_correct, chosen_letter
+from lanevil_train.vlm.clips import qa as qa_module
+from lanevil_train.vlm.clips.qa import clip_categories, make_qa
+from lanevil_train.vlm.clips.qa_records import QA_CATEGORIES, answer_is_correct, chosen_letter
 from tests.vlm.truth_fixture import truth
 
 SEGMENTS = ("before", "over", "alongside")
@@ -88,10 +87,12 @@ def test_answers_follow_the_truth():
     ego = [qa for qa in all_kinds(truth(ego_lane=2)) if "lane is the ego vehicle driving in" in qa["question"]]
     assert all("rightmost" in qa["answer"] or "third lane" in qa["answer"] for qa in ego)
     # left of ego lane 1 is white_dashed (crossable); ego lane 0's left is the road's left edge
-    change = [qa for qa in all_kinds(truth()) if qa["question"] == "May the ego vehicle change to the lane on its left here?"]
+    change = [qa for qa in all_kinds(truth())
+              if qa["question"] == "May the ego vehicle change to the lane on its left here?"]
     assert change[0]["answer"].startswith("Yes") and "dashed white" in change[0]["answer"]
     solid = truth(markings=["yellow_solid", "white_solid", "white_dashed", "white_solid"])
-    change = [qa for qa in all_kinds(solid) if qa["question"] == "May the ego vehicle change to the lane on its left here?"]
+    change = [qa for qa in all_kinds(solid)
+              if qa["question"] == "May the ego vehicle change to the lane on its left here?"]
     assert change[0]["answer"].startswith("No")
     shapes = [qa for qa in all_kinds(truth(slope="uphill", curvature_sign=0)) if qa["category"] == "scene_description"
               and qa["type"] == "choice" and "uphill" in " ".join(qa["choices"])]
@@ -152,8 +153,8 @@ def test_traffic_is_passed_not_driven_over_and_the_road_shape_is_the_clips():
 @pytest.fixture(scope="module")
 def suite_qa():
     """(truth, QA) of every base clip of the 28-case suite with all 14 illusions (truths only: no frames)."""
-    from lanevil_train.vlm.clip_set import SyntheticClipSuite
-    from lanevil_train.vlm.clips import clip_truth
+    from lanevil_train.vlm.clips.clip_set import SyntheticClipSuite
+    from lanevil_train.vlm.clips.clips import clip_truth
 
     suite = SyntheticClipSuite(28, 1000000, "all", (3,), (72, 128))
     out = []
@@ -264,7 +265,7 @@ def test_case_plan_pairs_yes_and_no_and_deals_letters_evenly():
 def test_the_scene_description_says_what_the_frames_show_in_the_qas_own_words():
     """describe_scene: setting, lane count and ego lane, weather and surface, road shape and steering, each from the
     truth and in the phrases the QA's answers use; a training-only record, in no clip's benchmark QA."""
-    from lanevil_train.vlm.qa import DESCRIBE_QUESTION, describe_scene
+    from lanevil_train.vlm.clips.qa import DESCRIBE_QUESTION, describe_scene
 
     record = describe_scene(truth(), "case-1-before")
     assert record == {"qa_id": "case-1-before-describe", "base_clip_id": "case-1-before",
@@ -290,7 +291,7 @@ def test_mirror_scene_classes_are_the_classes_of_the_mirrored_scene():
     """The mirror image of a 4-lane road, ego in lane 1 of 0..3, bending left between a dashed line and a
     solid-and-dashed pair: ego lane 2, bending right, the markings swapped, and the pair (no name mirrors it)
     unknown; mirroring twice gives the classes back where nothing became unknown."""
-    from lanevil_train.vlm.qa import SCENE_CLASSES, UNKNOWN_CLASS, mirror_scene_classes, scene_classes
+    from lanevil_train.vlm.clips.qa import SCENE_CLASSES, UNKNOWN_CLASS, mirror_scene_classes, scene_classes
 
     markings = ["white_solid", "white_dashed", "yellow_solid_dashed", "white_dashed", "white_solid"]
     classes = scene_classes(truth(num_lanes=4, ego_lane=1, curvature_sign=-1, markings=markings))
@@ -310,8 +311,13 @@ def test_mirror_scene_classes_are_the_classes_of_the_mirrored_scene():
 def test_training_aids_are_the_description_and_open_questions_whose_answers_turn_on_the_frames():
     """training_aids: the description, then the lane count, ego lane, steering and safe action asked openly, each
     answer the truth's (a hill's bend included), phrased as the benchmark's own kinds, the same for the same clip."""
-    from lanevil_train.vlm.qa import (DESCRIBE_QUESTION, EGO_LANE_QUESTIONS, LANE_COUNT_QUESTIONS, describe_scene,
-                                      training_aids)
+    from lanevil_train.vlm.clips.qa import (
+        DESCRIBE_QUESTION,
+        EGO_LANE_QUESTIONS,
+        LANE_COUNT_QUESTIONS,
+        describe_scene,
+        training_aids,
+    )
 
     aids = training_aids(truth(num_lanes=4, ego_lane=3, curvature_sign=1, slope="uphill",
                                markings=["white_solid"] * 5), "case-7-over")
@@ -336,7 +342,7 @@ def test_training_aids_are_the_description_and_open_questions_whose_answers_turn
 
 def test_scene_classes_index_each_fact_of_the_truth():
     """scene_classes: the class index of every SCENE_CLASSES fact (what the embedded VLM's tower is pretrained on)."""
-    from lanevil_train.vlm.qa import SCENE_CLASSES, scene_classes
+    from lanevil_train.vlm.clips.qa import SCENE_CLASSES, scene_classes
 
     assert list(SCENE_CLASSES) == ["num_lanes", "ego_lane", "road_shape", "weather", "scene_kind", "wet",
                                    "left_marking", "right_marking", "bend"]

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from lanevil_train.vlm.base import VLM
-from lanevil_train.vlm.reminder import DRIVING, ORIGINAL, RemindedVLM, remind
+from lanevil_train.vlm.defenses.reminder import DRIVING, ORIGINAL, RemindedVLM, remind
 
 
 class Recording(VLM):

@@ -18,9 +18,16 @@ import pytest
 import torch
 from torch import nn
 
-from lanevil_train.vlm.sharding import (LayerWrapFSDPStrategy, checkpointed_blocks, fsdp_units, gathered_state_dict,
-                                        layer_classes, layer_wrap_policy, repeated_block_classes)
 from lanevil_train.vlm.tiny import FAMILIES, make_tiny_vlm
+from lanevil_train.vlm.training.sharding import (
+    LayerWrapFSDPStrategy,
+    checkpointed_blocks,
+    fsdp_units,
+    gathered_state_dict,
+    layer_classes,
+    layer_wrap_policy,
+    repeated_block_classes,
+)
 
 REPO = Path(__file__).resolve().parents[2]
 QA = [("How many lanes does the road have?", "The road has three lanes."), ("Is it wet?", "Yes."),
@@ -130,7 +137,7 @@ def test_trainer_fsdp_builds_the_layer_wrap_strategy_full_shard_bf16(compose_roo
 
 
 def test_merging_lora_under_fsdp_is_refused_before_training_and_merging_elsewhere_is_not(compose_root):
-    from lanevil_train.tasks.vlm_train import check_sharded_merge
+    from lanevil_train.tasks.vlm.train import check_sharded_merge
 
     lora = ["model=vlm/hf", "model.path=unused"]  # model=vlm/hf trains LoRA by default
     with pytest.raises(ValueError, match=r"model.merge_adapter: true cannot merge under trainer=fsdp .* "
@@ -182,8 +189,8 @@ def test_two_cpu_processes_train_checkpoint_and_resume_under_fsdp(tiny_vlm_dir, 
     without) lower each rank's loss; last.ckpt holds the trainable
     weights under their plain names and, loaded without FSDP, gives the loss rank 0 then sees at resumed step 4;
     the model (or LoRA adapter) rank 0 saves from the gathered state dict holds those same weights."""
-    from lanevil_train.vlm.hf import HFVLM
-    from lanevil_train.vlm.training import VLMFineTuner, collate_clip_qa
+    from lanevil_train.vlm.backends.hf import HFVLM
+    from lanevil_train.vlm.training.finetune import VLMFineTuner, collate_clip_qa
 
     model_dir = tiny_vlm_dir("qwen2_vl")
     _run_ranks(model_dir, tmp_path, 4, lora)
@@ -230,7 +237,7 @@ def _rank_main(model_dir: str, out: str, max_steps: int, lora: bool) -> None:
     from torch.utils.data import DataLoader
 
     from lanevil_train.tasks.builders import build_trainer
-    from lanevil_train.vlm.training import VLMFineTuner, collate_clip_qa
+    from lanevil_train.vlm.training.finetune import VLMFineTuner, collate_clip_qa
 
     class Record(pl.Callback):
         def on_fit_start(self, trainer, module):

@@ -12,9 +12,14 @@ import torch
 from torch.utils.data import DataLoader, Dataset, Subset
 
 from lanevil_train.callbacks.adapter import BatchAdapter
-from lanevil_train.vlm.hf import IGNORE_INDEX, HFVLM
-from lanevil_train.vlm.training import (ClipQADataset, VLMFineTuner, clip_images, collate_clip_qa,
-                                        vision_tower_names)
+from lanevil_train.vlm.backends.hf import HFVLM, IGNORE_INDEX
+from lanevil_train.vlm.training.finetune import (
+    ClipQADataset,
+    VLMFineTuner,
+    clip_images,
+    collate_clip_qa,
+    vision_tower_names,
+)
 
 QA = [("How many lanes does the road have?", "The road has three lanes."), ("Is it wet?", "Yes."),
       ("What should the ego vehicle do next?", "Keep the lane."), ("Is there a crack ahead?", "No.")]
@@ -120,7 +125,7 @@ def test_the_loss_reaches_the_pixels_through_the_processor(tiny_vlm_dir, batch):
 
 def test_clip_qa_dataset_pairs_each_chosen_clip_with_its_qa():
     """clean: only severity-0 clips, each with every QA of its base clip; all: the perturbed variants too."""
-    from lanevil_train.vlm.clip_set import SyntheticClipSuite
+    from lanevil_train.vlm.clips.clip_set import SyntheticClipSuite
 
     suite = SyntheticClipSuite(1, 500, illusions=["road_crack"], severities=(3,), size=(32, 48), per_clip=2)
     clean, every = ClipQADataset(suite, "clean"), ClipQADataset(suite, "all")
@@ -343,10 +348,10 @@ def test_a_run_resumed_inside_an_epoch_trains_on_the_batches_an_uninterrupted_ru
     """12 batches an epoch, 16 steps; stopped and checkpointed at step 5, then resumed: with SkipTrainedBatches the
     resumed steps 5-15 see exactly the uninterrupted run's batches (the rest of epoch 0, then epoch 1's new
     order); without it Lightning restarts epoch 0's data at its first batch."""
-    from lanevil_train.vlm.qa_data import WindowShuffleSampler
-    from lanevil_train.vlm.training import SkipTrainedBatches
-
     from pytorch_lightning.callbacks import ModelCheckpoint
+
+    from lanevil_train.vlm.clips.qa_data import WindowShuffleSampler
+    from lanevil_train.vlm.training.finetune import SkipTrainedBatches
 
     def fit(root, max_steps, callbacks=(), ckpt_path=None):
         sampler = WindowShuffleSampler(_Numbered(), window=2, seed=5)

@@ -12,12 +12,12 @@ from torch.utils.data import DataLoader
 
 from lanevil_train.callbacks import AttentionAreaMixing, BatchAdapter, PGDAdversarialTraining
 from lanevil_train.data.mixers import MixUp
-from lanevil_train.vlm.clip_set import SyntheticClipSuite
-from lanevil_train.vlm.hf import HFVLM
-from lanevil_train.vlm.qa_data import ClipQADataset, MixingClipCollate, clip_images, collate_clip_qa
+from lanevil_train.vlm.backends.hf import HFVLM
+from lanevil_train.vlm.clips.clip_set import SyntheticClipSuite
+from lanevil_train.vlm.clips.qa_data import ClipQADataset, MixingClipCollate, clip_images, collate_clip_qa
 from lanevil_train.vlm.tiny import FAMILIES
-from lanevil_train.vlm.training import VLMFineTuner
-from lanevil_train.vlm.vision_maps import VISION_LAYERS, VisionMaps
+from lanevil_train.vlm.training.finetune import VLMFineTuner
+from lanevil_train.vlm.training.vision_maps import VISION_LAYERS, VisionMaps
 
 H, W = 32, 48
 LORA = {"r": 4, "alpha": 8, "dropout": 0.0}

@@ -8,9 +8,9 @@ import shutil
 import pytest
 import torch
 
-from lanevil_train.vlm.hf import HFVLM
-from lanevil_train.vlm.training import VLMFineTuner
-from lanevil_train.vlm.weight_files import check_weight_files
+from lanevil_train.vlm.backends.hf import HFVLM
+from lanevil_train.vlm.backends.weight_files import check_weight_files
+from lanevil_train.vlm.training.finetune import VLMFineTuner
 
 
 def cut(path, keep: int) -> tuple[int, int]:

@@ -8,7 +8,7 @@ from multiprocessing import get_context
 from pathlib import Path
 from typing import Callable, Iterable, Iterator
 
-from lanevil_train.data.formats.atomic import atomic_write_text, remove_temporaries
+from lanevil_train.files.atomic import atomic_write_text, remove_temporaries
 
 BUILD_FILE = "build.json"
 

@@ -16,8 +16,8 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from lanevil_train.data.formats.atomic import atomic_write_text
 from lanevil_train.data.formats.images import image_file_problem
+from lanevil_train.files.atomic import atomic_write_text
 from lanevil_train.lanes import as_lane
 
 __all__ = ["read_culane", "read_culane_lanes", "write_culane_lanes", "write_culane", "lines_path_for"]

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from lanevil_train.data.formats.jsonl import read_json_objects
+from lanevil_train.files.jsonl import read_json_objects
 
 MANIFEST_KEYS = ("image", "source_image", "case_id", "illusion", "category", "severity", "seed")
 

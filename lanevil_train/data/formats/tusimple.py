@@ -15,9 +15,9 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from lanevil_train.data.formats.atomic import atomic_write_text
 from lanevil_train.data.formats.images import image_file_problem
-from lanevil_train.data.formats.jsonl import read_json_objects
+from lanevil_train.files.atomic import atomic_write_text
+from lanevil_train.files.jsonl import read_json_objects
 from lanevil_train.lanes import INVALID_X, TUSIMPLE_H_SAMPLES, as_lane, lane_x_at, rows_to_lane
 
 __all__ = ["read_tusimple", "write_tusimple"]

@@ -1,0 +1,308 @@
+"""LaneATT head (Tabelini et al., "Keep your Eyes on the Lane", CVPR 2021).
+
+Anchor features are pooled from the last feature map along each line anchor, mixed by the
+anchor attention, and classified / regressed (length + x offsets). ``forward`` returns raw
+tensors only (ONNX-exportable); NMS and lane assembly live in ``decode``.
+
+Distance thresholds (matching, NMS) are given in pixels at ``reference_width`` (640, the
+official input width) and scaled by W / reference_width, so the defaults fit any input size.
+As the official (lucastabelini/LaneATT, lib/models/laneatt.py): the anchors can be the topk most
+used by the train split's lanes (anchor_selection=frequency, frequency.py), and the loss
+is computed on the proposals a lane NMS keeps (15 px, top 3,000, no score threshold).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from lanevil_train.lanes import row_proposal_to_lane
+from lanevil_train.models.head import LaneHead
+from lanevil_train.models.laneatt.anchors import (
+    TARGET_META,
+    anchor_cut_indices,
+    encode_lanes,
+    feature_map_size,
+    generate_anchors,
+    row_ys,
+)
+from lanevil_train.models.laneatt.frequency import (
+    anchor_use_frequency,
+    cached_frequency,
+    dataset_fingerprint,
+    top_anchors,
+    train_lane_sets,
+)
+from lanevil_train.models.losses import anchor_target_distances, focal_loss
+from lanevil_train.models.nms import lane_ends, lane_nms, lane_nms_batched
+
+log = logging.getLogger(__name__)
+
+# all: every anchor of the grid; frequency: the topk_anchors most used by the train split's lanes (the official)
+ANCHOR_SELECTIONS = ("all", "frequency")
+
+
+def _anchors_from_loaded_index(head: "LaneATTHead", incompatible_keys) -> None:
+    """After load_state_dict: rebuild the anchor geometry from the loaded anchor_index buffer."""
+    head._set_anchors(head.anchor_index)
+
+
+class LaneATTHead(LaneHead):
+    """LaneATT: anchor feature pooling, anchor attention, classification and regression.
+
+    It reads the last of the feature maps it is given (the stride-32 stage in its paper)."""
+
+    def __init__(
+        self,
+        in_channels: list[int],
+        in_strides: list[int],
+        image_size: tuple[int, int],
+        n_offsets: int = 72,
+        anchor_feat_channels: int = 64,
+        max_lanes: int = 6,
+        anchor_selection: str = "all",
+        topk_anchors: int | None = None,
+        lateral_n: int | None = None,
+        bottom_n: int | None = None,
+        anchor_frequency: np.ndarray | None = None,
+        frequency_threshold: float = 30.0,
+        pos_threshold: float = 15.0,
+        neg_threshold: float = 20.0,
+        train_nms_threshold: float | None = 15.0,
+        train_nms_topk: int = 3000,
+        reference_width: float = 640.0,
+        cls_loss_weight: float = 10.0,
+        focal_alpha: float = 0.25,
+        focal_gamma: float = 2.0,
+    ) -> None:
+        super().__init__(in_channels, in_strides, image_size)
+        h, w = self.image_size
+        feature_stride = self.in_strides[-1]
+        if neg_threshold < pos_threshold:
+            raise ValueError(f"LaneATTHead: neg_threshold {neg_threshold} must be >= pos_threshold {pos_threshold}")
+        if anchor_selection not in ANCHOR_SELECTIONS:
+            raise ValueError(f"anchor_selection: expected one of {', '.join(ANCHOR_SELECTIONS)}, "
+                             f"got {anchor_selection!r}")
+        if anchor_selection == "frequency" and topk_anchors is None:
+            raise ValueError("topk_anchors: anchor_selection=frequency keeps the topk_anchors most used anchors; "
+                             "set it (the official: 1000) or use anchor_selection=all")
+        if topk_anchors is not None and topk_anchors < 2:
+            raise ValueError(f"topk_anchors: expected null or an integer >= 2, got {topk_anchors}")
+        if train_nms_threshold is not None and train_nms_threshold <= 0:
+            raise ValueError(f"train_nms_threshold: expected null (no NMS in training) or > 0 px, "
+                             f"got {train_nms_threshold}")
+        if train_nms_topk < 1:
+            raise ValueError(f"train_nms_topk: expected an integer >= 1, got {train_nms_topk}")
+        self.n_offsets = n_offsets
+        self.max_lanes = max_lanes
+        self.feature_stride = feature_stride
+        self.threshold_scale = w / reference_width
+        self.pos_threshold = pos_threshold * self.threshold_scale
+        self.neg_threshold = neg_threshold * self.threshold_scale
+        self.frequency_threshold = frequency_threshold * self.threshold_scale
+        self.train_nms_threshold = None if train_nms_threshold is None else train_nms_threshold * self.threshold_scale
+        self.train_nms_topk = train_nms_topk
+        self.cls_loss_weight = cls_loss_weight
+        self.focal_alpha, self.focal_gamma = focal_alpha, focal_gamma
+
+        self.all_anchors = generate_anchors(self.image_size, n_offsets, lateral_n, bottom_n)
+        total = len(self.all_anchors)
+        if anchor_selection == "all" and topk_anchors is not None and topk_anchors < total:
+            raise ValueError(f"topk_anchors: {topk_anchors} of the {total} anchors with anchor_selection=all; "
+                             "choose them with anchor_selection=frequency, or set topk_anchors=null")
+        # frequency selection: until the train split's counts arrive (choose_anchors), an even spread over the
+        # anchor list stands in; the chosen indices are a persistent buffer, so a checkpoint rebuilds the same net
+        self.anchor_selection = anchor_selection if topk_anchors is not None and topk_anchors < total else "all"
+        n_kept = total if self.anchor_selection == "all" else topk_anchors
+        if n_kept < 2:
+            raise ValueError("LaneATTHead: need at least 2 anchors")
+        if self.anchor_selection == "all":
+            index = np.arange(total)
+        else:
+            index = np.round(np.linspace(0, total - 1, n_kept)).astype(np.int64)
+        self.register_buffer("anchor_index", torch.from_numpy(index).long())
+        self.register_buffer("anchors_chosen", torch.tensor(int(self.anchor_selection == "all")))
+        self.n_anchors = n_kept
+        self.fmap_size = feature_map_size(self.image_size, feature_stride)
+        self._set_anchors(index)
+        if anchor_frequency is not None:
+            self.use_frequency(anchor_frequency)
+        self.register_load_state_dict_post_hook(_anchors_from_loaded_index)
+        self.row_ys = row_ys(h, n_offsets)
+
+        hf, _ = self.fmap_size
+        feat_dim = anchor_feat_channels * hf
+        self.conv1 = nn.Conv2d(self.in_channels[-1], anchor_feat_channels, kernel_size=1)
+        self.attention_layer = nn.Linear(feat_dim, self.n_anchors - 1)
+        self.cls_layer = nn.Linear(2 * feat_dim, 2)
+        self.reg_layer = nn.Linear(2 * feat_dim, n_offsets + 1)
+        for layer in (self.cls_layer, self.reg_layer):
+            nn.init.normal_(layer.weight, 0.0, 0.001)
+            nn.init.zeros_(layer.bias)
+
+    # ------------------------------------------------------------------ anchors
+    def _set_anchors(self, index) -> None:
+        """The anchor geometry buffers (not saved: derived from anchor_index) for the anchors at `index`."""
+        index = np.asarray(torch.as_tensor(index).cpu(), dtype=np.int64)
+        if index.shape != (self.n_anchors,) or index.min() < 0 or index.max() >= len(self.all_anchors):
+            raise ValueError(f"LaneATTHead: anchor_index must be {self.n_anchors} indices into the "
+                             f"{len(self.all_anchors)} anchors, got shape {index.shape}")
+        anchors = self.all_anchors.subset(index)
+        cols, valid, _ = anchor_cut_indices(anchors, self.image_size, self.feature_stride)
+        hf = self.fmap_size[0]
+        device = self.anchor_index.device
+        buffers = {
+            "anchor_xs": torch.from_numpy(anchors.xs).float(),
+            "anchor_starts": torch.from_numpy(anchors.starts),
+            "cut_cols": torch.from_numpy(cols),
+            "cut_rows": torch.arange(hf)[None, :].expand(self.n_anchors, hf).contiguous(),
+            "cut_valid": torch.from_numpy(valid),
+        }
+        for name, value in buffers.items():
+            self.register_buffer(name, value.to(device), persistent=False)
+        self.anchor_index.copy_(torch.from_numpy(index))
+
+    def use_frequency(self, frequency) -> None:
+        """Keep the topk_anchors anchors the training lanes use most (frequency: a count per anchor of the full
+        set), most used first as the official orders them."""
+        freq = np.asarray(frequency)
+        if freq.shape != (len(self.all_anchors),):
+            raise ValueError(f"LaneATTHead: anchor_frequency has shape {freq.shape}, "
+                             f"expected ({len(self.all_anchors)},)")
+        if self.anchor_selection == "frequency":
+            self._set_anchors(top_anchors(freq, self.n_anchors))
+        self.anchors_chosen.fill_(1)
+
+    def choose_anchors(self, train_dataset, crop_top: float = 0.0, cache_dir=None) -> bool:
+        """Before training: count how often the train split's lanes use each anchor and keep the most used
+        (anchor_selection=frequency). Nothing to do, and False, when every anchor is kept or the anchors are
+        chosen already (a checkpoint's). The counts are cached in cache_dir (the run directory)."""
+        if self.anchor_selection != "frequency" or bool(self.anchors_chosen) or train_dataset is None:
+            return False
+        full = self.all_anchors
+        xs, starts = torch.from_numpy(full.xs).float(), torch.from_numpy(full.starts)
+        key = dataset_fingerprint(train_dataset, self.image_size, crop_top,
+                                  {"anchors": len(full), "n_offsets": self.n_offsets,
+                                   "threshold": self.frequency_threshold,
+                                   "first_xs": full.xs[:, 0].round(3).tolist()[:8]})
+
+        def count():
+            log.info("LaneATT: counting how often the %d train images' lanes use each of the %d anchors",
+                     len(train_dataset), len(full))
+            lanes = train_lane_sets(train_dataset, self.image_size, crop_top)
+            return anchor_use_frequency(xs, starts, lanes, self.image_size, self.n_offsets, self.frequency_threshold,
+                                        total=len(train_dataset))
+
+        self.use_frequency(cached_frequency(cache_dir, key, count))
+        return True
+
+    # ------------------------------------------------------------------ forward
+    def forward(self, features: list[torch.Tensor]) -> dict[str, torch.Tensor]:
+        """Raw outputs: cls_logits (B, A, 2), length (B, A) in rows, xs (B, A, S) in input pixels."""
+        x = self.conv1(features[-1])
+        hf, wf = self.fmap_size
+        # zero-pad then crop to H // stride x W // stride (the official fmap_h, fmap_w): a ResNet's extra
+        # bottom row at sizes that are not multiples of the stride is dropped, as the official never reads
+        # it; unconditional, so the graph has no shape-dependent branch
+        x = F.pad(x, (0, wf, 0, hf))[:, :, :hf, :wf]
+        b, c = x.shape[0], x.shape[1]
+        feats = x[:, :, self.cut_rows, self.cut_cols] * self.cut_valid  # (B, C, A, Hf)
+        feats = feats.permute(0, 2, 1, 3).reshape(b, self.n_anchors, c * hf)
+        att = torch.softmax(self.attention_layer(feats), dim=-1)  # (B, A, A-1): weights over the others
+        a = self.n_anchors
+        # place the (A, A-1) weights off the diagonal of an (A, A) matrix without a scatter
+        att = F.pad(att.reshape(b, a - 1, a), (0, 1)).reshape(b, a * a - 1)
+        att = F.pad(att, (1, 0)).reshape(b, a, a)
+        context = torch.bmm(att, feats)
+        joint = torch.cat([context, feats], dim=-1)
+        reg = self.reg_layer(joint)
+        return {"cls_logits": self.cls_layer(joint), "length": reg[..., 0], "xs": self.anchor_xs + reg[..., 1:]}
+
+    # ------------------------------------------------------------------ targets
+    def encode(self, lanes: list[np.ndarray], meta: dict | None = None) -> dict[str, np.ndarray]:
+        """GT lanes (input pixels) -> {"lanes": float32 (max_lanes, 3 + n_offsets)}: [valid, start, length, xs]."""
+        return {"lanes": encode_lanes(lanes, self.image_size, self.n_offsets, self.max_lanes)}
+
+    def match(self, targets: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Anchor assignment: positives (B, A), negatives (B, A), index of the matched target (B, A)."""
+        t = targets.to(self.anchor_xs.device).float()
+        dist = anchor_target_distances(
+            self.anchor_xs, self.anchor_starts, t[..., 0], t[..., 1], t[..., 2], t[..., TARGET_META:]
+        )
+        best, idx = dist.min(dim=-1)
+        return best < self.pos_threshold, best > self.neg_threshold, idx
+
+    def train_nms_keep(self, raw: dict) -> torch.Tensor:
+        """(B, A) bool: the proposals the official's training NMS keeps (train_nms_threshold px at 640 wide, the
+        top train_nms_topk, no score threshold); all of them when train_nms_threshold is null."""
+        scores = torch.softmax(raw["cls_logits"].detach().float(), dim=-1)[..., 1]
+        if self.train_nms_threshold is None:
+            return torch.ones_like(scores, dtype=torch.bool)
+        return lane_nms_batched(raw["xs"].detach(), self.anchor_starts, raw["length"].detach(), scores,
+                                self.train_nms_threshold, self.train_nms_topk)
+
+    def loss(self, raw: dict, targets: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """Focal classification + smooth-L1 regression of positives, per image as the official, over the
+        proposals the training NMS keeps (the official computes its loss on the NMS output)."""
+        targets = targets["lanes"].to(raw["xs"].device).float()
+        if targets.ndim != 3 or targets.shape[-1] != TARGET_META + self.n_offsets:
+            raise ValueError(
+                f"LaneATTHead.loss: targets must be (B, max_lanes, {TARGET_META + self.n_offsets}), "
+                f"got {tuple(targets.shape)}"
+            )
+        with torch.no_grad():
+            keep = self.train_nms_keep(raw)
+            pos, neg, idx = self.match(targets)
+            pos, neg = pos & keep, neg & keep
+            matched = torch.gather(targets, 1, idx[..., None].expand(-1, -1, targets.shape[-1]))  # (B, A, D)
+            t_end = matched[..., 1] + matched[..., 2] - 1
+            a_start = self.anchor_starts[None, :].float()
+            len_target = t_end - a_start + 1
+            rows = torch.arange(self.n_offsets, device=targets.device)
+            row_ok = (rows >= a_start[..., None]) & (rows <= t_end[..., None])  # (B, A, S)
+        n_pos = pos.sum(dim=1).float()
+        focal = focal_loss(raw["cls_logits"], pos.long(), self.focal_alpha, self.focal_gamma)
+        # an image with no positive left: every kept proposal is a negative, as the official's edge cases
+        scored = torch.where((n_pos > 0)[:, None], pos | neg, keep)
+        cls_b = (focal * scored).sum(dim=1) / n_pos.clamp(min=1)
+        sl1_len = F.smooth_l1_loss(raw["length"], len_target, reduction="none")
+        x_target = torch.where(row_ok, matched[..., TARGET_META:], raw["xs"].detach())
+        sl1_xs = F.smooth_l1_loss(raw["xs"], x_target, reduction="none").sum(-1)
+        reg_sum = ((sl1_len + sl1_xs) * pos).sum(dim=1)
+        reg_b = reg_sum / (n_pos * (self.n_offsets + 1)).clamp(min=1)
+        per_sample = self.cls_loss_weight * cls_b + reg_b
+        return {"loss": per_sample.mean(), "cls_loss": cls_b.mean(), "reg_loss": reg_b.mean(), "per_sample": per_sample}
+
+    # ------------------------------------------------------------------ decode
+    def decode(
+        self,
+        raw: dict,
+        conf_threshold: float = 0.5,
+        nms_threshold: float = 50.0,
+        nms_topk: int | None = None,
+    ) -> list[list[np.ndarray]]:
+        """Per image: lanes as (N, 2) float arrays in input pixels, y descending, left to right."""
+        scores = torch.softmax(raw["cls_logits"].detach().float(), dim=-1)[..., 1]
+        lengths = raw["length"].detach().float()
+        xs = raw["xs"].detach().float()
+        starts = self.anchor_starts.to(xs.device)
+        top_k = self.max_lanes if nms_topk is None else nms_topk
+        out: list[list[np.ndarray]] = []
+        for b in range(scores.shape[0]):
+            cand = torch.nonzero(scores[b] > conf_threshold).flatten()
+            keep = cand[lane_nms(xs[b, cand], starts[cand], lengths[b, cand], scores[b, cand],
+                                 nms_threshold * self.threshold_scale, top_k)]
+            ends = lane_ends(starts[keep], lengths[b, keep], self.n_offsets).cpu().numpy()
+            lanes = []
+            for k, end in zip(keep.cpu().numpy(), ends):
+                lane = row_proposal_to_lane(xs[b, k].cpu().numpy().astype(np.float64), self.row_ys, int(starts[k]),
+                                            int(end), self.image_size[1])
+                if lane is not None:
+                    lanes.append(lane)
+            lanes.sort(key=lambda ln: ln[0, 0])
+            out.append(lanes)
+        return out

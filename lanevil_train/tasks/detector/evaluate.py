@@ -1,0 +1,109 @@
+"""task=evaluate: score a checkpoint on a test set or an illusion suite, streaming and resumable.
+
+Per-image scores go to `<out_dir>/per_image.jsonl` as they are produced (a rerun with the same
+out_dir continues where it stopped); the tables and plots are then built from that file alone.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytorch_lightning as pl
+from omegaconf import DictConfig, OmegaConf
+
+from lanevil_train.data.suites import IllusionSetDataset, SyntheticIllusionSuite
+from lanevil_train.errors import prefixed
+from lanevil_train.evaluation.results import log_results, write_results
+from lanevil_train.evaluation.scoring import RESULTS, read_records
+from lanevil_train.evaluation.streaming import stream_evaluate
+from lanevil_train.models.detector import LaneDetector
+from lanevil_train.models.head import check_decode_options
+from lanevil_train.report.specs import LANE_SPEC
+from lanevil_train.tasks.builders import build_logger, build_split, checkpoint_model, output_dir
+from lanevil_train.tasks.detector.export import OnnxLaneDetector
+
+
+def load_checkpoint(cfg: DictConfig) -> LaneDetector:
+    """The checkpoint's network with its weights, or the ONNX model of task.onnx (run by onnxruntime, decoded by
+    the family's head as the checkpoint would be); decoding overridable with task.decode.*."""
+    if cfg.task.get("onnx"):
+        model = OnnxLaneDetector(cfg.task.onnx)
+    else:
+        if cfg.ckpt_path is None:
+            raise ValueError("task=evaluate needs ckpt_path=/path/to/checkpoint.ckpt (or task.onnx=model.onnx)")
+        model = checkpoint_model(cfg)
+    # decoding is post-processing, not the network: task.decode.* overrides what the checkpoint used
+    overrides = {key: value for key, value in OmegaConf.to_container(cfg.task.decode, resolve=True).items()
+                 if value is not None}
+    check_decode_options(model.head, overrides, "task.decode")
+    model.decode_kwargs.update(overrides)
+    return model
+
+
+ON_THE_FLY = {"synthetic": "illusions", "corruptions": "corruptions", "combined": "combined"}  # task.suite -> kind
+
+
+def test_dataset(cfg: DictConfig):
+    """data.test as is (task.suite=null), the suite generated from it (task.suite=synthetic: the illusions;
+    corruptions: the non-illusion corruptions; combined: illusion pairs), or a set written by task=build
+    (task.suite=/path/to/set)."""
+    suite = cfg.task.suite
+    if suite is None:
+        return build_split(cfg, "test"), cfg.data.name
+    if suite in ON_THE_FLY:
+        return synthetic_suite(cfg, ON_THE_FLY[suite]), f"synthetic-{ON_THE_FLY[suite]}"
+    try:
+        return IllusionSetDataset(suite), Path(suite).name
+    except (FileNotFoundError, ValueError) as error:
+        raise prefixed(error, f"task.suite={suite}") from None
+
+
+def synthetic_suite(cfg: DictConfig, kind: str = "illusions") -> SyntheticIllusionSuite:
+    """The on-the-fly suite of `kind`, from data.test's seeds when data=synthetic (else the defaults)."""
+    test = cfg.data.test if cfg.data.name == "synthetic" else {"first_seed": 1000000, "size": [720, 1280]}
+    illusions = cfg.task.illusions if isinstance(cfg.task.illusions, str) else list(cfg.task.illusions)
+    try:
+        return SyntheticIllusionSuite(cfg.task.cases, test["first_seed"], tuple(test["size"]), illusions,
+                                      tuple(cfg.task.severities), cfg.task.repeats, kind=kind)
+    except ValueError as error:
+        raise ValueError(f"task.suite={cfg.task.suite}: {error}") from None
+
+
+def evaluate(cfg: DictConfig) -> float:
+    """Score the checkpoint; returns the Accuracy (%) over the perturbed images (all images if none). (A VLM's
+    task=evaluate is tasks/vlm/evaluate.evaluate_vlm: conf/task/evaluate.yaml names one function per kind.)"""
+    pl.seed_everything(cfg.seed, workers=True)
+    model = load_checkpoint(cfg)
+    dataset, dataset_name = test_dataset(cfg)
+    out = Path(cfg.task.out_dir) if cfg.task.out_dir else output_dir(cfg)
+    results = _stream(cfg, model, dataset, dataset_name, out)
+    value = write_results([results], out, baseline=cfg.task.baseline)
+    log_results(build_logger(cfg), out)
+    return value
+
+
+def cross_domain(cfg: DictConfig) -> float:
+    """task=cross_domain (paper §5.5): data.test (e.g. a TuSimple or CULane folder) and the simulated
+    illusion suite, scored side by side in one table; returns the real data's Accuracy (%)."""
+    pl.seed_everything(cfg.seed, workers=True)
+    model = load_checkpoint(cfg)
+    out = Path(cfg.task.out_dir) if cfg.task.out_dir else output_dir(cfg)
+    real = _stream(cfg, model, build_split(cfg, "test"), cfg.data.name, out / cfg.data.name)
+    suite = _stream(cfg, model, synthetic_suite(cfg), "synthetic-illusions", out / "synthetic-illusions")
+    write_results([real, suite], out, baseline=cfg.task.baseline)
+    log_results(build_logger(cfg), out)
+    return LANE_SPEC.headline.aggregate(read_records(real, keep_lanes=False))
+
+
+def _stream(cfg: DictConfig, model: LaneDetector, dataset, dataset_name: str, out: Path) -> Path:
+    spec = model.build_config
+    return stream_dataset(cfg, model, dataset, dataset_name, out,
+                          cfg.task.label or f"{spec['model']['name']}-{spec['backbone']['name']}")
+
+
+def stream_dataset(cfg: DictConfig, model: LaneDetector, dataset, dataset_name: str, out: Path,
+                   model_label: str) -> Path:
+    """Score `model` on `dataset` into out/per_image.jsonl (resumes a partial file); returns that path."""
+    label = {"model": model_label, "dataset": dataset_name}
+    return stream_evaluate(model, dataset, out / RESULTS, label, batch_size=cfg.data.batch_size,
+                           num_workers=cfg.data.num_workers, progress=cfg.progress)

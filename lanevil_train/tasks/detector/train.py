@@ -1,0 +1,107 @@
+"""task=train: fit a detector with the configured defense (checkpoints, resume with ckpt_path), score it on
+the clean test set, and, with task.suite set, on an illusion suite (the value a sweep optimises)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytorch_lightning as pl
+from omegaconf import DictConfig
+
+from lanevil_train.checkpoints import load_weights, remove_stale_checkpoint_temporaries
+from lanevil_train.data.normalization import spec_normalization
+from lanevil_train.evaluation.results import score_test_set, write_results
+from lanevil_train.evaluation.scoring import RESULTS, PerImageWriter
+from lanevil_train.tasks.builders import (
+    build_callbacks,
+    build_datamodule,
+    build_defense,
+    build_model,
+    build_trainer,
+    model_config,
+    output_dir,
+)
+from lanevil_train.tasks.detector.evaluate import stream_dataset, test_dataset
+
+
+def train(cfg: DictConfig) -> float | None:
+    """Train cfg.model on cfg.data with cfg.defense.
+
+    Returns the average Accuracy (%) over the perturbed images of task.suite when one is set, else the
+    clean test Accuracy (%) when the test runs, else None. The clean test's per-image records go to
+    per_image.jsonl in the run directory (the suite's to robustness/per_image.jsonl), which task=report reads.
+    """
+    pl.seed_everything(cfg.seed, workers=True)
+    out = output_dir(cfg)
+    model = build_model(model_config(cfg))
+    # a checkpoint to resume (ckpt_path) or to start from (task.init_from) is read and fitted to the network now,
+    # so a corrupt file or another network is reported before any data is read or any step runs
+    # (task.init_from: its weights only, to fine-tune; ckpt_path: Lightning then restores the whole training state)
+    if cfg.ckpt_path is not None:
+        check_same_network(load_weights(model, cfg.ckpt_path, "ckpt_path"), model.build_config, cfg.ckpt_path)
+    elif cfg.task.get("init_from"):
+        load_weights(model, cfg.task.init_from, "task.init_from")
+    defense = build_defense(cfg)
+    callbacks = build_callbacks(cfg)
+    remove_stale_checkpoint_temporaries(callbacks)
+    writer = PerImageWriter(out / RESULTS, {"model": run_label(cfg), "dataset": cfg.data.name})
+    callbacks.append(writer)
+    if defense["callback"] is not None:
+        callbacks.append(defense["callback"])
+    trainer = build_trainer(cfg, callbacks=callbacks)  # before the data: Lightning checks its arguments here
+    splits = ("train", "val", "test") if cfg.task.test_after_fit else ("train", "val")
+    datamodule = build_datamodule(cfg, splits, model, defense)
+    choose_anchors = getattr(model.head, "choose_anchors", None)
+    if choose_anchors is not None:  # LaneATT: its anchors from the train split's lanes (kept in the checkpoint)
+        choose_anchors(datamodule.sets["train"], crop_top=model.build_config.get("crop_top", 0.0), cache_dir=out)
+    suite = test_dataset(cfg) if cfg.task.get("suite") is not None else None  # read and checked before training
+    trainer.fit(model, datamodule=datamodule, ckpt_path=cfg.ckpt_path)
+    result = None
+    if cfg.task.test_after_fit:
+        result = score_test_set(trainer, model, datamodule, writer)
+    if suite is not None and trainer.is_global_zero:
+        result = score_robustness(cfg, model, suite, out / "robustness")
+    return result
+
+
+# The parts of a checkpoint's network spec that a resumed run must share: the weights fit either way, but
+# the same weights fed another input geometry (size, top crop) or normalisation would silently learn something else.
+RESUME_KEYS = (("input_size",), ("crop_top",), ("normalize",), ("backbone", "name"), ("backbone", "out_indices"),
+               ("model", "head"))
+DATA_KEYS = ("input_size", "crop_top", "normalize")  # named data.<key> in the messages
+
+
+def check_same_network(checkpoint: dict, spec: dict, path) -> None:
+    """A checkpoint resumed with ckpt_path must have been trained with this run's network and input geometry."""
+    saved = checkpoint.get("lanevil_model")
+    if saved is None:
+        return  # a checkpoint without its spec: the weights were checked, nothing more to compare
+
+    def at(tree: dict, keys: tuple):
+        for key in keys:
+            tree = tree.get(key) if isinstance(tree, dict) else None
+        return list(tree) if isinstance(tree, tuple) else tree
+
+    saved = {**saved, "normalize": spec_normalization(saved)}  # checkpoints older than the key: imagenet
+    changed = [(".".join(k), at(saved, k), at(spec, k)) for k in RESUME_KEYS if at(saved, k) != at(spec, k)]
+    if changed:
+        differences = "; ".join(f"{'data.' if key in DATA_KEYS else ''}{key} was {old!r}, now "
+                                f"{new!r}" for key, old, new in changed)
+        raise ValueError(f"ckpt_path={path}: resuming needs the network the checkpoint was trained with, and this "
+                         f"config differs ({differences}); set those back, or start a new run from its weights with "
+                         f"task.init_from={path}")
+
+
+def run_label(cfg: DictConfig) -> str:
+    """The model's name in robustness tables: <model>-<backbone>, plus +<defense> when there is one."""
+    if cfg.task.get("label"):
+        return cfg.task.label
+    name = f"{cfg.model.name}-{cfg.backbone.name}"
+    return name if cfg.defense.name == "none" else f"{name}+{cfg.defense.name}"
+
+
+def score_robustness(cfg: DictConfig, model, suite, out: Path) -> float:
+    """Stream the trained model over the task.suite dataset into `out` (resumable); the perturbed Accuracy (%)."""
+    dataset, dataset_name = suite
+    results = stream_dataset(cfg, model, dataset, dataset_name, out, run_label(cfg))
+    return write_results([results], out, baseline=cfg.task.get("baseline"))

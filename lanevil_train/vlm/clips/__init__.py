@@ -1,0 +1,3 @@
+"""Clips and their QA: 6-frame clips rendered from the simulator (clips.py), their questions and answers (qa*.py,
+suite_qa.py), clip suites on disk or rendered on the fly (clip_set.py), the DriveLM layout (drivelm.py), the
+optional paraphrasing pass over QA texts (paraphrase.py) and the (clip, QA) pairs fine-tuning reads (qa_data.py)."""
