@@ -16,23 +16,40 @@ from __future__ import annotations
 
 import importlib
 import inspect
-import numbers
 import re
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
 
 from lanevil_train.data.normalization import NORMALIZATIONS
 from lanevil_train.illusions import ILLUSIONS, SEVERITIES
-from lanevil_train.lanes import SLOT_ASSIGNMENTS
 from lanevil_train.models.backbones import OUTPUT_STRIDES, indices_for_strides, stage_strides
 from lanevil_train.models.head import decode_option_problems
 from lanevil_train.models.schedules import LR_SCALINGS
 from lanevil_train.perturbations import SUITE_KINDS, suite_names
 from lanevil_train.progress import MODES
+from lanevil_train.rules import (
+    Rule,
+    any_of,
+    boolean,
+    exactly,
+    existing_dir,
+    existing_file,
+    int_list,
+    int_pair,
+    integer,
+    is_int,
+    is_number,
+    null_or,
+    number,
+    ok,
+    one_of,
+    problem,
+    string_list,
+    text,
+)
 from lanevil_train.tasks.kinds import task_target
 from lanevil_train.vlm.defenses.pat import HARD_TARGETS
 
@@ -65,136 +82,11 @@ class ConfigError(ValueError):
 
 # ---------------------------------------------------------------------------------------------- rules
 
-@dataclass(frozen=True)
-class Rule:
-    """What a good value is (for the message) and a test: None for a good value, else why not ("" if obvious)."""
-
-    expected: str
-    test: Callable[[Any], str | None]
-
-
-def _show(value: Any) -> str:
-    """A value as it is written on the command line: null, true, 'text', [1, 2]."""
-    if value is None:
-        return "null"
-    if isinstance(value, bool):
-        return str(value).lower()
-    if isinstance(value, str):
-        return repr(value)
-    if isinstance(value, list):
-        return "[" + ", ".join(_show(v) for v in value) + "]"
-    if isinstance(value, dict):
-        return "{" + ", ".join(f"{k}: {_show(v)}" for k, v in value.items()) + "}"
-    return str(value)
-
-
-def _is_int(value: Any) -> bool:
-    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
-
-
-def _is_number(value: Any) -> bool:
-    return isinstance(value, numbers.Real) and not isinstance(value, bool)
-
-
-def _ok(good: bool) -> str | None:
-    return None if good else ""
-
-
-def integer(low: int | None = None, high: int | None = None) -> Rule:
-    if high is None:
-        expected = "an integer" if low is None else f"an integer >= {low}"
-    else:
-        expected = f"an integer <= {high}" if low is None else f"an integer from {low} to {high}"
-    return Rule(expected, lambda v: _ok(_is_int(v) and (low is None or v >= low) and (high is None or v <= high)))
-
-
-def number(low: float | None = None, high: float | None = None, low_open: bool = False,
-           high_open: bool = False) -> Rule:
-    """A real number within the bounds (closed unless *_open), e.g. number(0, 1, high_open=True) for [0, 1)."""
-    if high is None:
-        expected = f"a number {'>' if low_open else '>='} {low}"
-    else:
-        expected = f"a number in {'(' if low_open else '['}{low}, {high}{')' if high_open else ']'}"
-
-    def test(v):
-        if not _is_number(v):
-            return ""
-        above = v > low if low_open else v >= low
-        below = high is None or (v < high if high_open else v <= high)
-        return _ok(above and below)
-    return Rule(expected, test)
-
-
-def exactly(value: Any) -> Rule:
-    return Rule(_show(value), lambda v: _ok(_is_int(v) and v == value))
-
-
-def boolean() -> Rule:
-    return Rule("true or false", lambda v: _ok(isinstance(v, bool)))
-
-
-def text() -> Rule:
-    return Rule("a non-empty string", lambda v: _ok(isinstance(v, str) and v != ""))
-
-
 def api_key_variable() -> Rule:
     """null (no key) or the name of a set environment variable (vlm/http.py says what is wrong otherwise)."""
     from lanevil_train.vlm.http import api_key_problem
 
     return Rule("null (no key sent) or the name of a set environment variable holding the API key", api_key_problem)
-
-
-def one_of(*choices: str) -> Rule:
-    return Rule(f"one of {', '.join(choices)}", lambda v: _ok(isinstance(v, str) and v in choices))
-
-
-def null_or(rule: Rule) -> Rule:
-    return Rule(f"null or {rule.expected}", lambda v: None if v is None else rule.test(v))
-
-
-def any_of(*rules: Rule) -> Rule:
-    return Rule(" or ".join(r.expected for r in rules),
-                lambda v: None if any(r.test(v) is None for r in rules) else "")
-
-
-def int_pair(low: int, names: str = "height, width") -> Rule:
-    """[a, b], two integers >= low (an image size)."""
-    return Rule(f"[{names}], two integers >= {low}",
-                lambda v: _ok(isinstance(v, list) and len(v) == 2 and all(_is_int(x) and x >= low for x in v)))
-
-
-def int_list(low: int | None = None, high: int | None = None) -> Rule:
-    """A non-empty list of integers in [low, high] (either bound may be left open)."""
-    item = integer(low, high)
-    return Rule(f"a non-empty list of {item.expected.replace('an integer', 'integers')}",
-                lambda v: _ok(isinstance(v, list) and len(v) > 0 and all(item.test(x) is None for x in v)))
-
-
-def string_list() -> Rule:
-    return Rule("a list of strings", lambda v: _ok(isinstance(v, list) and all(isinstance(x, str) for x in v)))
-
-
-def _path_test(kind: str) -> Callable[[Any], str | None]:
-    def test(v):
-        if not isinstance(v, str) or not v:
-            return ""
-        path = Path(v)
-        if not path.exists():
-            return f"no such {kind}"
-        if kind == "file" and not path.is_file():
-            return "a directory, not a file"
-        if kind == "directory" and not path.is_dir():
-            return "a file, not a directory"
-        return None
-    return test
-
-
-def existing_file(what: str = "file") -> Rule:
-    return Rule(f"the path of an existing {what}", _path_test("file"))
-
-
-def existing_dir(what: str = "directory") -> Rule:
-    return Rule(f"the path of an existing {what}", _path_test("directory"))
 
 
 def output_folder() -> Rule:
@@ -225,7 +117,7 @@ def illusion_names() -> Rule:
 def seed_list() -> Rule:
     """task.seeds: distinct integers >= 0, or empty."""
     return Rule("a list of distinct integers >= 0 (empty: one run with `seed`)",
-                lambda v: _ok(isinstance(v, list) and all(_is_int(x) and x >= 0 for x in v) and len(set(v)) == len(v)))
+                lambda v: ok(isinstance(v, list) and all(is_int(x) and x >= 0 for x in v) and len(set(v)) == len(v)))
 
 
 ON_THE_FLY_SUITES = ("synthetic", "corruptions", "combined")  # generated per run: illusions, corruptions, pairs
@@ -308,38 +200,38 @@ def checkpoint_mapping() -> Rule:
 def number_range(low: float) -> Rule:
     """[a, b] with low <= a <= b (a range of numbers)."""
     return Rule(f"[low, high], two numbers with {low} <= low <= high",
-                lambda v: _ok(isinstance(v, list) and len(v) == 2 and all(_is_number(x) for x in v)
+                lambda v: ok(isinstance(v, list) and len(v) == 2 and all(is_number(x) for x in v)
                               and low <= v[0] <= v[1]))
 
 
 def http_url() -> Rule:
     return Rule("an http(s) URL, e.g. http://127.0.0.1:8000/v1",
-                lambda v: _ok(isinstance(v, str) and re.match(r"^https?://[^\s/]+", v) is not None))
+                lambda v: ok(isinstance(v, str) and re.match(r"^https?://[^\s/]+", v) is not None))
 
 
 def integer_in(choices) -> Rule:
     return Rule(f"one of {', '.join(map(str, choices))}",
-                lambda v: _ok(isinstance(v, int) and not isinstance(v, bool) and v in choices))
+                lambda v: ok(isinstance(v, int) and not isinstance(v, bool) and v in choices))
 
 
 def timm_model_name() -> Rule:
     def test(value):
         import timm
 
-        return _ok(isinstance(value, str) and timm.is_model(value))
+        return ok(isinstance(value, str) and timm.is_model(value))
 
     return Rule("a timm model name (resnet18, resnet34, resnet50, resnet101, vgg16, ...)", test)
 
 
 def target_node() -> Rule:
     return Rule("a mapping with a _target_ (the dotted name of a class or function)",
-                lambda v: _ok(isinstance(v, dict) and isinstance(v.get("_target_"), str)))
+                lambda v: ok(isinstance(v, dict) and isinstance(v.get("_target_"), str)))
 
 
 def target_list() -> Rule:
     return Rule("a list of mappings, each with a _target_ (e.g. [{_target_: lanevil_train.illusions."
                 "IllusionTransform, p: 0.3}])",
-                lambda v: _ok(isinstance(v, list) and all(target_node().test(x) is None for x in v)))
+                lambda v: ok(isinstance(v, list) and all(target_node().test(x) is None for x in v)))
 
 
 def mapping_of(keys: tuple[str, ...]) -> Rule:
@@ -401,98 +293,10 @@ RULES: dict[str, Rule] = {
     # model
     "model.name": text(),
     "model.attention_layer": text(),
-    "model.head": target_node(),
-    "model.head.n_offsets": integer(2),
-    "model.head.anchor_feat_channels": integer(1),
-    "model.head.max_lanes": integer(1),
-    "model.head.topk_anchors": null_or(integer(2)),
-    "model.head.lateral_n": null_or(integer(1)),
-    "model.head.bottom_n": null_or(integer(1)),
-    "model.head.pos_threshold": number(0),
-    "model.head.neg_threshold": number(0),
-    "model.head.reference_width": number(0, low_open=True),
-    "model.head.cls_loss_weight": number(0),
-    "model.head.focal_alpha": number(0, 1),
-    "model.head.focal_gamma": number(0),
-    # UFLD, CLRNet and SCNN heads (the constructors check the rest)
-    "model.head.num_cells": integer(2),
-    "model.head.num_rows": null_or(integer(3)),
-    "model.head.pool_channels": integer(1),
-    "model.head.hidden_dim": integer(1),
-    "model.head.use_aux": boolean(),
-    "model.head.aux_channels": integer(1),
-    "model.head.aux_line_width": integer(1),
-    "model.head.slot_assignment": one_of(*SLOT_ASSIGNMENTS),
-    "model.head.extend_to_bottom": boolean(),
-    "model.head.sim_loss_weight": number(0),
-    "model.head.shape_loss_weight": number(0),
-    "model.head.aux_loss_weight": number(0),
-    "model.head.num_points": integer(2),
-    "model.head.num_priors": integer(1),
-    "model.head.refine_layers": integer(1),
-    "model.head.sample_points": integer(2),
-    "model.head.fc_hidden_dim": integer(1),
-    "model.head.num_fc": integer(1),
-    "model.head.iou_radius": number(0, low_open=True),
-    "model.head.xyt_loss_weight": number(0),
-    "model.head.iou_loss_weight": number(0),
-    "model.head.hidden_channels": integer(1),
-    "model.head.dilation": integer(1),
-    "model.head.mp_channels": integer(1),
-    "model.head.mp_kernel": integer(1),
-    "model.head.dropout": number(0, 1),
-    "model.head.exist_hidden": integer(1),
-    "model.head.background_weight": number(0),
-    "model.head.exist_loss_weight": number(0),
-    "model.head.lane_width": number(0, low_open=True),
-    # BezierLaneNet
-    "model.head.channels": integer(1),
-    "model.head.dilations": int_list(1),
-    "model.head.dilated_mid_channels": integer(1),
-    "model.head.projection_layers": integer(0),
-    "model.head.projection_kernel": integer(1),
-    "model.head.seg_mid_channels": integer(1),
-    "model.head.seg_downsample": integer(1),
-    "model.head.seg_line_width": number(0, low_open=True),
-    "model.head.num_sample_points": integer(2),
-    "model.head.match_alpha": number(0, 1),
-    "model.head.match_window": any_of(one_of("auto"), integer(0)),
-    "model.head.label_weight": number(0),
-    "model.head.curve_weight": number(0),
-    "model.head.seg_weight": number(0),
-    "model.head.negative_weight": number(0, low_open=True),
-    "model.head.seg_negative_weight": number(0, low_open=True),
+    "model.head": target_node(),  # its parameters' rules: the head class's SETTINGS (head_rules, below)
+    # the families' decoding options (checked against the head's decode keywords too: check_decode_options)
     "model.decode.local_maximum_window": any_of(one_of("auto"), integer(0)),
     "model.decode.max_lanes": null_or(integer(1)),
-    # LaneFormer
-    "model.head.d_model": integer(4),
-    "model.head.nhead": integer(1),
-    "model.head.num_encoder_layers": integer(0),
-    "model.head.num_decoder_layers": integer(1),
-    "model.head.dim_feedforward": integer(1),
-    "model.head.num_queries": integer(1),
-    "model.head.row_column": one_of("lines", "axial"),
-    "model.head.cls_weight": number(0),
-    "model.head.x_weight": number(0),
-    "model.head.y_weight": number(0),
-    "model.head.eos_coef": number(0),
-    "model.head.aux_loss": boolean(),
-    # GANet
-    "model.head.head_channels": integer(1),
-    "model.head.lfa_channels": integer(1),
-    "model.head.lfa_convs": integer(0),
-    "model.head.lfa_points": integer(1),
-    "model.head.lfa_gradient_mul": number(0, 1),
-    "model.head.lfa_gt_points": integer(1),
-    "model.head.points_per_lane": integer(2),
-    "model.head.radius": integer(0),
-    "model.head.top_attention": boolean(),
-    "model.head.attention_ratio": integer(1),
-    "model.head.heatmap_loss_weight": number(0),
-    "model.head.error_loss_weight": number(0),
-    "model.head.offset_loss_weight": number(0),
-    "model.head.lfa_loss_weight": number(0),
-    "model.head.lfa_beta": number(0, low_open=True),
     "model.decode.kpt_threshold": number(0, 1),
     "model.decode.root_threshold": number(0),
     "model.decode.cluster_threshold": number(0, low_open=True),
@@ -682,16 +486,12 @@ def _get(cfg: DictConfig, key: str) -> Any:
     return value if value is _ABSENT else _plain(value)
 
 
-def _problem(key: str, expected: str, value: Any, why: str = "") -> str:
-    return f"{key}: expected {expected}, got {_show(value)}" + (f" ({why})" if why else "")
-
-
 def value_problem(key: str, value: Any) -> str | None:
     """The problem RULES[key] finds with `value` (a plain value, absent counts as None), else None: for code that
     checks a node of settings by the same rules outside a composed config."""
     rule = RULES[key]
     why = rule.test(value)
-    return None if why is None else _problem(key, rule.expected, value, why)
+    return None if why is None else problem(key, rule.expected, value, why)
 
 
 def _apply(cfg: DictConfig, key: str, rule: Rule) -> str | None:
@@ -704,7 +504,7 @@ def _apply(cfg: DictConfig, key: str, rule: Rule) -> str | None:
     if value is _ABSENT:
         return None
     why = rule.test(value)
-    return None if why is None else _problem(key, rule.expected, value, why)
+    return None if why is None else problem(key, rule.expected, value, why)
 
 
 # ---------------------------------------------------------------------------------------------- cross-key checks
@@ -729,11 +529,11 @@ def check_feature_map(cfg: DictConfig) -> list[str]:
         except ValueError as error:
             return [f"{error} (set backbone.out_indices to choose the stages)"]
     elif not all(-n <= i < n for i in indices):
-        return [_problem("backbone.out_indices", f"stage indices of {name} from 0 to {n - 1} (strides "
+        return [problem("backbone.out_indices", f"stage indices of {name} from 0 to {n - 1} (strides "
                          f"{', '.join(map(str, strides))})", indices)]
     stride = max(strides[i] for i in indices)
     if RULES["data.input_size"].test(size) is None and min(size) < stride:
-        return [f"{_problem('data.input_size', f'[height, width], both >= {stride}', size)}: the head reads the "
+        return [f"{problem('data.input_size', f'[height, width], both >= {stride}', size)}: the head reads the "
                 f"stride-{stride} feature map of {name} (backbone.out_indices {list(indices)}), which must have at "
                 f"least one row and one column"]
     return []
@@ -766,7 +566,7 @@ def check_cases(cfg: DictConfig) -> list[str]:
         return []
     if _get(cfg, "task.name") == "build" and _get(cfg, "data.name") not in ("synthetic", "clips"):
         return []
-    return [_problem("task.cases", "an integer >= 1, the number of simulated scenes (0, every image, is only "
+    return [problem("task.cases", "an integer >= 1, the number of simulated scenes (0, every image, is only "
                      "for task=build on a real dataset)", 0)]
 
 
@@ -816,7 +616,7 @@ def check_vlm_task(cfg: DictConfig) -> list[str]:
     if not _is_vlm(cfg):
         suite = _get(cfg, "task.suite")
         if isinstance(suite, str) and (Path(suite) / "clips.jsonl").is_file():
-            return [_problem("task.suite", "an illusion image set (manifest.jsonl) for a lane detector", suite,
+            return [problem("task.suite", "an illusion image set (manifest.jsonl) for a lane detector", suite,
                              "that is a VLM clip suite: evaluate it with model=vlm/<backend>")]
         return []
     task = _get(cfg, "task.name")
@@ -825,7 +625,7 @@ def check_vlm_task(cfg: DictConfig) -> list[str]:
                 f"trained here; fine-tune a local one (model=vlm/hf model.path=DIR, or model=vlm/embedded)"]
     embedded = _get(cfg, "model.embedded") not in (None, _ABSENT)
     if task in ("train", "compare") and _get(cfg, "data.name") != "clips":
-        return [_problem("data", "clips (a VLM trains on the clip suite's QA)", _get(cfg, "data.name"),
+        return [problem("data", "clips (a VLM trains on the clip suite's QA)", _get(cfg, "data.name"),
                          "model=vlm/<backend> selects data=clips unless another data= is given: drop it")]
     if task == "evaluate" and _get(cfg, "model.path") is None and _get(cfg, "ckpt_path") is None:
         what = "model=vlm/embedded is trained here" if embedded else "the model is loaded from a folder"
@@ -833,7 +633,7 @@ def check_vlm_task(cfg: DictConfig) -> list[str]:
                 f"model folder, e.g. that run's model/>"]
     suite = _get(cfg, "task.suite")
     if isinstance(suite, str) and Path(suite).is_dir() and not (Path(suite) / "clips.jsonl").is_file():
-        return [_problem("task.suite", "a clip suite written by task=build data=clips (holding clips.jsonl), "
+        return [problem("task.suite", "a clip suite written by task=build data=clips (holding clips.jsonl), "
                          "synthetic, or a DriveLM QA .json file", suite, "a VLM answers questions about clips")]
     return []
 
@@ -846,7 +646,7 @@ def check_split_seeds(cfg: DictConfig) -> list[str]:
         first = _get(cfg, f"data.{split}.first_seed")
         count = _get(cfg, f"data.{split}.num_cases")
         count = _get(cfg, f"data.{split}.num_scenes") if count is _ABSENT else count
-        if _is_int(first) and _is_int(count):
+        if is_int(first) and is_int(count):
             ranges.append((split, first, first + count))
     problems = []
     for i, (a, a0, a1) in enumerate(ranges):
@@ -936,7 +736,7 @@ def check_target(key: str, node: Any) -> list[str]:
     if node is None or (isinstance(node, DictConfig) and node.get("_target_") is None and "_target_" in node):
         return []  # nothing to build (e.g. logger=none)
     if not isinstance(node, DictConfig) or not isinstance(node.get("_target_"), str):
-        return [_problem(key, "null or a mapping with a _target_ (the dotted name of a class or function)",
+        return [problem(key, "null or a mapping with a _target_ (the dotted name of a class or function)",
                          _plain(node))]
     target = node._target_
     try:
@@ -964,6 +764,19 @@ def check_target(key: str, node: Any) -> list[str]:
 
 # ---------------------------------------------------------------------------------------------- entry point
 
+def head_rules(cfg: DictConfig) -> dict[str, Rule]:
+    """The rules of model.head.*: the SETTINGS of the head class model.head._target_ names (the head owns its ranges
+    and checks them in its constructor; this reports them by key before any work)."""
+    target = _get(cfg, "model.head._target_")
+    if not isinstance(target, str):
+        return {}
+    try:
+        head = _locate(target)
+    except Exception:  # reported by check_target
+        return {}
+    return {f"model.head.{name}": rule for name, rule in getattr(head, "SETTINGS", {}).items()}
+
+
 def interpolated_from(cfg: DictConfig, key: str) -> str | None:
     """The key whose value `key` copies (`${data.max_lanes}`), or None."""
     parent, _, leaf = key.rpartition(".")
@@ -981,7 +794,7 @@ def check_config(cfg: DictConfig, where: str = "the config") -> None:
     A value copied from another key (`max_lanes: ${data.max_lanes}`) is reported at that key only. `where`
     names the config in the error's first line."""
     problems, bad_keys = [], set()
-    for key, rule in RULES.items():
+    for key, rule in {**RULES, **head_rules(cfg)}.items():
         problem = _apply(cfg, key, rule)
         if problem is not None:
             bad_keys.add(key)

@@ -183,7 +183,8 @@ def test_window_scales_with_the_query_count():
         with pytest.raises(ValueError, match="match_window must be"):
             resolve_window(bad, 20, "model.head.match_window")
     assert _head((128, 320)).match_window == 5
-    with pytest.raises(ValueError, match="match_window must be"):
+    with pytest.raises(ValueError, match=r"^model\.head\.match_window: expected one of auto or an integer >= 0, "
+                                         r"got 'wide'$"):  # the head's SETTINGS, the config check's message
         _head((128, 320), match_window="wide")
 
 

@@ -448,3 +448,19 @@ def test_the_command_line_stops_before_any_work(tmp_path):
     assert "data.batch_size: expected an integer >= 1, got -1" in proc.stderr
     assert not (run_dir / "checkpoints").exists() and not (run_dir / "csv").exists()
     assert not (run_dir / "per_image.jsonl").exists()
+
+
+def test_a_head_owns_its_parameters_rules_and_the_config_check_reports_them_by_key():
+    """One place says what a good head parameter is: the head's SETTINGS, checked by its constructor and, by key,
+    before any work by the config check (which keeps no rules of its own for model.head.*)."""
+    from lanevil_train.models.scnn import SCNNHead
+    from lanevil_train.tasks.config_check import RULES
+
+    assert not [key for key in RULES if key.startswith("model.head.")]
+    assert problems("model=scnn", "model.head.dropout=1.0") == \
+        ["model.head.dropout: expected a number in [0, 1), got 1.0"]
+    with pytest.raises(ValueError, match=r"^model\.head\.dropout: expected a number in \[0, 1\), got 1\.0$"):
+        SCNNHead([512], [8], (112, 320), dropout=1.0)
+    # a parameter the old flat table did not know: checked now
+    assert problems("model=laneformer", "model.head.pixel_attention=maybe") == \
+        ["model.head.pixel_attention: expected true or false, got 'maybe'"]

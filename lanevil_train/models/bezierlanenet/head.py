@@ -43,6 +43,7 @@ from lanevil_train.models.bezierlanenet.loss import (
 )
 from lanevil_train.models.head import LaneHead
 from lanevil_train.models.sampling import sample_at
+from lanevil_train.rules import any_of, check_settings, int_list, integer, number, one_of
 
 # A curve's end read as covering a row up to this many pixels beyond it: the least-squares fit moves a lane's ends
 # by a fraction of a pixel, which would otherwise drop the bottom row (the official TuSimple decoding takes the
@@ -123,6 +124,28 @@ class BezierLaneNetHead(LaneHead):
     """BezierLaneNet: forward -> {"logits": (B, Q), "curves": (B, Q, 4, 2)} (+ "seg_logits" (B, 1, h, w) in
     training), Q the width of the map it reads (W / 16 on layer3); curves are control points (x / W, y / H)."""
 
+    # The constructor's parameters with a range, and what a good value of each is: checked by the constructor,
+    # and by the config check under model.head.* before any work (one place to say it).
+    SETTINGS = {
+        "max_lanes": integer(1),
+        "channels": integer(1),
+        "dilations": int_list(1),
+        "dilated_mid_channels": integer(1),
+        "projection_layers": integer(0),
+        "projection_kernel": integer(1),
+        "seg_mid_channels": integer(1),
+        "seg_downsample": integer(1),
+        "seg_line_width": number(0, low_open=True),
+        "num_sample_points": integer(2),
+        "match_alpha": number(0, 1),
+        "match_window": any_of(one_of("auto"), integer(0)),
+        "label_weight": number(0),
+        "curve_weight": number(0),
+        "seg_weight": number(0),
+        "negative_weight": number(0, low_open=True),
+        "seg_negative_weight": number(0, low_open=True),
+    }
+
     def __init__(self, in_channels: list[int], in_strides: list[int], image_size: tuple[int, int],
                  max_lanes: int = 4, channels: int = 256, dilations: tuple[int, ...] = (4, 8),
                  dilated_mid_channels: int = 64, projection_layers: int = 2, projection_kernel: int = 3,
@@ -130,32 +153,17 @@ class BezierLaneNetHead(LaneHead):
                  num_sample_points: int = 100, match_alpha: float = 0.8, match_window: int | str = AUTO,
                  label_weight: float = 0.1, curve_weight: float = 1.0, seg_weight: float = 0.75,
                  negative_weight: float = 0.4, seg_negative_weight: float = 0.4) -> None:
+        check_settings(self.SETTINGS, locals(), "model.head")
         super().__init__(in_channels, in_strides, image_size)
         h, w = self.image_size
         queries = math.ceil(w / self.in_strides[-1])
-        for name, value, low in (("max_lanes", max_lanes, 1), ("channels", channels, 1),
-                                 ("dilated_mid_channels", dilated_mid_channels, 1),
-                                 ("projection_layers", projection_layers, 0), ("seg_mid_channels", seg_mid_channels, 1),
-                                 ("seg_downsample", seg_downsample, 1), ("num_sample_points", num_sample_points, 2)):
-            if int(value) != value or value < low:
-                raise ValueError(f"BezierLaneNetHead: {name} must be an integer >= {low}, got {value!r}")
-        if projection_kernel < 1 or projection_kernel % 2 == 0:
-            raise ValueError(f"BezierLaneNetHead: projection_kernel must be odd and positive, got {projection_kernel}")
-        if any(int(d) != d or d < 1 for d in dilations):
-            raise ValueError(f"BezierLaneNetHead: dilations must be positive integers, got {list(dilations)}")
+        if projection_kernel % 2 == 0:
+            raise ValueError(f"model.head.projection_kernel: expected an odd integer, got {projection_kernel}")
         if queries < max_lanes:
             raise ValueError(f"BezierLaneNetHead: max_lanes={max_lanes} exceeds the {queries} queries of a {w} px wide "
                              f"input at stride {self.in_strides[-1]}")
         if h // seg_downsample < 1 or w // seg_downsample < 1:
             raise ValueError(f"BezierLaneNetHead: seg_downsample={seg_downsample} leaves no mask of a {w}x{h} input")
-        if seg_line_width <= 0 or not 0 <= match_alpha <= 1:
-            raise ValueError(f"BezierLaneNetHead: seg_line_width must be > 0 and match_alpha in [0, 1], got "
-                             f"{seg_line_width}, {match_alpha}")
-        if not 0 < negative_weight or not 0 < seg_negative_weight:
-            raise ValueError(f"BezierLaneNetHead: negative_weight and seg_negative_weight must be > 0, got "
-                             f"{negative_weight}, {seg_negative_weight}")
-        if min(label_weight, curve_weight, seg_weight) < 0:
-            raise ValueError("BezierLaneNetHead: label_weight, curve_weight and seg_weight must be >= 0")
         self.max_lanes, self.num_queries = int(max_lanes), queries
         self.seg_downsample, self.seg_line_width = int(seg_downsample), float(seg_line_width)
         self.match_window = resolve_window(match_window, queries, "BezierLaneNetHead: match_window")

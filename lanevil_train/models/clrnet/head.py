@@ -45,6 +45,7 @@ from lanevil_train.models.clrnet.priors import (
 from lanevil_train.models.head import LaneHead
 from lanevil_train.models.scnn.codec import draw_width
 from lanevil_train.models.scnn.codec import encode_lanes as encode_masks
+from lanevil_train.rules import check_settings, integer, number
 
 
 def _conv_bn_relu(c_in: int, c_out: int, kernel, padding) -> nn.Sequential:
@@ -108,6 +109,29 @@ class CLRNetHead(LaneHead):
     normalised units (priors.py; length in rows / (S-1)), xs the x at the S rows in input pixels.
     """
 
+    # The constructor's parameters with a range, and what a good value of each is: checked by the constructor,
+    # and by the config check under model.head.* before any work (one place to say it).
+    SETTINGS = {
+        "num_points": integer(2),
+        "num_priors": integer(1),
+        "refine_layers": integer(1),
+        "sample_points": integer(2),
+        "fc_hidden_dim": integer(1),
+        "num_fc": integer(0),
+        "max_lanes": integer(1),
+        "reference_width": number(0, low_open=True),
+        "iou_radius": number(0, low_open=True),
+        "cls_loss_weight": number(0),
+        "xyt_loss_weight": number(0),
+        "iou_loss_weight": number(0),
+        "focal_alpha": number(0, 1),
+        "focal_gamma": number(0),
+        "seg_loss_weight": number(0),  # 0: no auxiliary segmentation
+        "seg_background_weight": number(0, low_open=True),
+        "seg_lane_width": number(0, low_open=True),
+        "seg_reference_width": number(0, low_open=True),
+    }
+
     def __init__(self, in_channels: list[int], in_strides: list[int], image_size: tuple[int, int],
                  num_points: int = 72, num_priors: int = 192, refine_layers: int = 3, sample_points: int = 36,
                  fc_hidden_dim: int = 64, num_fc: int = 2, max_lanes: int = 4, reference_width: float = 800.0,
@@ -115,6 +139,7 @@ class CLRNetHead(LaneHead):
                  iou_loss_weight: float = 2.0, focal_alpha: float = 0.25, focal_gamma: float = 2.0,
                  seg_loss_weight: float = 0.0, seg_background_weight: float = 0.4, seg_lane_width: float = 16.0,
                  seg_reference_width: float = 1640.0) -> None:
+        check_settings(self.SETTINGS, locals(), "model.head")
         super().__init__(in_channels, in_strides, image_size)
         h, w = self.image_size
         if refine_layers < 1 or refine_layers > len(self.in_channels):
@@ -125,23 +150,6 @@ class CLRNetHead(LaneHead):
             raise ValueError(f"CLRNetHead: in_channels {channels} of the refined levels must all equal "
                              f"fc_hidden_dim={fc_hidden_dim} (ROIGather attends with the ROI feature over the map "
                              f"channels): give the model an FPN neck with out_channels={fc_hidden_dim}")
-        if num_points < 2:
-            raise ValueError(f"CLRNetHead: num_points must be >= 2, got {num_points}")
-        if max_lanes < 1:
-            raise ValueError(f"CLRNetHead: max_lanes must be >= 1, got {max_lanes}")
-        if reference_width <= 0 or iou_radius <= 0:
-            raise ValueError(f"CLRNetHead: reference_width and iou_radius must be positive, got "
-                             f"{reference_width}, {iou_radius}")
-        if num_fc < 0:
-            raise ValueError(f"CLRNetHead: num_fc must be >= 0, got {num_fc}")
-        if seg_loss_weight < 0:
-            raise ValueError(f"CLRNetHead: seg_loss_weight must be >= 0 (0: no auxiliary segmentation), got "
-                             f"{seg_loss_weight}")
-        if seg_background_weight <= 0:
-            raise ValueError(f"CLRNetHead: seg_background_weight must be > 0, got {seg_background_weight}")
-        if seg_lane_width <= 0 or seg_reference_width <= 0:
-            raise ValueError(f"CLRNetHead: seg_lane_width ({seg_lane_width}) and seg_reference_width "
-                             f"({seg_reference_width}) must be > 0")
         self.n_points, self.n_strips = num_points, num_points - 1
         self.num_priors, self.refine_layers, self.max_lanes = num_priors, refine_layers, max_lanes
         self.width_scale = w / reference_width

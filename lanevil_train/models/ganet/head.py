@@ -32,6 +32,7 @@ from lanevil_train.models.ganet.codec import decode_lanes, encode_targets, heatm
 from lanevil_train.models.ganet.loss import heatmap_focal_loss, lfa_loss, masked_l1
 from lanevil_train.models.ganet.neck import GANetNeck
 from lanevil_train.models.head import LaneHead
+from lanevil_train.rules import boolean, check_settings, integer, number
 
 HEATMAP_BIAS = -2.19  # CenterNet's initial heatmap bias (sigmoid 0.1), the official CtnetHead's
 
@@ -44,6 +45,30 @@ def _branch(c_in: int, hidden: int, out: int) -> nn.Sequential:
 class GANetHead(LaneHead):
     """GANet on the backbone's maps, finest first (C3, C4, C5 in the paper): its neck (neck.py) merges them
     top-down onto the finest one, whose stride is the heatmap's (8 in the paper)."""
+
+    # The constructor's parameters with a range, and what a good value of each is: checked by the constructor,
+    # and by the config check under model.head.* before any work (one place to say it).
+    SETTINGS = {
+        "max_lanes": integer(1),
+        "fpn_channels": integer(2),
+        "attention_layers": integer(1),
+        "head_channels": integer(1),
+        "lfa_channels": integer(1),
+        "lfa_convs": integer(0),
+        "lfa_points": integer(1),
+        "lfa_gradient_mul": number(0, 1),
+        "lfa_gt_points": integer(1),
+        "points_per_lane": integer(2),
+        "radius": integer(0),
+        "top_attention": boolean(),
+        "attention_ratio": integer(1),
+        "heatmap_loss_weight": number(0),
+        "error_loss_weight": number(0),
+        "offset_loss_weight": number(0),
+        "lfa_loss_weight": number(0),
+        "lfa_beta": number(0, low_open=True),
+        "reference_width": number(0, low_open=True),
+    }
 
     def __init__(
         self,
@@ -70,28 +95,11 @@ class GANetHead(LaneHead):
         lfa_beta: float = 1.0 / 9.0,
         reference_width: float = 800.0,
     ) -> None:
+        check_settings(self.SETTINGS, locals(), "model.head")
         super().__init__(in_channels, in_strides, image_size)
-        for name, value, low in (("max_lanes", max_lanes, 1), ("fpn_channels", fpn_channels, 2),
-                                 ("attention_layers", attention_layers, 1), ("head_channels", head_channels, 1),
-                                 ("lfa_channels", lfa_channels, 1), ("lfa_convs", lfa_convs, 0),
-                                 ("lfa_points", lfa_points, 1), ("points_per_lane", points_per_lane, 2),
-                                 ("radius", radius, 0), ("attention_ratio", attention_ratio, 1)):
-            if int(value) != value or value < low:
-                raise ValueError(f"GANetHead: {name} must be an integer >= {low}, got {value!r}")
         if lfa_gt_points < lfa_points:
             raise ValueError(f"GANetHead: lfa_gt_points ({lfa_gt_points}) must be >= lfa_points ({lfa_points}): "
                              f"each predicted point is matched to its own lane point")
-        if not 0.0 <= lfa_gradient_mul <= 1.0:
-            raise ValueError(f"GANetHead: lfa_gradient_mul must be in [0, 1], got {lfa_gradient_mul}")
-        if reference_width <= 0:
-            raise ValueError(f"GANetHead: reference_width must be > 0, got {reference_width}")
-        if lfa_beta <= 0:
-            raise ValueError(f"GANetHead: lfa_beta must be > 0, got {lfa_beta}")
-        weights = {"heatmap_loss_weight": heatmap_loss_weight, "error_loss_weight": error_loss_weight,
-                   "offset_loss_weight": offset_loss_weight, "lfa_loss_weight": lfa_loss_weight}
-        for name, value in weights.items():
-            if value < 0:
-                raise ValueError(f"GANetHead: {name} must be >= 0, got {value}")
         channels = int(fpn_channels)
         if top_attention and channels % 2:
             raise ValueError(f"GANetHead: fpn_channels must be even with top_attention (the sine position "
@@ -105,7 +113,9 @@ class GANetHead(LaneHead):
         self.points_per_lane, self.radius, self.lfa_gt_points = int(points_per_lane), int(radius), int(lfa_gt_points)
         self.lfa_beta = float(lfa_beta)
         self.threshold_scale = self.image_size[1] / float(reference_width)
-        self.weights = {k.removesuffix("_loss_weight"): float(v) for k, v in weights.items()}
+        weights = {"heatmap": heatmap_loss_weight, "error": error_loss_weight, "offset": offset_loss_weight,
+                   "lfa": lfa_loss_weight}
+        self.weights = {k: float(v) for k, v in weights.items()}
         self.neck = GANetNeck(self.in_channels, channels, int(attention_layers) if top_attention else 0,
                               int(attention_ratio), int(lfa_channels), int(lfa_convs), int(lfa_points),
                               float(lfa_gradient_mul))

@@ -39,6 +39,7 @@ from lanevil_train.models.laneatt.frequency import (
 )
 from lanevil_train.models.losses import anchor_target_distances, focal_loss
 from lanevil_train.models.nms import lane_ends, lane_nms, lane_nms_batched
+from lanevil_train.rules import check_settings, integer, null_or, number, one_of
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +56,27 @@ class LaneATTHead(LaneHead):
     """LaneATT: anchor feature pooling, anchor attention, classification and regression.
 
     It reads the last of the feature maps it is given (the stride-32 stage in its paper)."""
+
+    # The constructor's parameters with a range, and what a good value of each is: checked by the constructor,
+    # and by the config check under model.head.* before any work (one place to say it).
+    SETTINGS = {
+        "n_offsets": integer(2),
+        "anchor_feat_channels": integer(1),
+        "max_lanes": integer(1),
+        "topk_anchors": null_or(integer(2)),
+        "lateral_n": null_or(integer(1)),
+        "bottom_n": null_or(integer(1)),
+        "pos_threshold": number(0),
+        "neg_threshold": number(0),
+        "reference_width": number(0, low_open=True),
+        "cls_loss_weight": number(0),
+        "focal_alpha": number(0, 1),
+        "focal_gamma": number(0),
+        "anchor_selection": one_of(*ANCHOR_SELECTIONS),
+        "frequency_threshold": number(0),
+        "train_nms_threshold": null_or(number(0, low_open=True)),  # null: no NMS before the loss
+        "train_nms_topk": integer(1),
+    }
 
     def __init__(
         self,
@@ -79,24 +101,15 @@ class LaneATTHead(LaneHead):
         focal_alpha: float = 0.25,
         focal_gamma: float = 2.0,
     ) -> None:
+        check_settings(self.SETTINGS, locals(), "model.head")
         super().__init__(in_channels, in_strides, image_size)
         h, w = self.image_size
         feature_stride = self.in_strides[-1]
         if neg_threshold < pos_threshold:
             raise ValueError(f"LaneATTHead: neg_threshold {neg_threshold} must be >= pos_threshold {pos_threshold}")
-        if anchor_selection not in ANCHOR_SELECTIONS:
-            raise ValueError(f"anchor_selection: expected one of {', '.join(ANCHOR_SELECTIONS)}, "
-                             f"got {anchor_selection!r}")
         if anchor_selection == "frequency" and topk_anchors is None:
             raise ValueError("topk_anchors: anchor_selection=frequency keeps the topk_anchors most used anchors; "
                              "set it (the official: 1000) or use anchor_selection=all")
-        if topk_anchors is not None and topk_anchors < 2:
-            raise ValueError(f"topk_anchors: expected null or an integer >= 2, got {topk_anchors}")
-        if train_nms_threshold is not None and train_nms_threshold <= 0:
-            raise ValueError(f"train_nms_threshold: expected null (no NMS in training) or > 0 px, "
-                             f"got {train_nms_threshold}")
-        if train_nms_topk < 1:
-            raise ValueError(f"train_nms_topk: expected an integer >= 1, got {train_nms_topk}")
         self.n_offsets = n_offsets
         self.max_lanes = max_lanes
         self.feature_stride = feature_stride

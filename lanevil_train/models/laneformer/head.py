@@ -52,6 +52,7 @@ from torch import nn
 from lanevil_train.models.head import LaneHead
 from lanevil_train.models.laneatt.anchors import row_ys
 from lanevil_train.models.laneformer.loss import assemble_lane, encode_lanes, set_loss
+from lanevil_train.rules import boolean, check_settings, integer, number, one_of
 
 ROW_COLUMN_MODES = ("lines", "axial")
 _PARTS = ("start_y", "end_y", "xs")
@@ -191,6 +192,27 @@ class LaneFormerHead(LaneHead):
 
     It reads the last of the feature maps it is given (the backbone's stride-32 stage in the paper)."""
 
+    # The constructor's parameters with a range, and what a good value of each is: checked by the constructor,
+    # and by the config check under model.head.* before any work (one place to say it).
+    SETTINGS = {
+        "d_model": integer(4),
+        "nhead": integer(1),
+        "num_encoder_layers": integer(0),
+        "num_decoder_layers": integer(1),
+        "dim_feedforward": integer(1),
+        "dropout": number(0, 1, high_open=True),
+        "num_queries": integer(1),
+        "num_points": integer(2),
+        "max_lanes": integer(1),
+        "row_column": one_of(*ROW_COLUMN_MODES),
+        "cls_weight": number(0),
+        "x_weight": number(0),
+        "y_weight": number(0),
+        "eos_coef": number(0),
+        "aux_loss": boolean(),
+        "pixel_attention": boolean(),
+    }
+
     def __init__(
         self,
         in_channels: list[int],
@@ -213,30 +235,15 @@ class LaneFormerHead(LaneHead):
         eos_coef: float = 0.1,
         aux_loss: bool = True,
     ) -> None:
+        check_settings(self.SETTINGS, locals(), "model.head")
         super().__init__(in_channels, in_strides, image_size)
         name = type(self).__name__
-        for key, value, low in (("d_model", d_model, 4), ("nhead", nhead, 1), ("num_encoder_layers",
-                                num_encoder_layers, 0), ("num_decoder_layers", num_decoder_layers, 1),
-                                ("dim_feedforward", dim_feedforward, 1), ("num_queries", num_queries, 1),
-                                ("num_points", num_points, 2), ("max_lanes", max_lanes, 1)):
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
-                raise ValueError(f"{name}: {key}={value!r} must be an integer >= {low}")
         if d_model % 4 or d_model % nhead:
             raise ValueError(f"{name}: d_model={d_model} must be a multiple of 4 (2-D sine encodings) and of "
                              f"nhead={nhead}")
         if num_queries < max_lanes:
             raise ValueError(f"{name}: num_queries={num_queries} must be >= max_lanes={max_lanes} (every lane is "
                              f"matched to its own query)")
-        if row_column not in ROW_COLUMN_MODES:
-            raise ValueError(f"{name}: row_column={row_column!r}: expected one of {', '.join(ROW_COLUMN_MODES)}")
-        if not 0.0 <= dropout < 1.0:
-            raise ValueError(f"{name}: dropout={dropout} must be in [0, 1)")
-        if not isinstance(pixel_attention, bool):
-            raise ValueError(f"{name}: pixel_attention={pixel_attention!r} must be true or false")
-        for key, value in (("cls_weight", cls_weight), ("x_weight", x_weight), ("y_weight", y_weight),
-                           ("eos_coef", eos_coef)):
-            if not value >= 0:
-                raise ValueError(f"{name}: {key}={value} must be >= 0")
         h, w = self.image_size
         stride = self.in_strides[-1]
         self.fmap_size = (math.ceil(h / stride), math.ceil(w / stride))

@@ -39,6 +39,7 @@ from lanevil_train.models.scnn.codec import (
     encode_lanes,
     lane_points,
 )
+from lanevil_train.rules import check_settings, integer, number, one_of
 
 
 class SpatialMessagePassing(nn.Module):
@@ -88,6 +89,23 @@ class SCNNHead(LaneHead):
     its kernel width (9). ``lane_width`` px at ``reference_width`` is the drawn label width (CULane: 16 px
     at 1640); ``slot_assignment`` "ego" or "packed" (see models/scnn/codec.py)."""
 
+    # The constructor's parameters with a range, and what a good value of each is: checked by the constructor,
+    # and by the config check under model.head.* before any work (one place to say it).
+    SETTINGS = {
+        "max_lanes": integer(1),
+        "hidden_channels": integer(1),
+        "dilation": integer(1),
+        "mp_channels": integer(1),
+        "mp_kernel": integer(1),
+        "dropout": number(0, 1, high_open=True),
+        "exist_hidden": integer(1),
+        "background_weight": number(0, low_open=True),
+        "exist_loss_weight": number(0),
+        "lane_width": number(0, low_open=True),
+        "reference_width": number(0, low_open=True),
+        "slot_assignment": one_of(*SLOT_ASSIGNMENTS),
+    }
+
     def __init__(
         self,
         in_channels: list[int],
@@ -106,25 +124,11 @@ class SCNNHead(LaneHead):
         reference_width: float = 1640.0,
         slot_assignment: str = "ego",
     ) -> None:
+        check_settings(self.SETTINGS, locals(), "model.head")
         super().__init__(in_channels, in_strides, image_size)
         h, w = self.image_size
-        for name, value in (("max_lanes", max_lanes), ("hidden_channels", hidden_channels), ("dilation", dilation),
-                            ("mp_channels", mp_channels), ("exist_hidden", exist_hidden)):
-            if not isinstance(value, (int, np.integer)) or value < 1:
-                raise ValueError(f"SCNNHead: {name} must be a positive integer, got {value!r}")
-        if not isinstance(mp_kernel, (int, np.integer)) or mp_kernel < 1 or mp_kernel % 2 == 0:
-            raise ValueError(f"SCNNHead: mp_kernel must be a positive odd integer, got {mp_kernel!r}")
-        if not 0.0 <= dropout < 1.0:
-            raise ValueError(f"SCNNHead: dropout must be in [0, 1), got {dropout}")
-        if background_weight <= 0:
-            raise ValueError(f"SCNNHead: background_weight must be > 0, got {background_weight}")
-        if exist_loss_weight < 0:
-            raise ValueError(f"SCNNHead: exist_loss_weight must be >= 0, got {exist_loss_weight}")
-        if lane_width <= 0 or reference_width <= 0:
-            raise ValueError(f"SCNNHead: lane_width ({lane_width}) and reference_width ({reference_width}) must be > 0")
-        if slot_assignment not in SLOT_ASSIGNMENTS:
-            raise ValueError(f"SCNNHead: slot_assignment={slot_assignment!r}: expected one of "
-                             f"{', '.join(SLOT_ASSIGNMENTS)}")
+        if mp_kernel % 2 == 0:
+            raise ValueError(f"model.head.mp_kernel: expected an odd integer, got {mp_kernel}")
         stride = self.in_strides[-1]
         hf, wf = math.ceil(h / stride), math.ceil(w / stride)
         if hf < 2 or wf < 2:

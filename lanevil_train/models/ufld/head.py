@@ -50,6 +50,7 @@ from lanevil_train.models.ufld.losses import (
     shape_loss,
     similarity_loss,
 )
+from lanevil_train.rules import boolean, check_settings, integer, null_or, number, one_of
 
 
 def _conv_bn_relu(in_channels: int, out_channels: int, dilation: int = 1) -> nn.Sequential:
@@ -93,6 +94,26 @@ class UFLDHead(LaneHead):
     (strides 8, 16, 32) and predicts at the first one's stride.
     """
 
+    # The constructor's parameters with a range, and what a good value of each is: checked by the constructor,
+    # and by the config check under model.head.* before any work (one place to say it).
+    SETTINGS = {
+        "num_cells": integer(2),
+        "num_rows": null_or(integer(3)),
+        "max_lanes": integer(1),
+        "pool_channels": integer(1),
+        "hidden_dim": integer(1),
+        "use_aux": boolean(),
+        "aux_channels": integer(1),
+        "aux_line_width": integer(1),
+        "slot_assignment": one_of(*SLOT_ASSIGNMENTS),
+        "extend_to_bottom": boolean(),
+        "focal_gamma": number(0),
+        "cls_loss_weight": number(0),
+        "sim_loss_weight": number(0),
+        "shape_loss_weight": number(0),
+        "aux_loss_weight": number(0),
+    }
+
     def __init__(
         self,
         in_channels: list[int],
@@ -115,21 +136,9 @@ class UFLDHead(LaneHead):
         shape_loss_weight: float = 0.0,
         aux_loss_weight: float = 1.0,
     ) -> None:
+        check_settings(self.SETTINGS, locals(), "model.head")
         super().__init__(in_channels, in_strides, image_size)
         h, w = self.image_size
-        for name, value, low in (("num_cells", num_cells, 2), ("max_lanes", max_lanes, 1),
-                                 ("pool_channels", pool_channels, 1), ("hidden_dim", hidden_dim, 1),
-                                 ("aux_channels", aux_channels, 1), ("aux_line_width", aux_line_width, 1)):
-            if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < low:
-                raise ValueError(f"UFLDHead: {name} must be an integer >= {low}, got {value!r}")
-        if slot_assignment not in SLOT_ASSIGNMENTS:
-            raise ValueError(f"UFLDHead: slot_assignment={slot_assignment!r}: expected one of "
-                             f"{', '.join(SLOT_ASSIGNMENTS)}")
-        for name, value in (("focal_gamma", focal_gamma), ("cls_loss_weight", cls_loss_weight),
-                            ("sim_loss_weight", sim_loss_weight), ("shape_loss_weight", shape_loss_weight),
-                            ("aux_loss_weight", aux_loss_weight)):
-            if not isinstance(value, (int, float)) or isinstance(value, bool) or not value >= 0:
-                raise ValueError(f"UFLDHead: {name} must be >= 0, got {value!r}")
         try:
             self.row_fractions = row_anchor_fractions(row_anchors, num_rows)
         except ValueError as error:
