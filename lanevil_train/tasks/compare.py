@@ -35,6 +35,7 @@ from lanevil_train.report.specs import spec_for
 from lanevil_train.report.tables import print_table
 from lanevil_train.tasks.builders import build_defense, build_model, model_config, output_dir
 from lanevil_train.tasks.config_check import check_config, interpolated_from, known_defenses
+from lanevil_train.tasks.finished_runs import records_from_runs, results_of
 from lanevil_train.tasks.kinds import is_vlm, task_target
 from lanevil_train.tasks.launch import launch_jobs, uses_job_launcher
 from lanevil_train.tasks.vlm.builders import MODEL_FOLDER, check_vlm_run, is_prompt_defense, trained_model
@@ -42,7 +43,6 @@ from lanevil_train.tasks.vlm.builders import MODEL_FOLDER, check_vlm_run, is_pro
 log = logging.getLogger(__name__)
 
 DONE = "done.json"  # written beside a run's suite results (robustness/ of a detector, test/ of a VLM) once complete
-RESULT_FILES = ("robustness/per_image.jsonl", "per_image.jsonl", "test/per_answer.jsonl", "per_answer.jsonl")
 SUITE_KEYS = ("suite", "cases", "illusions", "severities", "repeats", "test_after_fit", "init_from")
 
 
@@ -126,12 +126,6 @@ def vlm_sources(configs: dict[str, DictConfig]) -> dict[str, str | None]:
                 if is_prompt_defense(run_cfg) else None) for d, run_cfg in configs.items()}
 
 
-def results_of(run: Path) -> Path | None:
-    """A run's suite results: robustness/per_image.jsonl of a detector's train run, test/per_answer.jsonl of a
-    VLM's, or the per_image.jsonl / per_answer.jsonl of an evaluate run; None when it has none."""
-    return next((run / name for name in RESULT_FILES if (run / name).is_file()), None)
-
-
 def check_defense_model(run_cfg: DictConfig, built: dict, models: dict | None = None) -> None:
     """A defense callback that names a part of the model (AAM's `layer`) is checked against the run's model
     (built from run_cfg, untrained) before any run trains. `models`: a cache of built models by model config.
@@ -201,94 +195,6 @@ def _finish_wandb() -> None:
     wandb = sys.modules.get("wandb")
     if wandb is not None and getattr(wandb, "run", None) is not None:
         wandb.finish()
-
-
-def _run_config(run: Path) -> DictConfig | None:
-    """A run's config: its .hydra/config.yaml (a command-line run) or config.yaml (a compare's run), if any."""
-    for config in (run / ".hydra" / "config.yaml", run / "config.yaml"):
-        if config.is_file():
-            return OmegaConf.load(config)
-    return None
-
-
-def _defense_of(run: Path, records: list[dict]) -> str:
-    """A run's defense: from its .hydra/config.yaml or config.yaml, else from its label <model>-<bb>[+<defense>]."""
-    config = _run_config(run)
-    name = OmegaConf.select(config, "defense.name") if config is not None else None
-    if name:
-        return str(name)
-    labels = sorted({r.get("model", "") for r in records})
-    if len(labels) != 1:
-        raise ValueError(f"task.runs: {run} has no config naming its defense and {len(labels)} model labels {labels}")
-    return labels[0].split("+", 1)[1] if "+" in labels[0] else REFERENCE
-
-
-def _seed_of(run: Path) -> int:
-    """A run's training seed, from its config (0 when it has none)."""
-    config = _run_config(run)
-    seed = OmegaConf.select(config, "seed") if config is not None else None
-    return int(seed) if seed is not None else 0
-
-
-def _run_dirs(path: Path) -> tuple[list[tuple[Path, Path]], list[Path]]:
-    """(run directory, results file) for a run, an evaluate output, or a directory of runs one or two levels down
-    (a sweep, a compare's runs/<defense>/ or runs/<defense>/seed<s>/); and the subdirectories skipped for having no
-    results (a run that failed or is still training)."""
-    if not path.is_dir():
-        raise FileNotFoundError(f"task.runs: {path} is not a directory; expected a run directory or a directory "
-                                f"of runs")
-    own = results_of(path)
-    if own is not None:
-        return [(path, own)], []
-    found, skipped = [], []
-    for sub in path.iterdir():
-        if sub.is_dir():
-            results = results_of(sub)
-            if results is not None:
-                found.append((sub, results))
-                continue
-            seeds = [(d, results_of(d)) for d in sorted(sub.iterdir()) if d.is_dir() and d.name.startswith("seed")]
-            found += [(d, r) for d, r in seeds if r is not None]
-            skipped += [d for d, r in seeds if r is None] if seeds else [sub]
-    if not found:
-        raise FileNotFoundError(f"task.runs: no robustness/per_image.jsonl (or a VLM's test/per_answer.jsonl) in "
-                                f"{path} or its subdirectories")
-    key = lambda t: (0, int(t[0].name), "") if t[0].name.isdigit() else (1, 0, t[0].name)  # noqa: E731
-    return sorted(found, key=key), sorted(skipped)
-
-
-def records_from_runs(runs: list[str]) -> tuple[dict[str, dict[int, list[dict]]], dict[str, dict[int, str]]]:
-    """{defense: {seed: records}} and {defense: {seed: run dir}} from run directories trained elsewhere (a defense's
-    runs with different `seed` values are its seeds); `none` first.
-
-    Subdirectories without results (or with an empty results file) are skipped and named in the log; at least
-    one defense besides `none` must have results, or there is nothing to compare.
-    """
-    records, where, skipped = {}, {}, []
-    for path in map(Path, runs):
-        found, empty_dirs = _run_dirs(path)
-        skipped += [str(sub) for sub in empty_dirs]
-        for run, results in found:
-            recs = read_records(results, keep_lanes=False)
-            if not recs:
-                skipped.append(str(run))
-                continue
-            defense, seed = _defense_of(run, recs), _seed_of(run)
-            if seed in records.get(defense, {}):
-                raise ValueError(f"task.runs: defense {defense!r} with seed={seed} found twice: "
-                                 f"{where[defense][seed]} and {run}")
-            records.setdefault(defense, {})[seed] = recs
-            where.setdefault(defense, {})[seed] = str(run)
-    note = f"; skipped for having no results (no complete robustness/per_image.jsonl): {skipped}" if skipped else ""
-    if not any(d != REFERENCE for d in records):
-        found_text = (f"only {REFERENCE!r} has results ({', '.join(where[REFERENCE].values())})" if records
-                      else "no run has results")
-        raise ValueError(f"task.runs={list(runs)}: {found_text}; need the results of {REFERENCE!r} and at least one "
-                         f"other defense to compare with it{note}")
-    if skipped:
-        log.warning("compare: task.runs%s", note)
-    order = sorted(records, key=lambda d: d != REFERENCE)
-    return ({d: dict(sorted(records[d].items())) for d in order}, {d: dict(sorted(where[d].items())) for d in order})
 
 
 def check_seeds(seeds) -> list[int]:

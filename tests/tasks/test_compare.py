@@ -11,7 +11,8 @@ from hydra.core.global_hydra import GlobalHydra
 from omegaconf import OmegaConf
 
 from lanevil_train.evaluation.scoring import read_records
-from lanevil_train.tasks.compare import check_defenses, compare, compose_run, records_from_runs, run_overrides
+from lanevil_train.tasks.compare import check_defenses, compare, compose_run, run_overrides
+from lanevil_train.tasks.finished_runs import records_from_runs
 from tests.report.test_defenses import RECORDS
 from tests.tasks.cli_helpers import TINY, run_cli
 

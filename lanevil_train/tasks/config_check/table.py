@@ -1,0 +1,307 @@
+"""RULES: every user-facing config key and its rule (a detector head's parameters are the head's own: head_rules in
+__init__); reading a value from the composed config and applying a rule to it."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from omegaconf import DictConfig, ListConfig, OmegaConf
+from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
+
+from lanevil_train.data.normalization import NORMALIZATIONS
+from lanevil_train.illusions import SEVERITIES
+from lanevil_train.models.backbones import OUTPUT_STRIDES
+from lanevil_train.models.schedules import LR_SCALINGS
+from lanevil_train.perturbations import SUITE_KINDS
+from lanevil_train.progress import MODES
+from lanevil_train.rules import (
+    Rule,
+    any_of,
+    boolean,
+    exactly,
+    existing_dir,
+    existing_file,
+    int_list,
+    int_pair,
+    integer,
+    null_or,
+    number,
+    one_of,
+    problem,
+    string_list,
+    text,
+)
+from lanevil_train.tasks.config_check.config_rules import (
+    _for_splits,
+    api_key_variable,
+    checkpoint_mapping,
+    defense_keys,
+    defense_names,
+    http_url,
+    illusion_names,
+    illusion_suite,
+    integer_in,
+    mapping_of,
+    number_range,
+    output_folder,
+    rate_factors,
+    seed_list,
+    target_list,
+    target_node,
+    timm_model_name,
+)
+from lanevil_train.tasks.config_check.keys import HARDNESS, PROMPT_DEFENSES, SPLITS
+from lanevil_train.vlm.defenses.pat import HARD_TARGETS
+
+RULES: dict[str, Rule] = {
+    # root
+    "seed": integer(0, 2**32 - 1),
+    "ckpt_path": null_or(existing_file("checkpoint file")),
+    "progress": one_of(*MODES),
+    # data
+    "data.name": text(),
+    "data.root": existing_dir("dataset directory"),
+    "data.input_size": int_pair(16),
+    "data.crop_top": number(0, 1, high_open=True),
+    "data.normalize": one_of(*NORMALIZATIONS),
+    "data.batch_size": integer(1),
+    "data.num_workers": integer(0),
+    "data.augment": boolean(),
+    "data.max_lanes": integer(1),
+    "data.train_transforms": null_or(target_list()),
+    **{f"data.{split}": null_or(target_node()) for split in SPLITS},
+    **_for_splits("num_scenes", integer(1)),
+    **_for_splits("first_seed", integer(0)),
+    **_for_splits("size", int_pair(16)),
+    **_for_splits("cache", boolean()),
+    # data=clips (the VLM clip suite)
+    "data.size": int_pair(16),
+    "data.per_clip": integer(1),
+    "data.paraphrase": null_or(target_node()),
+    "data.paraphrase.api_key_env": api_key_variable(),
+    "data.illusions": illusion_names(),
+    "data.severities": int_list(SEVERITIES[0], SEVERITIES[-1]),
+    **_for_splits("num_cases", integer(1)),
+    **_for_splits("per_clip", integer(1)),
+    **_for_splits("cache_clips", integer(1)),
+    "data.shuffle_window": integer(1),
+    # model
+    "model.name": text(),
+    "model.attention_layer": text(),
+    "model.head": target_node(),  # its parameters' rules: the head class's SETTINGS (head_rules, below)
+    # the families' decoding options (checked against the head's decode keywords too: check_decode_options)
+    "model.decode.local_maximum_window": any_of(one_of("auto"), integer(0)),
+    "model.decode.max_lanes": null_or(integer(1)),
+    "model.decode.kpt_threshold": number(0, 1),
+    "model.decode.root_threshold": number(0),
+    "model.decode.cluster_threshold": number(0, low_open=True),
+    "model.decode.min_points": integer(1),
+    "model.decode.extend_ends": boolean(),
+    "model.decode.local_width": null_or(integer(0)),
+    "model.decode.exist_threshold": number(0, 1),
+    "model.decode.prob_threshold": number(0, 1),
+    "model.decode.row_step": integer(1),
+    "model.neck": null_or(target_node()),
+    "model.feature_strides": int_list(1),
+    "model.output_stride": null_or(integer_in(OUTPUT_STRIDES)),
+    "model.optimizer": target_node(),
+    "model.optimizer.lr": number(0, low_open=True),
+    "model.optimizer.weight_decay": number(0),
+    "model.scheduler": null_or(target_node()),
+    "model.reference_batch_size": null_or(integer(1)),
+    "model.lr_scaling": one_of(*LR_SCALINGS),
+    "model.lr_multipliers": null_or(rate_factors()),
+    "model.gradient_clip_norm": null_or(number(0, low_open=True)),
+    "model.decode.conf_threshold": number(0, 1),
+    "model.decode.nms_threshold": number(0),
+    "model.decode.nms_topk": null_or(integer(1)),
+    # model=vlm/<backend> (VLMs)
+    "model.path": null_or(existing_dir("directory of a saved Hugging Face model (save_pretrained)")),
+    "model.adapter": null_or(existing_dir("directory of a peft adapter (a task=train run's model/ folder)")),
+    "model.merge_adapter": boolean(),
+    "model.lora": null_or(mapping_of(("r", "alpha", "dropout", "target_modules"))),
+    "model.lora.r": integer(1),
+    "model.lora.alpha": number(0, low_open=True),
+    "model.lora.dropout": number(0, 1, high_open=True),
+    "model.lora.target_modules": null_or(string_list()),
+    "model.fine_tune": mapping_of(("lr", "weight_decay", "warmup_steps", "freeze_vision", "gradient_checkpointing",
+                                   "train_eos", "variants", "aids")),
+    "model.fine_tune.lr": number(0, low_open=True),
+    "model.fine_tune.weight_decay": number(0),
+    "model.fine_tune.warmup_steps": integer(0),
+    "model.fine_tune.freeze_vision": boolean(),
+    "model.fine_tune.gradient_checkpointing": boolean(),
+    "model.fine_tune.train_eos": boolean(),
+    "model.fine_tune.variants": one_of("all", "clean"),
+    "model.fine_tune.aids": integer(0),
+    "model.embedded.workers": any_of(one_of("auto"), integer(0)),
+    "model.embedded.vision_pretraining": null_or(mapping_of(("steps", "clips", "batch", "lr", "mirror"))),
+    "model.embedded.vision_pretraining.steps": integer(0),
+    "model.embedded.vision_pretraining.clips": integer(1),
+    "model.embedded.vision_pretraining.batch": integer(1),
+    "model.embedded.vision_pretraining.lr": number(0, low_open=True),
+    "model.embedded.vision_pretraining.mirror": boolean(),
+    "model.base_url": http_url(),
+    "model.dtype": one_of("auto", "float32", "bfloat16", "float16"),
+    "model.device": text(),
+    "model.max_new_tokens": integer(1),
+    "model.batch_size": integer(1),
+    "model.frames_as": one_of("auto", "images", "video"),
+    "model.system_prompt": null_or(text()),
+    "model.api_key_env": api_key_variable(),
+    "model.concurrency": integer(1),
+    "model.max_retries": integer(0),
+    "model.timeout_s": number(0, low_open=True),
+    "model.temperature": number(0, 2),
+    "model.image_format": one_of("png", "jpeg"),
+    "model.jpeg_quality": integer(1, 100),
+    "model.label": null_or(text()),
+    # judge (VLM answers)
+    "judge.base_url": http_url(),
+    "judge.model": text(),
+    "judge.api_key_env": api_key_variable(),
+    "judge.cache_path": null_or(text()),
+    "judge.concurrency": integer(1),
+    "judge.max_retries": integer(0),
+    "judge.model_dir": null_or(existing_dir("sentence-transformers model directory")),
+    "judge.device": text(),
+    "judge.batch_size": integer(1),
+    # backbone
+    "backbone": target_node(),
+    "backbone.name": timm_model_name(),
+    "backbone.pretrained": boolean(),
+    "backbone.checkpoint": null_or(existing_file("state dict file")),
+    "backbone.out_indices": null_or(int_list()),
+    "backbone.output_stride": null_or(integer_in(OUTPUT_STRIDES)),  # which stages each backbone has: check_feature_map
+    # defense (its parameters: the constructors)
+    "defense": defense_keys(),
+    "defense.name": text(),
+    "defense.transforms": null_or(target_list()),
+    "defense.mixer": null_or(target_node()),
+    "defense.callback": null_or(target_node()),
+    "defense.prompt": one_of(*PROMPT_DEFENSES),
+    "defense.before": text(),
+    "defense.after": text(),
+    "defense.alpha": number(0, 1),
+    "defense.hard_target": one_of(*HARD_TARGETS),
+    "defense.hardness": one_of(*HARDNESS),
+    **{f"defense.{key}": integer(1) for key in ("pool_clips", "examples", "steps", "prefix_length", "suffix_length",
+                                                "top_k", "num_candidates", "chunk")},
+    "defense.soft": boolean(),
+    "defense.soft_lr": number(0, low_open=True),
+    "defense.prefix_path": null_or(existing_file("prefix.json file")),
+    # task (each task has some of these)
+    "task.name": text(),
+    "task.out_dir": null_or(output_folder()),
+    "task.cases": integer(0),
+    "task.frames": integer(1),
+    "task.frame_step_m": number(0, low_open=True),
+    "task.illusions": illusion_names(),
+    "task.severities": int_list(SEVERITIES[0], SEVERITIES[-1]),
+    "task.repeats": integer(1),
+    "task.workers": integer(0),
+    "task.fallback": boolean(),
+    "task.test_after_fit": boolean(),
+    "task.init_from": null_or(existing_file("checkpoint file")),
+    "task.suite": illusion_suite(),
+    "task.label": null_or(text()),
+    "task.blind": boolean(),
+    "task.baseline": null_or(text()),
+    "task.runs": string_list(),
+    "task.defenses": defense_names(),
+    "task.seeds": seed_list(),
+    "task.run_only": null_or(text()),
+    "task.bootstrap": integer(100),
+    "task.confidence": number(0, 1, low_open=True, high_open=True),
+    "task.kind": one_of(*SUITE_KINDS),
+    "task.onnx": null_or(existing_file("ONNX model written by task=export")),
+    "task.out": null_or(text()),
+    "task.opset": integer(9),
+    "task.tolerance": number(0, low_open=True),
+    "task.decode.conf_threshold": null_or(number(0, 1)),
+    "task.decode.nms_threshold": null_or(number(0)),
+    "task.decode.nms_topk": null_or(integer(1)),
+    # task=closed_loop
+    "task.policy": null_or(one_of("detector", "truth", "vlm")),
+    "task.models": null_or(checkpoint_mapping()),
+    "task.first_seed": integer(0),
+    "task.start_before_m": number_range(0.0),
+    "task.size": int_pair(32),
+    "task.control_hz": number(0, 100, low_open=True),
+    "task.window_s": number(0, low_open=True),
+    "task.after_s": number(0),
+    "task.threshold_m": number(0, low_open=True),
+    "task.animate": boolean(),
+    "task.vehicle.wheelbase_m": number(0.5, 10),
+    "task.vehicle.speed_mph": number(0, 100, low_open=True),
+    "task.vehicle.max_steer_deg": number(0, 80, low_open=True, high_open=True),
+    "task.vehicle.max_steer_rate_dps": number(0, low_open=True),
+    "task.controller.lookahead_s": number(0, low_open=True),
+    "task.controller.min_lookahead_m": number(0, low_open=True),
+    "task.controller.max_range_m": number(1),
+    "task.controller.lane_width_m": number(2.0, 5.0),
+    "task.vlm.question": text(),
+    "task.vlm.steer_deg": number(0, 30, low_open=True, high_open=True),
+    "task.vlm.frames": integer(1),
+    # trainer (Lightning's Trainer arguments)
+    "trainer.max_steps": any_of(exactly(-1), integer(1)),
+    "trainer.max_epochs": null_or(any_of(exactly(-1), integer(1))),
+    "trainer.min_steps": null_or(integer(0)),
+    "trainer.min_epochs": null_or(integer(0)),
+    "trainer.log_every_n_steps": integer(1),
+    "trainer.check_val_every_n_epoch": null_or(integer(1)),
+    "trainer.val_check_interval": null_or(any_of(integer(1), number(0, 1, low_open=True))),
+    "trainer.limit_train_batches": null_or(any_of(integer(0), number(0, 1))),
+    "trainer.limit_val_batches": null_or(any_of(integer(0), number(0, 1))),
+    "trainer.limit_test_batches": null_or(any_of(integer(0), number(0, 1))),
+    "trainer.num_sanity_val_steps": integer(-1),
+    "trainer.gradient_clip_val": null_or(number(0)),
+    "trainer.fast_dev_run": any_of(boolean(), integer(0)),
+    "trainer.accumulate_grad_batches": integer(1),
+}
+
+
+_ABSENT = object()
+
+
+def _plain(value: Any) -> Any:
+    """A config node as plain Python: lists resolved (their items are values), mappings as they are written."""
+    if isinstance(value, ListConfig):
+        return OmegaConf.to_container(value, resolve=True)
+    if isinstance(value, DictConfig):
+        return OmegaConf.to_container(value, resolve=False)
+    return value
+
+
+def _get(cfg: DictConfig, key: str) -> Any:
+    """The value at a dotted key as plain Python, or _ABSENT (raises MissingMandatoryValue for ???)."""
+    value = OmegaConf.select(cfg, key, default=_ABSENT, throw_on_missing=True)
+    return value if value is _ABSENT else _plain(value)
+
+
+def value_problem(key: str, value: Any) -> str | None:
+    """The problem RULES[key] finds with `value` (a plain value, absent counts as None), else None: for code that
+    checks a node of settings by the same rules outside a composed config."""
+    rule = RULES[key]
+    why = rule.test(value)
+    return None if why is None else problem(key, rule.expected, value, why)
+
+
+def _apply(cfg: DictConfig, key: str, rule: Rule) -> str | None:
+    try:
+        value = _get(cfg, key)
+    except MissingMandatoryValue:
+        return f"{key}: is not set (??? in the config); set it to {rule.expected}: {key}=..."
+    except OmegaConfBaseException as error:
+        return f"{key}: cannot be read ({type(error).__name__}: {str(error).splitlines()[0]})"
+    if value is _ABSENT:
+        return None
+    why = rule.test(value)
+    return None if why is None else problem(key, rule.expected, value, why)
+
+
+
+def _is_vlm(cfg: DictConfig) -> bool:
+    """model.kind=vlm (model=vlm/<backend>; a bad kind is reported by check_task_kind)."""
+    model = _get(cfg, "model")
+    return isinstance(model, dict) and model.get("kind") == "vlm"
