@@ -464,3 +464,19 @@ def test_a_head_owns_its_parameters_rules_and_the_config_check_reports_them_by_k
     # a parameter the old flat table did not know: checked now
     assert problems("model=laneformer", "model.head.pixel_attention=maybe") == \
         ["model.head.pixel_attention: expected true or false, got 'maybe'"]
+
+
+def test_a_textual_defense_owns_its_settings_rules():
+    """defense=pat++ / pat / self_reminder: the rules live with the defenses (vlm/defenses/settings.py); the config
+    check reads the same rule objects, and a VLM task checks a defense's settings with them before any model loads."""
+    from lanevil_train.tasks.config_check import RULES
+    from lanevil_train.vlm.defenses.settings import SETTINGS, prompt_problems
+
+    assert all(RULES[f"defense.{key}"] is rule for key, rule in SETTINGS.items())
+    good = {"prompt": "pat", "alpha": 0.5, "steps": 3, "prefix_length": 4, "top_k": 8, "num_candidates": 8,
+            "chunk": 4, "examples": 2, "pool_clips": 4, "suffix_length": 2}
+    assert prompt_problems(good) == []
+    assert prompt_problems({**good, "alpha": 2, "steps": 0}) == [
+        "defense.alpha: expected a number in [0, 1], got 2", "defense.steps: expected an integer >= 1, got 0"]
+    assert prompt_problems({"prompt": "self_reminder", "before": "Be careful."}) == [
+        "defense.after: expected a non-empty string, got null"]  # a key the method needs, absent

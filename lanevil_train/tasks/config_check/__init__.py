@@ -22,13 +22,13 @@ from omegaconf.errors import OmegaConfBaseException
 from lanevil_train.rules import Rule
 from lanevil_train.tasks.config_check.config_rules import known_defenses
 from lanevil_train.tasks.config_check.cross import CROSS_CHECKS
-from lanevil_train.tasks.config_check.keys import HARDNESS, PROMPT_DEFENSES, TRAINING_KEYS
-from lanevil_train.tasks.config_check.table import RULES, _apply, _get, value_problem
+from lanevil_train.tasks.config_check.keys import TRAINING_KEYS
+from lanevil_train.tasks.config_check.table import RULES, _apply, _get
 from lanevil_train.tasks.config_check.targets import _locate, _target_nodes, check_target
 
 # what the rest of the package imports from here
-__all__ = ["ConfigError", "HARDNESS", "PROMPT_DEFENSES", "RULES", "TRAINING_KEYS", "check_config", "head_rules",
-           "interpolated_from", "known_defenses", "value_problem"]
+__all__ = ["ConfigError", "RULES", "TRAINING_KEYS", "check_config", "head_rules",
+           "interpolated_from", "known_defenses"]
 
 
 class ConfigError(ValueError):

@@ -11,8 +11,6 @@ SUPPLIED = {"model.head": ("in_channels", "in_strides", "image_size"), "model.ne
 # such keys of any target node (the model's kind too).
 TRAINING_KEYS = ("lora", "fine_tune", "embedded", "attention_layer")
 READ_BY_CODE = {"model": (*TRAINING_KEYS, "kind")}
-PROMPT_DEFENSES = ("pat++", "pat", "self_reminder")  # the textual defenses of VLMs (defense.prompt)
-HARDNESS = ("accuracy", "judge", "language")  # how PAT++ finds hard examples (tasks/vlm/defense.choose_examples)
 DEFENSE_KEYS = ("name", "transforms", "mixer", "callback")
 # The keys of a textual defense of VLMs (defense=pat++: tasks/vlm/defense.py), beside DEFENSE_KEYS.
 PROMPT_DEFENSE_KEYS = ("prompt", "alpha", "hard_target", "hardness", "pool_clips", "examples", "steps",

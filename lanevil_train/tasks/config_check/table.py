@@ -50,8 +50,8 @@ from lanevil_train.tasks.config_check.config_rules import (
     target_node,
     timm_model_name,
 )
-from lanevil_train.tasks.config_check.keys import HARDNESS, PROMPT_DEFENSES, SPLITS
-from lanevil_train.vlm.defenses.pat import HARD_TARGETS
+from lanevil_train.tasks.config_check.keys import SPLITS
+from lanevil_train.vlm.defenses.settings import SETTINGS as PROMPT_SETTINGS
 
 RULES: dict[str, Rule] = {
     # root
@@ -179,17 +179,8 @@ RULES: dict[str, Rule] = {
     "defense.transforms": null_or(target_list()),
     "defense.mixer": null_or(target_node()),
     "defense.callback": null_or(target_node()),
-    "defense.prompt": one_of(*PROMPT_DEFENSES),
-    "defense.before": text(),
-    "defense.after": text(),
-    "defense.alpha": number(0, 1),
-    "defense.hard_target": one_of(*HARD_TARGETS),
-    "defense.hardness": one_of(*HARDNESS),
-    **{f"defense.{key}": integer(1) for key in ("pool_clips", "examples", "steps", "prefix_length", "suffix_length",
-                                                "top_k", "num_candidates", "chunk")},
-    "defense.soft": boolean(),
-    "defense.soft_lr": number(0, low_open=True),
-    "defense.prefix_path": null_or(existing_file("prefix.json file")),
+    # a textual defense's settings: its owner's rules (vlm/defenses/settings.py)
+    **{f"defense.{key}": rule for key, rule in PROMPT_SETTINGS.items()},
     # task (each task has some of these)
     "task.name": text(),
     "task.out_dir": null_or(output_folder()),
@@ -277,14 +268,6 @@ def _get(cfg: DictConfig, key: str) -> Any:
     """The value at a dotted key as plain Python, or _ABSENT (raises MissingMandatoryValue for ???)."""
     value = OmegaConf.select(cfg, key, default=_ABSENT, throw_on_missing=True)
     return value if value is _ABSENT else _plain(value)
-
-
-def value_problem(key: str, value: Any) -> str | None:
-    """The problem RULES[key] finds with `value` (a plain value, absent counts as None), else None: for code that
-    checks a node of settings by the same rules outside a composed config."""
-    rule = RULES[key]
-    why = rule.test(value)
-    return None if why is None else problem(key, rule.expected, value, why)
 
 
 def _apply(cfg: DictConfig, key: str, rule: Rule) -> str | None:

@@ -16,12 +16,13 @@ from lanevil_train.data.mixers import MixUp
 from lanevil_train.errors import prefixed as prefixed_error
 from lanevil_train.files.atomic import atomic_write_text
 from lanevil_train.tasks.builders import build_split, instantiate_at
-from lanevil_train.tasks.config_check import TRAINING_KEYS, value_problem
+from lanevil_train.tasks.config_check import TRAINING_KEYS
 from lanevil_train.vlm.backends.embedded import FAMILY
 from lanevil_train.vlm.base import VLM
 from lanevil_train.vlm.clips.clip_set import ClipSetDataset, SyntheticClipSuite
 from lanevil_train.vlm.defenses.pat import PrefixedVLM, load_prefix
 from lanevil_train.vlm.defenses.reminder import RemindedVLM
+from lanevil_train.vlm.defenses.settings import TUNED, prompt_problems
 from lanevil_train.vlm.training.finetune import load_finetuned
 from lanevil_train.vlm.training.vision_maps import vision_layer
 
@@ -29,7 +30,6 @@ MODEL_FOLDER = "model"  # the trained model (or adapter) in the Hugging Face for
 # Generation and prompt settings of a local backend that a trained model (ckpt_path) is evaluated with.
 GENERATION_KEYS = ("name", "max_new_tokens", "batch_size", "frames_as", "system_prompt", "do_sample", "temperature",
                    "seed")
-TUNED = ("pat++", "pat")  # the prompt defenses whose prefix is tuned into prefix.json
 
 
 def inference_node(model: DictConfig) -> DictConfig:
@@ -176,17 +176,12 @@ def fine_tunes(defense: DictConfig) -> bool:
 
 
 def prompt_settings(defense: DictConfig) -> dict:
-    """defense.* of a prompt defense as plain values, each present and good by config_check's rules; a ValueError
-    names the first bad key."""
+    """defense.* of a prompt defense as plain values, each key its method needs present and good by the defenses'
+    own rules (vlm/defenses/settings.py); a ValueError names the first bad key."""
     settings = OmegaConf.to_container(defense, resolve=True)
-    method = settings.get("prompt")
-    gcg = ("alpha", "steps", "prefix_length", "top_k", "num_candidates", "chunk", "examples", "pool_clips")
-    keys = ("prompt",) + {"self_reminder": ("before", "after"), "pat": gcg + ("suffix_length",),
-                          "pat++": gcg + ("hard_target", "hardness", "soft", "soft_lr")}.get(method, ())
-    for key in keys:
-        problem = value_problem(f"defense.{key}", settings.get(key))
-        if problem is not None:
-            raise ValueError(problem)
+    problems = prompt_problems(settings)
+    if problems:
+        raise ValueError(problems[0])
     return settings
 
 
