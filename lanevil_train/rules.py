@@ -148,13 +148,14 @@ def problem(key: str, expected: str, value: Any, why: str = "") -> str:
 
 
 def settings_problems(rules: Mapping[str, Rule], values: Mapping[str, Any], prefix: str) -> list[str]:
-    """Every value of `values` its rule in `rules` refuses, one message each, named `prefix.name`."""
+    """Every value of `values` its rule in `rules` refuses, one message each, named `prefix.name` (`name` when the
+    prefix is empty)."""
     found = []
     for name, rule in rules.items():
         if name in values:
             why = rule.test(values[name])
             if why is not None:
-                found.append(problem(f"{prefix}.{name}", rule.expected, values[name], why))
+                found.append(problem(f"{prefix}.{name}" if prefix else name, rule.expected, values[name], why))
     return found
 
 

@@ -233,7 +233,7 @@ BAD = [
     (["task=train", "data=clips", "model=vlm/hf", "model.path=/tmp", "model.lora.r=0"],
      "model.lora.r: expected an integer >= 1, got 0"),
     (["task=train", "data=clips", "model=vlm/hf", "model.path=/tmp", "model.fine_tune.variants=some"],
-     "model.fine_tune.variants: expected one of all, clean, got 'some'"),
+     "model.fine_tune.variants: expected one of clean, all, got 'some'"),
     (["task=evaluate", "model=vlm/openai", "model.base_url=http://h/v1", "model.name=m", "+model.top_p=0.9"],
      "model.top_p: not a parameter of lanevil_train.vlm.backends.openai.OpenAIVLM; it accepts base_url"),
     (["task=evaluate", "model=vlm/openai", "model.base_url=http://h/v1", "model.name=m", "judge=openai",
@@ -480,3 +480,18 @@ def test_a_textual_defense_owns_its_settings_rules():
         "defense.alpha: expected a number in [0, 1], got 2", "defense.steps: expected an integer >= 1, got 0"]
     assert prompt_problems({"prompt": "self_reminder", "before": "Be careful."}) == [
         "defense.after: expected a non-empty string, got null"]  # a key the method needs, absent
+
+
+def test_fine_tuning_owns_its_settings_rules():
+    """model.lora.* and model.fine_tune.*: the rules of the fine-tuner and of the clip pairing, read by the config
+    check as they are and checked by their owners when built."""
+    from lanevil_train.tasks.config_check import RULES
+    from lanevil_train.vlm.clips.qa_data import PAIRING_SETTINGS
+    from lanevil_train.vlm.training.finetune import FINE_TUNE_SETTINGS, LORA_SETTINGS, check_lora
+
+    assert all(RULES[f"model.lora.{key}"] is rule for key, rule in LORA_SETTINGS.items())
+    assert all(RULES[f"model.fine_tune.{key}"] is rule
+               for key, rule in {**FINE_TUNE_SETTINGS, **PAIRING_SETTINGS}.items())
+    with pytest.raises(ValueError, match=r"^lora\.dropout: expected a number in \[0, 1\), got 1$"):
+        check_lora({"dropout": 1})
+    assert check_lora({"target_modules": "q_proj"})["target_modules"] == ["q_proj"]

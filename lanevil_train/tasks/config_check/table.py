@@ -51,7 +51,9 @@ from lanevil_train.tasks.config_check.config_rules import (
     timm_model_name,
 )
 from lanevil_train.tasks.config_check.keys import SPLITS
+from lanevil_train.vlm.clips.qa_data import PAIRING_SETTINGS
 from lanevil_train.vlm.defenses.settings import SETTINGS as PROMPT_SETTINGS
+from lanevil_train.vlm.training.finetune import FINE_TUNE_SETTINGS, LORA_SETTINGS
 
 RULES: dict[str, Rule] = {
     # root
@@ -120,20 +122,10 @@ RULES: dict[str, Rule] = {
     "model.adapter": null_or(existing_dir("directory of a peft adapter (a task=train run's model/ folder)")),
     "model.merge_adapter": boolean(),
     "model.lora": null_or(mapping_of(("r", "alpha", "dropout", "target_modules"))),
-    "model.lora.r": integer(1),
-    "model.lora.alpha": number(0, low_open=True),
-    "model.lora.dropout": number(0, 1, high_open=True),
-    "model.lora.target_modules": null_or(string_list()),
+    **{f"model.lora.{key}": rule for key, rule in LORA_SETTINGS.items()},  # the fine-tuner's own rules
     "model.fine_tune": mapping_of(("lr", "weight_decay", "warmup_steps", "freeze_vision", "gradient_checkpointing",
                                    "train_eos", "variants", "aids")),
-    "model.fine_tune.lr": number(0, low_open=True),
-    "model.fine_tune.weight_decay": number(0),
-    "model.fine_tune.warmup_steps": integer(0),
-    "model.fine_tune.freeze_vision": boolean(),
-    "model.fine_tune.gradient_checkpointing": boolean(),
-    "model.fine_tune.train_eos": boolean(),
-    "model.fine_tune.variants": one_of("all", "clean"),
-    "model.fine_tune.aids": integer(0),
+    **{f"model.fine_tune.{key}": rule for key, rule in {**FINE_TUNE_SETTINGS, **PAIRING_SETTINGS}.items()},
     "model.embedded.workers": any_of(one_of("auto"), integer(0)),
     "model.embedded.vision_pretraining": null_or(mapping_of(("steps", "clips", "batch", "lr", "mirror"))),
     "model.embedded.vision_pretraining.steps": integer(0),

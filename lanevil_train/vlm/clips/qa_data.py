@@ -17,9 +17,13 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset, Sampler
 
+from lanevil_train.rules import check_settings, integer, one_of
 from lanevil_train.vlm.clips.qa_records import prompt_text
 
 VARIANTS = ("clean", "all")
+# ClipQADataset's settings a training run gives it (model.fine_tune.variants / aids): checked here, and by the config
+# check under those keys before any work.
+PAIRING_SETTINGS = {"variants": one_of(*VARIANTS), "aids": integer(0)}
 FRAMES_PER_CLIP = 6
 
 
@@ -36,12 +40,9 @@ class ClipQADataset(Dataset):
             if not hasattr(clips, needed):
                 raise TypeError(f"clips: expected a clip suite (ClipSetDataset or SyntheticClipSuite) with "
                                 f"{needed}, got {type(clips).__name__}")
-        if variants not in VARIANTS:
-            raise ValueError(f"variants: expected one of {', '.join(VARIANTS)}, got {variants!r}")
+        check_settings(PAIRING_SETTINGS, {"variants": variants, "aids": aids}, "")
         if limit is not None and (isinstance(limit, bool) or not isinstance(limit, int) or limit < 1):
             raise ValueError(f"limit: expected None or an integer >= 1, got {limit!r}")
-        if isinstance(aids, bool) or not isinstance(aids, int) or aids < 0:
-            raise ValueError(f"aids: expected an integer >= 0 (training-aid rounds per clip), got {aids!r}")
         if aids and not hasattr(clips, "training_aids_for"):
             raise ValueError(f"aids: {aids} rounds of training aids need the scene truth, which "
                              f"{type(clips).__name__} does not keep; train on a synthetic split (SyntheticClipSuite) "

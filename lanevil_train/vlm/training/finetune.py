@@ -23,6 +23,7 @@ from pathlib import Path
 import pytorch_lightning as pl
 import torch
 
+from lanevil_train.rules import any_of, boolean, check_settings, integer, null_or, number, string_list, text
 from lanevil_train.vlm.backends.hf import (
     ADAPTER_CONFIG,
     DTYPES,
@@ -46,6 +47,12 @@ VISION_TOWERS = ("vision_tower", "visual", "vision_model")
 LANGUAGE_MODELS = ("language_model", "text_model")
 LORA_PROJECTIONS = ("q_proj", "k_proj", "v_proj", "o_proj", "gate_proj", "up_proj", "down_proj")
 LORA_KEYS = ("r", "alpha", "dropout", "target_modules")
+# What a good value of each LoRA setting (model.lora.*) and each fine-tuning setting of the constructor
+# (model.fine_tune.*) is: checked here, and by the config check under those keys before any work.
+LORA_SETTINGS = {"r": integer(1), "alpha": number(0, low_open=True), "dropout": number(0, 1, high_open=True),
+                 "target_modules": null_or(any_of(text(), string_list()))}
+FINE_TUNE_SETTINGS = {"lr": number(0, low_open=True), "weight_decay": number(0), "warmup_steps": integer(0),
+                      "freeze_vision": boolean(), "gradient_checkpointing": boolean(), "train_eos": boolean()}
 
 
 def resolve_dtype(dtype: str) -> torch.dtype:
@@ -92,12 +99,7 @@ def check_lora(lora) -> dict | None:
     if unknown:
         raise ValueError(f"lora: unknown keys {', '.join(unknown)}; expected some of {', '.join(LORA_KEYS)}")
     settings = {"r": 16, "alpha": 32, "dropout": 0.05, "target_modules": None, **lora}
-    if isinstance(settings["r"], bool) or not isinstance(settings["r"], int) or settings["r"] < 1:
-        raise ValueError(f"lora.r: expected an integer >= 1, got {settings['r']!r}")
-    if not isinstance(settings["alpha"], (int, float)) or settings["alpha"] <= 0:
-        raise ValueError(f"lora.alpha: expected a number > 0, got {settings['alpha']!r}")
-    if not isinstance(settings["dropout"], (int, float)) or not 0 <= settings["dropout"] < 1:
-        raise ValueError(f"lora.dropout: expected a number in [0, 1), got {settings['dropout']!r}")
+    check_settings(LORA_SETTINGS, settings, "lora")
     targets = settings["target_modules"]
     if targets is not None:
         settings["target_modules"] = [targets] if isinstance(targets, str) else list(targets)
@@ -124,10 +126,7 @@ class VLMFineTuner(pl.LightningModule):
         super().__init__()
         model_dir = str(_check_model_dir(model_dir))
         lora = check_lora(lora)
-        if not isinstance(lr, (int, float)) or lr <= 0:
-            raise ValueError(f"lr: expected a number > 0, got {lr!r}")
-        if isinstance(warmup_steps, bool) or not isinstance(warmup_steps, int) or warmup_steps < 0:
-            raise ValueError(f"warmup_steps: expected an integer >= 0, got {warmup_steps!r}")
+        check_settings(FINE_TUNE_SETTINGS, locals(), "fine_tune")
         _choice("frames_as", frames_as, FRAMES_AS)
         self.save_hyperparameters({"model_dir": model_dir, "lora": lora, "freeze_vision": bool(freeze_vision),
                                    "gradient_checkpointing": bool(gradient_checkpointing), "lr": float(lr),
