@@ -7,20 +7,14 @@ config (in the package, or in a user's `hydra.searchpath` folder).
 
 from __future__ import annotations
 
-from hydra.utils import get_method
 from omegaconf import DictConfig
 
 from lanevil_train.tasks.config_check import check_config
-from lanevil_train.tasks.kinds import task_target
+from lanevil_train.tasks.kinds import task_function
 
 
 def run_task(cfg: DictConfig) -> float | None:
     """Check the config's values (lanevil_train.tasks.config_check), then call the function task._target_ names for
     the model's kind with the whole config; return what it returns."""
     check_config(cfg)  # a bad value fails here, naming its key, before any data is read or a step trained
-    target = task_target(cfg)
-    try:
-        function = get_method(target)
-    except Exception as error:  # Hydra wraps import failures in its own exception types
-        raise ValueError(f"task._target_={target!r}: cannot import that function ({error})") from error
-    return function(cfg)
+    return task_function(cfg)(cfg)

@@ -17,7 +17,6 @@ import json
 import logging
 from pathlib import Path
 
-from hydra.utils import get_method
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from lanevil_train.evaluation.scoring import read_records
@@ -36,7 +35,7 @@ from lanevil_train.report.tables import print_table
 from lanevil_train.tasks.builders import build_defense, build_model, model_config, output_dir
 from lanevil_train.tasks.config_check import check_config, interpolated_from, known_defenses
 from lanevil_train.tasks.finished_runs import records_from_runs, results_of
-from lanevil_train.tasks.kinds import is_vlm, task_target
+from lanevil_train.tasks.kinds import is_vlm, task_function
 from lanevil_train.tasks.launch import launch_jobs, uses_job_launcher
 from lanevil_train.tasks.vlm.builders import MODEL_FOLDER, check_vlm_run, is_prompt_defense, trained_model
 
@@ -172,7 +171,7 @@ def run_defense(cfg: DictConfig, defense: str, overrides: list[str], run_dir: Pa
     log.info("compare: defense=%s %s in %s", defense, state, run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     OmegaConf.save(run_cfg, run_dir / "config.yaml")
-    result = get_method(task_target(run_cfg))(run_cfg)  # task=train for the model's kind
+    result = task_function(run_cfg)(run_cfg)  # task=train for the model's kind
     _finish_wandb()
     if not _is_rank_zero():
         return

@@ -5,8 +5,9 @@ again, so the detector and VLM tasks are separate modules."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 
+from hydra.utils import get_method
 from omegaconf import DictConfig
 
 KINDS = ("detector", "vlm")
@@ -42,3 +43,12 @@ def task_target(cfg: DictConfig) -> str:
                          f"`_target_: lanevil_train.tasks.detector.train.train` to it (or one per kind of model: "
                          f"`_target_: {{detector: ..., vlm: ...}}`)")
     return target
+
+
+def task_function(cfg: DictConfig) -> Callable[[DictConfig], float | None]:
+    """The function that runs task=<name> for the model's kind (task_target), imported."""
+    target = task_target(cfg)
+    try:
+        return get_method(target)
+    except Exception as error:  # Hydra wraps import failures in its own exception types
+        raise ValueError(f"task._target_={target!r}: cannot import that function ({error})") from error

@@ -11,7 +11,6 @@ import pytest
 import pytorch_lightning as pl
 import torch
 from hydra import compose, initialize_config_module
-from hydra.utils import get_method
 
 from lanevil_train.checkpoints import CheckpointError
 from lanevil_train.data.datasets import EmptySplitError
@@ -20,7 +19,7 @@ from lanevil_train.tasks.build import build
 from lanevil_train.tasks.builders import build_model, model_config
 from lanevil_train.tasks.detector.evaluate import evaluate
 from lanevil_train.tasks.detector.train import train
-from lanevil_train.tasks.kinds import task_target
+from lanevil_train.tasks.kinds import task_function
 from tests.tasks.cli_helpers import TINY, composed, write_photo_dataset
 
 
@@ -249,4 +248,4 @@ def test_a_detector_checkpoint_of_another_family_or_given_to_a_vlm_is_named(tmp_
                                                   r"model=ufld backbone=resnet18 from it$"):
             cfg = composed([task, "model=vlm/hf", f"model.path={model_dir}", f"ckpt_path={path}",
                             "data.train.num_cases=1", "task.cases=1", "logger=none", f"output_dir={tmp_path / 'run'}"])
-            get_method(task_target(cfg))(cfg)  # the task's function for a VLM, as run_task picks it
+            task_function(cfg)(cfg)  # the task's function for a VLM, as run_task picks it
