@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import time
 from pathlib import Path
 
 import torch
@@ -16,6 +17,7 @@ from torch.utils.data import DataLoader, Dataset, Subset
 from lanevil_train.data.datamodule import ProcessedDataset, collate_lanes
 from lanevil_train.data.normalization import DEFAULT_NORMALIZATION, spec_normalization
 from lanevil_train.data.transforms import LaneSampleProcessor
+from lanevil_train.evaluation.prediction_files import prediction_fields
 from lanevil_train.evaluation.scoring import lane_record
 from lanevil_train.files.atomic import atomic_write_text
 from lanevil_train.models.cuda_graphs import GraphedInference
@@ -26,12 +28,14 @@ from lanevil_train.results_log import ResultsLog
 
 def stream_evaluate(model: LaneDetector, dataset: Dataset, out_path: str | Path, label: dict,
                     batch_size: int = 8, num_workers: int = 0, progress: str = "auto",
-                    keep_lanes: bool = True, cuda_graphs: bool = True) -> Path:
+                    keep_lanes: bool = True, cuda_graphs: bool = True, predictions: bool = False) -> Path:
     """Score every image of `dataset` not yet in `out_path`, appending one JSON line each.
 
     `label` (e.g. {"model": ..., "dataset": ...}) is copied into every line; `progress` is a
     lanevil_train.progress mode (auto, rich, tqdm, plain, none). On a GPU the network runs through CUDA graphs
     (models/cuda_graphs.py: the same kernels, launched at once; `cuda_graphs=False` for the eager forward).
+    `predictions` keeps each image's predicted lanes at full resolution and its run time in its line, for the
+    official prediction files (evaluation/prediction_files.py).
     """
     log = ResultsLog(out_path)
     done = log.resume()
@@ -50,8 +54,13 @@ def stream_evaluate(model: LaneDetector, dataset: Dataset, out_path: str | Path,
         for batch in loader:
             sizes = [(int(m["height"]), int(m["width"])) for m in batch["meta"]]
             images = batch["images"].to(device)
+            start = time.perf_counter()
             preds = model.decode_lanes(forward(images), tuple(images.shape[-2:]), sizes)
-            log.append({**label, **lane_record(pred, gt, meta, keep_lanes)}
+            if images.is_cuda:
+                torch.cuda.synchronize(device)
+            run_time_ms = (time.perf_counter() - start) * 1000 / len(preds)
+            log.append({**label, **lane_record(pred, gt, meta, keep_lanes),
+                        **(prediction_fields(pred, meta, run_time_ms) if predictions else {})}
                        for pred, gt, meta in zip(preds, batch["lanes"], batch["meta"]))
             bar.update(len(preds))
     bar.close()

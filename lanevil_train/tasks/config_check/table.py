@@ -198,6 +198,7 @@ RULES: dict[str, Rule] = {
     "task.confidence": number(0, 1, low_open=True, high_open=True),
     "task.kind": one_of(*SUITE_KINDS),
     "task.onnx": null_or(existing_file("ONNX model written by task=export")),
+    "task.predictions": boolean(),
     "task.out": null_or(text()),
     "task.opset": integer(9),
     "task.tolerance": number(0, low_open=True),

@@ -6,6 +6,7 @@ out_dir continues where it stopped); the tables and plots are then built from th
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import pytorch_lightning as pl
@@ -13,6 +14,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from lanevil_train.data.suites import IllusionSetDataset, SyntheticIllusionSuite
 from lanevil_train.errors import prefixed
+from lanevil_train.evaluation.prediction_files import write_prediction_files
 from lanevil_train.evaluation.results import log_results, write_results
 from lanevil_train.evaluation.scoring import RESULTS, read_records
 from lanevil_train.evaluation.streaming import stream_evaluate
@@ -21,6 +23,8 @@ from lanevil_train.models.head import check_decode_options
 from lanevil_train.report.specs import LANE_SPEC
 from lanevil_train.tasks.builders import build_logger, build_split, checkpoint_model, output_dir
 from lanevil_train.tasks.detector.export import OnnxLaneDetector
+
+log = logging.getLogger(__name__)
 
 
 def load_checkpoint(cfg: DictConfig) -> LaneDetector:
@@ -103,7 +107,14 @@ def _stream(cfg: DictConfig, model: LaneDetector, dataset, dataset_name: str, ou
 
 def stream_dataset(cfg: DictConfig, model: LaneDetector, dataset, dataset_name: str, out: Path,
                    model_label: str) -> Path:
-    """Score `model` on `dataset` into out/per_image.jsonl (resumes a partial file); returns that path."""
+    """Score `model` on `dataset` into out/per_image.jsonl (resumes a partial file), and with task.predictions
+    write the official prediction files beside it; returns the per_image.jsonl path."""
     label = {"model": model_label, "dataset": dataset_name}
-    return stream_evaluate(model, dataset, out / RESULTS, label, batch_size=cfg.data.batch_size,
-                           num_workers=cfg.data.num_workers, progress=cfg.progress)
+    predictions = bool(cfg.task.get("predictions", False))
+    results = stream_evaluate(model, dataset, out / RESULTS, label, batch_size=cfg.data.batch_size,
+                              num_workers=cfg.data.num_workers, progress=cfg.progress, predictions=predictions)
+    if predictions:
+        files = write_prediction_files(results, out)
+        log.info("prediction files: %s (TuSimple JSON lines), %s/ (CULane .lines.txt)", files["tusimple"],
+                 files["culane"])
+    return results
