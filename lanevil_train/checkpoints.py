@@ -76,7 +76,11 @@ def is_truncated_archive(path: str | Path) -> bool:
 
 def read_lightning_checkpoint(path: str | Path, option: str) -> dict:
     """A Lightning checkpoint (a dict with a 'state_dict'), read safely; errors name `option` and the file."""
-    checkpoint = load_checkpoint_file(path, option)
+    return lightning_checkpoint(load_checkpoint_file(path, option), path, option)
+
+
+def lightning_checkpoint(checkpoint: object, path: str | Path, option: str) -> dict:
+    """The object read from `path`, checked to be a Lightning checkpoint (a dict with a 'state_dict')."""
     if not isinstance(checkpoint, dict) or "state_dict" not in checkpoint:
         raise CheckpointError(f"{option}={path}: not a Lightning checkpoint (no 'state_dict'); expected a .ckpt "
                               f"file written by task=train (e.g. <run>/checkpoints/last.ckpt)")
@@ -152,10 +156,11 @@ def check_vlm_checkpoint(checkpoint: dict, where: str) -> str:
                           f"model=vlm/...: detector tasks rebuild model={name[0]} backbone={name[1]} from it")
 
 
-def load_weights(model, path: str | Path, option: str) -> dict:
-    """Read the Lightning checkpoint at `path`, check it is one of `model`'s family and backbone, and load its weights
-    into `model`; returns the checkpoint."""
-    checkpoint = read_lightning_checkpoint(path, option)
+def load_weights(model, path: str | Path, option: str, checkpoint: object = None) -> dict:
+    """Read the Lightning checkpoint at `path` (or check `checkpoint`, the object already read from it), check it is
+    one of `model`'s family and backbone, and load its weights into `model`; returns the checkpoint."""
+    checkpoint = read_lightning_checkpoint(path, option) if checkpoint is None else \
+        lightning_checkpoint(checkpoint, path, option)
     check_detector_checkpoint(checkpoint, f"{option}={path}", getattr(model, "build_config", None))
     fit_weights(model, checkpoint["state_dict"], f"{option}={path}")
     return checkpoint

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -15,7 +16,8 @@ from lanevil_train.checkpoints import (
     AtomicCheckpointIO,
     check_detector_checkpoint,
     fit_weights,
-    read_lightning_checkpoint,
+    lightning_checkpoint,
+    load_checkpoint_file,
 )
 from lanevil_train.data.datamodule import LaneDataModule
 from lanevil_train.data.datasets import EmptySplitError
@@ -23,6 +25,9 @@ from lanevil_train.data.normalization import DEFAULT_NORMALIZATION, Normalizatio
 from lanevil_train.errors import prefixed
 from lanevil_train.models.backbones import indices_for_strides
 from lanevil_train.models.detector import LaneDetector
+from lanevil_train.models.official import load_official, official_state_dict
+
+log = logging.getLogger(__name__)
 
 # The parts of a config that define the network; stored in every checkpoint so that
 # `task=evaluate ckpt_path=...` rebuilds the same model whatever the command line says.
@@ -244,6 +249,19 @@ def build_logger(cfg: DictConfig):
     return instantiate_at(cfg.logger, "logger")
 
 
+def inference_device(cfg: DictConfig):
+    """Where an evaluation runs the network: a CUDA device when trainer.accelerator allows one (gpu, cuda, auto) and
+    one is present (the first of trainer.devices when it lists them), else the CPU."""
+    import torch
+
+    trainer = cfg.get("trainer") or {}
+    if str(trainer.get("accelerator", "auto")) not in ("gpu", "cuda", "auto") or not torch.cuda.is_available():
+        return torch.device("cpu")
+    devices = trainer.get("devices")
+    index = int(devices[0]) if OmegaConf.is_list(devices) and len(devices) else 0
+    return torch.device("cuda", index)
+
+
 def output_dir(cfg: DictConfig) -> Path:
     path = Path(cfg.output_dir)
     path.mkdir(parents=True, exist_ok=True)
@@ -252,9 +270,16 @@ def output_dir(cfg: DictConfig) -> Path:
 
 def checkpoint_model(cfg: DictConfig) -> LaneDetector:
     """The network of the checkpoint at ckpt_path (its stored build config; the command line's for checkpoints
-    without one) with its weights."""
-    checkpoint = read_lightning_checkpoint(cfg.ckpt_path, "ckpt_path")
-    check_detector_checkpoint(checkpoint, f"ckpt_path={cfg.ckpt_path}")  # a VLM's names the model= it needs
+    without one, and for an official repository's checkpoint, converted: models/official.py) with its weights."""
+    where = f"ckpt_path={cfg.ckpt_path}"
+    checkpoint = load_checkpoint_file(cfg.ckpt_path, "ckpt_path")
+    official = official_state_dict(checkpoint)
+    if official is not None:
+        model = build_model(model_config(cfg))
+        log.info(load_official(model, official, where))
+        return model
+    checkpoint = lightning_checkpoint(checkpoint, cfg.ckpt_path, "ckpt_path")
+    check_detector_checkpoint(checkpoint, where)  # a VLM's names the model= it needs
     model = build_model(checkpoint.get("lanevil_model") or model_config(cfg))
     fit_weights(model, checkpoint["state_dict"], f"ckpt_path={cfg.ckpt_path}")
     return model

@@ -59,8 +59,10 @@ def shipped_options() -> list[tuple[str, str]]:
 
 def needs(group: str, option: str, files: Path) -> list[str]:
     """What an option needs from the user by design: a dataset root (???), a checkpoint to score."""
+    if group == "experiment" and option.startswith("official_laneatt_"):  # and the repository's anchor counts
+        return [f"data.root={files / 'dataset'}", f"model.head.anchor_frequency_file={files / 'model.ckpt'}"]
     if (group == "data" and option in ("tusimple", "culane")) or \
-            (group == "experiment" and option.startswith("paper_")):
+            (group == "experiment" and option.startswith(("paper_", "official_"))):
         return [f"data.root={files / 'dataset'}"]
     if group == "task" and option in ("evaluate", "cross_domain", "closed_loop"):
         return [f"ckpt_path={files / 'model.ckpt'}"]

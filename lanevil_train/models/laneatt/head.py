@@ -39,7 +39,7 @@ from lanevil_train.models.laneatt.frequency import (
 )
 from lanevil_train.models.losses import anchor_target_distances, focal_loss
 from lanevil_train.models.nms import lane_ends, lane_nms, lane_nms_batched
-from lanevil_train.rules import check_settings, integer, null_or, number, one_of
+from lanevil_train.rules import check_settings, existing_file, integer, null_or, number, one_of
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +50,20 @@ ANCHOR_SELECTIONS = ("all", "frequency")
 def _anchors_from_loaded_index(head: "LaneATTHead", incompatible_keys) -> None:
     """After load_state_dict: rebuild the anchor geometry from the loaded anchor_index buffer."""
     head._set_anchors(head.anchor_index)
+
+
+def _read_frequency_file(path: str) -> np.ndarray:
+    """The counts per anchor saved in `path` (the official repository's data/<dataset>_anchors_freq.pt: a 1-D
+    tensor over the full anchor set, left, bottom, right), read weights-only."""
+    from lanevil_train.checkpoints import load_checkpoint_file
+
+    counts = load_checkpoint_file(path, "model.head.anchor_frequency_file")
+    if not isinstance(counts, torch.Tensor) or counts.ndim != 1:
+        is_tensor = isinstance(counts, torch.Tensor)
+        found = f"a tensor of shape {tuple(counts.shape)}" if is_tensor else type(counts).__name__
+        raise ValueError(f"model.head.anchor_frequency_file={path}: expected a 1-D tensor of counts per anchor, got "
+                         f"{found}")
+    return counts.double().numpy()
 
 
 class LaneATTHead(LaneHead):
@@ -76,6 +90,8 @@ class LaneATTHead(LaneHead):
         "frequency_threshold": number(0),
         "train_nms_threshold": null_or(number(0, low_open=True)),  # null: no NMS before the loss
         "train_nms_topk": integer(1),
+        "anchor_frequency_file": null_or(existing_file("anchor frequency file (a tensor of counts per anchor, e.g. "
+                                                       "the official data/tusimple_anchors_freq.pt)")),
     }
 
     def __init__(
@@ -91,6 +107,7 @@ class LaneATTHead(LaneHead):
         lateral_n: int | None = None,
         bottom_n: int | None = None,
         anchor_frequency: np.ndarray | None = None,
+        anchor_frequency_file: str | None = None,
         frequency_threshold: float = 30.0,
         pos_threshold: float = 15.0,
         neg_threshold: float = 20.0,
@@ -142,6 +159,11 @@ class LaneATTHead(LaneHead):
         self.n_anchors = n_kept
         self.fmap_size = feature_map_size(self.image_size, feature_stride)
         self._set_anchors(index)
+        if anchor_frequency_file is not None:
+            if self.anchor_selection != "frequency":
+                raise ValueError("model.head.anchor_frequency_file: its counts choose the topk_anchors anchors; set "
+                                 "anchor_selection=frequency and topk_anchors (the official: 1000)")
+            anchor_frequency = _read_frequency_file(anchor_frequency_file)
         if anchor_frequency is not None:
             self.use_frequency(anchor_frequency)
         self.register_load_state_dict_post_hook(_anchors_from_loaded_index)

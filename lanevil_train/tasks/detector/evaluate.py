@@ -21,7 +21,7 @@ from lanevil_train.evaluation.streaming import stream_evaluate
 from lanevil_train.models.detector import LaneDetector
 from lanevil_train.models.head import check_decode_options
 from lanevil_train.report.specs import LANE_SPEC
-from lanevil_train.tasks.builders import build_logger, build_split, checkpoint_model, output_dir
+from lanevil_train.tasks.builders import build_logger, build_split, checkpoint_model, inference_device, output_dir
 from lanevil_train.tasks.detector.export import OnnxLaneDetector
 
 log = logging.getLogger(__name__)
@@ -111,6 +111,7 @@ def stream_dataset(cfg: DictConfig, model: LaneDetector, dataset, dataset_name: 
     write the official prediction files beside it; returns the per_image.jsonl path."""
     label = {"model": model_label, "dataset": dataset_name}
     predictions = bool(cfg.task.get("predictions", False))
+    model.to(inference_device(cfg))
     results = stream_evaluate(model, dataset, out / RESULTS, label, batch_size=cfg.data.batch_size,
                               num_workers=cfg.data.num_workers, progress=cfg.progress, predictions=predictions)
     if predictions:

@@ -3,15 +3,22 @@ the clean test set, and, with task.suite set, on an illusion suite (the value a 
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import pytorch_lightning as pl
 from omegaconf import DictConfig
 
-from lanevil_train.checkpoints import load_weights, remove_stale_checkpoint_temporaries
+from lanevil_train.checkpoints import (
+    CheckpointError,
+    load_checkpoint_file,
+    load_weights,
+    remove_stale_checkpoint_temporaries,
+)
 from lanevil_train.data.normalization import spec_normalization
 from lanevil_train.evaluation.results import score_test_set, write_results
 from lanevil_train.evaluation.scoring import RESULTS, PerImageWriter
+from lanevil_train.models.official import load_detector_weights, official_state_dict
 from lanevil_train.tasks.builders import (
     build_callbacks,
     build_datamodule,
@@ -22,6 +29,8 @@ from lanevil_train.tasks.builders import (
     output_dir,
 )
 from lanevil_train.tasks.detector.evaluate import stream_dataset, test_dataset
+
+log = logging.getLogger(__name__)
 
 
 def train(cfg: DictConfig) -> float | None:
@@ -38,9 +47,17 @@ def train(cfg: DictConfig) -> float | None:
     # so a corrupt file or another network is reported before any data is read or any step runs
     # (task.init_from: its weights only, to fine-tune; ckpt_path: Lightning then restores the whole training state)
     if cfg.ckpt_path is not None:
-        check_same_network(load_weights(model, cfg.ckpt_path, "ckpt_path"), model.build_config, cfg.ckpt_path)
+        saved = load_checkpoint_file(cfg.ckpt_path, "ckpt_path")
+        if official_state_dict(saved) is not None:
+            raise CheckpointError(f"ckpt_path={cfg.ckpt_path}: an official repository's checkpoint holds no training "
+                                  f"state to resume; start a run from its weights with task.init_from="
+                                  f"{cfg.ckpt_path}")
+        check_same_network(load_weights(model, cfg.ckpt_path, "ckpt_path", checkpoint=saved), model.build_config,
+                           cfg.ckpt_path)
     elif cfg.task.get("init_from"):
-        load_weights(model, cfg.task.init_from, "task.init_from")
+        official = load_detector_weights(model, cfg.task.init_from, "task.init_from")  # ours or an official file
+        if official:
+            log.info(official)
     defense = build_defense(cfg)
     callbacks = build_callbacks(cfg)
     remove_stale_checkpoint_temporaries(callbacks)

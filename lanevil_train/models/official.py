@@ -1,0 +1,137 @@
+"""Checkpoints the official repositories publish, loaded as they were saved.
+
+A file given as ``ckpt_path`` (task=evaluate, export, closed_loop) or ``task.init_from`` (fine-tuning, e.g. with
+AAM++) may be an official checkpoint instead of one of ours: it is read weights-only (tensors and plain values,
+never pickled code), its weights are found in the repository's layout (``{"model": ...}``, ``{"net": ...}``, a bare
+state dict; ``module.`` prefixes of DataParallel dropped), its release recognised from its keys and shapes by the
+families' ``official.py`` modules (``RELEASES``), converted to this project's names and loaded strictly into the
+network the run's config builds (``experiment=official_<family>_<dataset>``). A file of another family or release
+is refused naming what it is, the first weight that does not fit and the config that would.
+
+A family supports its published weights with one module, ``models/<family>/official.py``, holding a ``RELEASE``
+(``family``: its model name, ``name``, ``describe(state) -> Recognised | None``, ``convert(state) -> dict`` and the
+``optional`` training-only parts), listed in ``_releases`` below.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import torch
+
+from lanevil_train.checkpoints import CheckpointError, fit_weights, load_checkpoint_file, load_weights
+
+WEIGHT_KEYS = ("model", "net", "state_dict")  # where the official repositories put the weights in their files
+DDP_PREFIX = "module."
+
+
+@dataclass(frozen=True)
+class Recognised:
+    """What a file is: its release (e.g. "the TuSimple release, ResNet-18: 100 cells, 56 rows, 4 lanes") and the
+    command-line settings that build its network (e.g. "experiment=official_ufld_tusimple backbone=resnet18")."""
+
+    what: str
+    config: str
+
+
+@dataclass(frozen=True)
+class Release:
+    """One official code base's checkpoints: how to recognise them and convert them to this project's names."""
+
+    family: str  # model=<family>
+    name: str  # e.g. "UFLD v1 (cfzd/Ultra-Fast-Lane-Detection)"
+    describe: Callable[[dict], Recognised | None]
+    convert: Callable[[dict], dict]
+    # converted names of training-only parts a file may or may not carry (e.g. an auxiliary segmentation branch):
+    # kept as initialised when the file lacks them, dropped when the network has none
+    optional: tuple[str, ...] = ()
+    # what the network needs beyond the file before it can take these weights (e.g. LaneATT's anchors chosen by the
+    # repository's frequency file): a problem in words, or None
+    missing_setting: Callable[[object], str | None] = lambda model: None
+
+
+def _releases() -> list[Release]:
+    from lanevil_train.models.laneatt.official import RELEASE as LANEATT
+    from lanevil_train.models.ufld.official import RELEASE as UFLD
+
+    return [LANEATT, UFLD]
+
+
+def is_ours(obj: object) -> bool:
+    """A checkpoint written by this project (a Lightning checkpoint, with its 'state_dict')."""
+    return isinstance(obj, dict) and "state_dict" in obj and ("lanevil_model" in obj or "pytorch-lightning_version"
+                                                              in obj or "hyper_parameters" in obj)
+
+
+def official_state_dict(obj: object) -> dict[str, torch.Tensor] | None:
+    """The weights of a file in an official layout, 'module.' prefixes dropped; None when it holds none."""
+    if not isinstance(obj, dict) or is_ours(obj):
+        return None
+    state = next((obj[key] for key in WEIGHT_KEYS if isinstance(obj.get(key), dict)), obj)
+    if not state or not all(isinstance(v, torch.Tensor) for v in state.values()):
+        return None
+    return {(k[len(DDP_PREFIX):] if k.startswith(DDP_PREFIX) else k): v for k, v in state.items()}
+
+
+def recognise(state: dict) -> tuple[Release, Recognised] | None:
+    """The release a state dict belongs to, with what it is, or None."""
+    for release in _releases():
+        found = release.describe(state)
+        if found is not None:
+            return release, found
+    return None
+
+
+def _first_weight(state: dict) -> str:
+    key = next(iter(state))
+    return f"{key} {tuple(state[key].shape)}"
+
+
+def load_official(model, state: dict, where: str) -> str:
+    """Convert an official state dict and load it into `model` (strictly); returns the one line to log. Refuses a
+    file of no known release, of another family than the model's, or whose shapes do not fit this network."""
+    known = ", ".join(release.name for release in _releases())
+    found = recognise(state)
+    if found is None:
+        raise CheckpointError(f"{where}: neither a checkpoint of this project (no 'state_dict') nor an official one "
+                              f"of a release it reads ({known}); its first weight is {_first_weight(state)}")
+    release, recognised = found
+    spec = getattr(model, "build_config", None) or {}
+    family = str(spec.get("model", {}).get("name", ""))
+    if family != release.family:
+        raise CheckpointError(f"{where}: an official {release.name} checkpoint ({recognised.what}), and this run "
+                              f"builds model={family}; run it with {recognised.config}")
+    needed = release.missing_setting(model)
+    if needed:
+        raise CheckpointError(f"{where}: an official {release.name} checkpoint ({recognised.what}); {needed}")
+    converted = _fit_optional(release.convert(state), model.state_dict(), release.optional)
+    try:
+        fit_weights(model, converted, where)
+    except CheckpointError as error:
+        raise CheckpointError(f"{error}; the file is an official {release.name} checkpoint ({recognised.what}): "
+                              f"run it with {recognised.config}") from None
+    return (f"{where}: official {release.name} checkpoint ({recognised.what}), {len(converted)} tensors "
+            f"converted to this network's names")
+
+
+def _fit_optional(converted: dict, own: dict, optional: tuple[str, ...]) -> dict:
+    """`converted` with the optional parts made to fit the network: dropped where it has none, its own initial
+    values where the file has none."""
+    if not optional:
+        return converted
+    out = {k: v for k, v in converted.items() if k in own or not k.startswith(optional)}
+    out.update({k: v for k, v in own.items() if k.startswith(optional) and k not in out})
+    return out
+
+
+def load_detector_weights(model, path: str | Path, option: str) -> str | None:
+    """Load the weights of `path` into `model`: a checkpoint of this project (checked to be of the model's family
+    and backbone) or an official one (converted); returns the log line of an official file, else None."""
+    obj = load_checkpoint_file(path, option)
+    state = official_state_dict(obj)
+    if state is None:
+        load_weights(model, path, option, checkpoint=obj)
+        return None
+    return load_official(model, state, f"{option}={path}")
