@@ -9,53 +9,28 @@ network the run's config builds (``experiment=official_<family>_<dataset>``). A 
 is refused naming what it is, the first weight that does not fit and the config that would.
 
 A family supports its published weights with one module, ``models/<family>/official.py``, holding a ``RELEASE``
-(``family``: its model name, ``name``, ``describe(state) -> Recognised | None``, ``convert(state) -> dict`` and the
-``optional`` training-only parts), listed in ``_releases`` below.
+(``models/release.py``: its model name, how to recognise and convert a file, its optional training-only parts),
+listed in ``_releases`` below.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import torch
 
 from lanevil_train.checkpoints import CheckpointError, fit_weights, load_checkpoint_file, load_weights
+from lanevil_train.models.laneatt.official import RELEASE as LANEATT
+from lanevil_train.models.release import Recognised, Release
+from lanevil_train.models.ufld.official import RELEASE as UFLD
+
+__all__ = ["Recognised", "Release", "load_detector_weights", "load_official", "official_state_dict", "recognise"]
 
 WEIGHT_KEYS = ("model", "net", "state_dict")  # where the official repositories put the weights in their files
 DDP_PREFIX = "module."
 
 
-@dataclass(frozen=True)
-class Recognised:
-    """What a file is: its release (e.g. "the TuSimple release, ResNet-18: 100 cells, 56 rows, 4 lanes") and the
-    command-line settings that build its network (e.g. "experiment=official_ufld_tusimple backbone=resnet18")."""
-
-    what: str
-    config: str
-
-
-@dataclass(frozen=True)
-class Release:
-    """One official code base's checkpoints: how to recognise them and convert them to this project's names."""
-
-    family: str  # model=<family>
-    name: str  # e.g. "UFLD v1 (cfzd/Ultra-Fast-Lane-Detection)"
-    describe: Callable[[dict], Recognised | None]
-    convert: Callable[[dict], dict]
-    # converted names of training-only parts a file may or may not carry (e.g. an auxiliary segmentation branch):
-    # kept as initialised when the file lacks them, dropped when the network has none
-    optional: tuple[str, ...] = ()
-    # what the network needs beyond the file before it can take these weights (e.g. LaneATT's anchors chosen by the
-    # repository's frequency file): a problem in words, or None
-    missing_setting: Callable[[object], str | None] = lambda model: None
-
-
 def _releases() -> list[Release]:
-    from lanevil_train.models.laneatt.official import RELEASE as LANEATT
-    from lanevil_train.models.ufld.official import RELEASE as UFLD
-
     return [LANEATT, UFLD]
 
 

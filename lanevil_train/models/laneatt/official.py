@@ -24,7 +24,7 @@ file given to the head.
 
 from __future__ import annotations
 
-from lanevil_train.models.official import Recognised, Release
+from lanevil_train.models.release import Recognised, Release
 
 _STAGES = {"0": "conv1", "1": "bn1", "4": "layer1", "5": "layer2", "6": "layer3", "7": "layer4"}
 RESNET_DEPTH = {(2, 2, 2, 2): 18, (3, 4, 6, 3): 34}

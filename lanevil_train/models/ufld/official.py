@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import re
 
-from lanevil_train.models.official import Recognised, Release
+from lanevil_train.models.release import Recognised, Release
 
 RELEASES = {(100, 56): "tusimple", (200, 18): "culane"}  # (cells, rows) of the published files -> dataset
 NUM_LANES = 4
