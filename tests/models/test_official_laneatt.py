@@ -124,3 +124,62 @@ def test_the_backbone_is_recognised_and_another_one_refused(release):
     model = _ours("backbone=resnet34", f"model.head.anchor_frequency_file={freq}")
     with pytest.raises(CheckpointError, match="weights .* missing .*backbone.layer1.2"):
         load_detector_weights(model, path, "ckpt_path")
+
+
+def official_decode(xs_frac, start_frac, length, n_offsets=S):
+    """LaneATT's proposals_to_pred (l. 309-341) for one proposal: x as fractions of the width per row (bottom row
+    first), the anchor's start as a fraction of the height from the bottom, the predicted length; returns the points
+    (x, y fractions of the image, y = 1 the bottom row) it keeps, bottom first."""
+    xs = np.array(xs_frac, dtype=np.float64)
+    ys = np.linspace(1.0, 0.0, n_offsets)
+    start = int(round(start_frac * (n_offsets - 1)))
+    end = min(start + int(round(length)) - 1, n_offsets - 1)
+    below = ((xs[:start] >= 0) & (xs[:start] <= 1))[::-1].cumprod()[::-1].astype(bool)  # kept while inside
+    xs[:start][~below] = -2
+    xs[end + 1:] = -2
+    keep = xs >= 0
+    return np.stack([xs[keep], ys[keep]], axis=1)
+
+
+@pytest.mark.parametrize("case", ["bottom", "side_extended", "leaves_right"])
+def test_decoding_keeps_the_points_the_official_formula_keeps(case):
+    """A constructed output with one confident proposal: our lane's points are the official formula's (as fractions
+    of the image), except the official keeps the points right of the image, which we drop."""
+    model = _ours("model.head.anchor_frequency_file=null", "model.head.anchor_selection=all",
+                  "model.head.topk_anchors=null")
+    head = model.head
+    anchors = head.anchor_xs.numpy().astype(np.float64)
+    starts = head.anchor_starts.numpy()
+    side = {"bottom": np.nonzero(starts == 0)[0][50], "side_extended": np.nonzero(starts == 20)[0][3],
+            "leaves_right": np.nonzero(starts == 0)[0][-8]}[case]
+    offsets = {"bottom": np.linspace(-6.0, 9.0, S), "side_extended": np.full(S, 40.0),  # below its start: inside
+               "leaves_right": np.linspace(0.0, 200.0, S)}[case]
+    n = len(anchors)
+    cls = torch.zeros(1, n, 2)
+    cls[0, :, 0] = 10.0  # every anchor background ...
+    cls[0, side] = torch.tensor([-10.0, 10.0])  # ... but one
+    xs = torch.tensor(anchors, dtype=torch.float32)[None].clone()
+    xs[0, side] += torch.tensor(offsets, dtype=torch.float32)
+    raw = {"cls_logits": cls, "length": torch.full((1, n), 40.0), "xs": xs}
+    (lane,) = head.decode(raw, conf_threshold=0.5, nms_threshold=45.0, nms_topk=5)[0]
+    ours = np.stack([lane[:, 0] / (W - 1), lane[:, 1] / (H - 1)], axis=1)  # fractions of the image, 1 = bottom
+    official = official_decode((anchors[side] + offsets) / (W - 1), starts[side] / (S - 1), 40.0)
+    official_inside = official[official[:, 0] <= 1.0]
+    rows = np.isin(np.round(ours[:, 1], 9), np.round(official_inside[:, 1], 9))
+    np.testing.assert_allclose(ours[rows], official_inside, atol=1e-6)  # the same points at the same rows
+    # plus, where the lane crosses the image's border between two rows, the crossing point on it
+    assert (~rows).sum() <= 1 and np.all(np.isclose(ours[~rows, 0], 0.0) | np.isclose(ours[~rows, 0], 1.0))
+    if case == "leaves_right":
+        assert len(official) > len(official_inside)  # the official keeps points past the right edge
+    if case == "side_extended":
+        assert official[0, 1] > 1.0 - starts[side] / (S - 1) + 0.01  # extended below its start while inside
+
+
+def test_a_laneatt_file_with_a_ufld_config_is_refused_naming_the_laneatt_config(release):
+    _, path, _ = release
+    cfg = composed(["task=evaluate", "experiment=official_ufld_tusimple", "data.root=/unused", f"ckpt_path={path}"])
+    from lanevil_train.tasks.builders import checkpoint_model
+
+    with pytest.raises(CheckpointError, match="an official LaneATT .* this run builds model=ufld; run it with "
+                                              "experiment=official_laneatt_<tusimple|culane> backbone=resnet18"):
+        checkpoint_model(cfg)
