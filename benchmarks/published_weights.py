@@ -1,0 +1,139 @@
+"""The published weights under illusions: every official checkpoint in a folder, evaluated on its dataset's clean
+test split (beside the accuracy its repository reports) and on the simulated illusion suite, then the paper's main
+table of those runs beside the paper's numbers.
+
+Usage (a GPU machine with the datasets and the downloaded files):
+
+    python benchmarks/published_weights.py --weights /weights --tusimple /data/tusimple --culane /data/culane \
+        --laneatt-data /src/LaneATT/data --out /runs/published
+
+Each file in --weights (``*.pth``, ``*.pt``, searched recursively) is recognised from its keys and shapes (as
+``task=evaluate`` does it); the dataset of a LaneATT file, which its shapes cannot tell, from its path
+(``laneatt_r18_tusimple/models/model_0100.pt``). Then, per file, two runs of the project's own commands:
+
+    python -m lanevil_train task=evaluate experiment=official_<family>_<dataset> backbone=<backbone>
+        ckpt_path=<file> data.root=<root> task.predictions=true task.out_dir=<out>/<label>/clean
+    ... the same with task.suite=synthetic task.out_dir=<out>/<label>/suite
+
+(``--dry-run`` prints them), ``task=report`` over the suites and benchmarks/paper_main_table.py on that report.
+A run already finished is skipped (evaluation resumes from its per_image.jsonl). The acceptance check is the clean
+column: each file's score on its own test split must equal the "published" one within 0.1 point.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import torch
+
+from lanevil_train.models.official import official_state_dict, recognise
+
+# What each repository's README reports for its files: (family, dataset, backbone) -> (score, value)
+PUBLISHED = {
+    ("ufld", "tusimple", "resnet18"): ("Accuracy", 95.82),  # cfzd/Ultra-Fast-Lane-Detection README, "This repo"
+    ("ufld", "culane", "resnet18"): ("CULane_F1", 69.7),
+    ("laneatt", "tusimple", "resnet18"): ("Accuracy", 95.57),  # lucastabelini/LaneATT README
+    ("laneatt", "tusimple", "resnet34"): ("Accuracy", 95.63),
+    ("laneatt", "culane", "resnet18"): ("CULane_F1", 75.13),
+    ("laneatt", "culane", "resnet34"): ("CULane_F1", 76.68),
+}
+DATASETS = ("tusimple", "culane")
+
+
+def describe_file(path: Path) -> dict | None:
+    """{family, dataset, backbone, config} of an official file, or None if it is not one this project reads."""
+    state = official_state_dict(torch.load(path, map_location="cpu", weights_only=True))
+    found = recognise(state) if state is not None else None
+    if found is None:
+        return None
+    release, recognised = found
+    words = dict(item.split("=", 1) for item in recognised.config.split() if "=" in item)
+    experiment = words.get("experiment", "")
+    dataset = experiment.rsplit("_", 1)[-1]
+    if dataset not in DATASETS:  # a LaneATT file: the dataset is in its path
+        dataset = next((d for d in DATASETS if d in str(path).lower()), None)
+        if dataset is None:
+            raise SystemExit(f"{path}: an official {release.name} file; name its dataset in its path (tusimple or "
+                             f"culane), as the repository's experiment folders do")
+    return {"family": release.family, "dataset": dataset, "backbone": words.get("backbone", "resnet18"),
+            "experiment": f"official_{release.family}_{dataset}"}
+
+
+def commands(path: Path, info: dict, roots: dict, laneatt_data: Path | None, out: Path) -> dict[str, list[str]]:
+    """The clean and suite evaluations of one file."""
+    label = f"{info['family']}-{info['backbone']}-{info['dataset']}"
+    base = [sys.executable, "-m", "lanevil_train", "task=evaluate", f"experiment={info['experiment']}",
+            f"backbone={info['backbone']}", f"ckpt_path={path}", f"data.root={roots[info['dataset']]}",
+            f"task.label={label}", "progress=plain"]
+    if info["family"] == "laneatt":
+        if laneatt_data is None:
+            raise SystemExit(f"{path}: a LaneATT file needs --laneatt-data (the repository's data/ folder, with the "
+                             f"anchor frequency files)")
+        base.append(f"model.head.anchor_frequency_file={laneatt_data / (info['dataset'] + '_anchors_freq.pt')}")
+    return {"clean": [*base, "task.predictions=true", f"hydra.run.dir={out / label / 'clean'}"],
+            "suite": [*base, "task.suite=synthetic", f"hydra.run.dir={out / label / 'suite'}"]}
+
+
+def clean_score(run: Path, score: str) -> float:
+    row = json.loads((run / "test_scores.json").read_text())[0]
+    return float(row[score])
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--weights", type=Path, required=True, help="folder of downloaded official checkpoints")
+    parser.add_argument("--tusimple", type=Path, help="TuSimple root (test_label.json, clips/)")
+    parser.add_argument("--culane", type=Path, help="CULane root (list/test.txt, the driver_* folders)")
+    parser.add_argument("--laneatt-data", type=Path, help="LaneATT's data/ folder (its *_anchors_freq.pt files)")
+    parser.add_argument("--out", type=Path, default=Path("published_runs"))
+    parser.add_argument("--dry-run", action="store_true", help="print the commands, run nothing")
+    args = parser.parse_args(argv)
+
+    roots = {"tusimple": args.tusimple, "culane": args.culane}
+    files = sorted(p for p in args.weights.rglob("*") if p.suffix in (".pth", ".pt") and p.is_file())
+    plan = []
+    for path in files:
+        info = describe_file(path)
+        if info is None:
+            print(f"skipped {path}: not an official checkpoint this project reads")
+            continue
+        if roots[info["dataset"]] is None:
+            print(f"skipped {path}: a {info['dataset']} file and no --{info['dataset']} root")
+            continue
+        plan.append((path, info, commands(path, info, roots, args.laneatt_data, args.out)))
+    if not plan:
+        raise SystemExit(f"{args.weights}: no official checkpoint to evaluate")
+
+    for path, info, runs in plan:
+        for kind, cmd in runs.items():
+            if args.dry_run:
+                print(" ".join(map(str, cmd)))
+                continue
+            run_dir = Path(cmd[-1].split("=", 1)[1])
+            if (run_dir / "test_scores.json").is_file() and kind == "clean":
+                continue
+            subprocess.run(cmd, check=True)
+    if args.dry_run:
+        return 0
+
+    print("\n| file | dataset | score | ours | published | difference |\n|---|---|---|---|---|---|")
+    for path, info, runs in plan:
+        score, published = PUBLISHED.get((info["family"], info["dataset"], info["backbone"]), ("Accuracy", None))
+        ours = clean_score(Path(runs["clean"][-1].split("=", 1)[1]), score)
+        difference = "" if published is None else f"{ours - published:+.2f}"
+        print(f"| {path.name} | {info['dataset']} | {score} | {ours:.2f} | {published or '-'} | {difference} |")
+
+    suites = [str(Path(runs["suite"][-1].split("=", 1)[1])) for _, _, runs in plan]
+    report = args.out / "report"
+    subprocess.run([sys.executable, "-m", "lanevil_train", "task=report", f"task.runs=[{','.join(suites)}]",
+                    f"hydra.run.dir={report}"], check=True)
+    subprocess.run([sys.executable, str(Path(__file__).with_name("paper_main_table.py")), str(report)], check=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,45 @@
+"""benchmarks/published_weights.py: each official file in a folder recognised and given the project's own evaluation
+commands for its release (here --dry-run, on files with the official keys and shapes and no real weights)."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import torch
+
+SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "published_weights.py"
+_spec = importlib.util.spec_from_file_location("published_weights", SCRIPT)
+script = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(script)
+
+
+def _resnet18_keys(prefix: str, stages: list[str]) -> dict:
+    return {f"{prefix}{stage}.{block}.conv1.weight": torch.zeros(1) for stage in stages for block in (0, 1)}
+
+
+def test_each_file_gets_its_releases_clean_and_suite_commands(tmp_path, capsys):
+    weights = tmp_path / "weights"
+    (weights / "laneatt_r18_culane" / "models").mkdir(parents=True)
+    ufld = {"model.conv1.weight": torch.zeros(1), "pool.weight": torch.zeros(1), "cls.0.weight": torch.zeros(1),
+            "cls.2.weight": torch.zeros(101 * 56 * 4, 1),
+            **_resnet18_keys("model.", ["layer1", "layer2", "layer3", "layer4"])}
+    torch.save({"model": ufld}, weights / "tusimple_18.pth")
+    laneatt = {"feature_extractor.0.weight": torch.zeros(1), "conv1.weight": torch.zeros(64, 1),
+               "attention_layer.weight": torch.zeros(999, 64 * 11), "cls_layer.weight": torch.zeros(1),
+               **_resnet18_keys("feature_extractor.", ["4", "5", "6", "7"])}
+    torch.save({"epoch": 100, "model": laneatt}, weights / "laneatt_r18_culane" / "models" / "model_0100.pt")
+    torch.save({"net": {"x": torch.zeros(1)}}, weights / "other.pth")
+
+    script.main(["--weights", str(weights), "--tusimple", "/data/tusimple", "--culane", "/data/culane",
+                 "--laneatt-data", "/src/LaneATT/data", "--out", str(tmp_path / "runs"), "--dry-run"])
+    lines = capsys.readouterr().out.splitlines()
+    assert any(line.startswith("skipped") and "other.pth" in line for line in lines)
+    runs = [line for line in lines if "-m lanevil_train" in line]
+    assert len(runs) == 4  # clean and suite of each file
+    laneatt_clean, laneatt_suite, ufld_clean, ufld_suite = runs
+    assert "experiment=official_ufld_tusimple backbone=resnet18" in ufld_clean
+    assert "data.root=/data/tusimple" in ufld_clean and "task.predictions=true" in ufld_clean
+    assert "task.suite=synthetic" in ufld_suite
+    assert "experiment=official_laneatt_culane backbone=resnet18" in laneatt_clean
+    assert "model.head.anchor_frequency_file=/src/LaneATT/data/culane_anchors_freq.pt" in laneatt_suite
