@@ -40,19 +40,29 @@ PUBLISHED = {
     ("laneatt", "tusimple", "resnet34"): ("Accuracy", 95.63),
     ("laneatt", "culane", "resnet18"): ("CULane_F1", 75.13),
     ("laneatt", "culane", "resnet34"): ("CULane_F1", 76.68),
+    ("scnn", "tusimple", "vgg16_bn"): ("Accuracy", 95.17),  # pytorch-auto-drive docs/MODEL_ZOO.md, "best" (the file)
+    ("scnn", "culane", "vgg16_bn"): ("CULane_F1", 74.29),
 }
 DATASETS = ("tusimple", "culane")
 
 
 def describe_file(path: Path) -> dict | None:
-    """{family, dataset, backbone, config} of an official file, or None if it is not one this project reads."""
+    """{family, dataset, backbone, config} of an official file; {"skip": why} for an official file this benchmark
+    does not score (a network this project cannot compute, a setting of no published release or dataset here); None
+    if it is not an official file this project reads."""
     state = official_state_dict(torch.load(path, map_location="cpu", weights_only=True))
     found = recognise(state) if state is not None else None
     if found is None:
         return None
     release, recognised = found
+    if recognised.unsupported:
+        return {"skip": f"an official {release.name} file ({recognised.what}) that this project cannot load: "
+                        f"{recognised.unsupported}"}
     words = dict(item.split("=", 1) for item in recognised.config.split() if "=" in item)
     experiment = words.get("experiment", "")
+    if not experiment or any(key.startswith("data.") for key in words):
+        return {"skip": f"an official {release.name} file ({recognised.what}) of no dataset this benchmark scores "
+                        f"(its settings: {recognised.config})"}
     dataset = experiment.rsplit("_", 1)[-1]
     if dataset not in DATASETS:  # a LaneATT file: the dataset is in its path
         dataset = next((d for d in DATASETS if d in str(path).lower()), None)
@@ -100,6 +110,9 @@ def main(argv: list[str] | None = None) -> int:
         info = describe_file(path)
         if info is None:
             print(f"skipped {path}: not an official checkpoint this project reads")
+            continue
+        if "skip" in info:
+            print(f"skipped {path}: {info['skip']}")
             continue
         if roots[info["dataset"]] is None:
             print(f"skipped {path}: a {info['dataset']} file and no --{info['dataset']} root")

@@ -6,7 +6,9 @@ never pickled code), its weights are found in the repository's layout (``{"model
 state dict; ``module.`` prefixes of DataParallel dropped), its release recognised from its keys and shapes by the
 families' ``official.py`` modules (``RELEASES``), converted to this project's names and loaded strictly into the
 network the run's config builds (``experiment=official_<family>_<dataset>``). A file of another family or release
-is refused naming what it is, the first weight that does not fit and the config that would.
+is refused naming what it is, the first weight that does not fit and the config that would; a file of a release
+whose network no config of this project computes (e.g. pytorch-auto-drive's SCNN on a ResNet) is refused saying
+why.
 
 A family supports its published weights with one module, ``models/<family>/official.py``, holding a ``RELEASE``
 (``models/release.py``: its model name, how to recognise and convert a file, its optional training-only parts),
@@ -22,6 +24,7 @@ import torch
 from lanevil_train.checkpoints import CheckpointError, fit_weights, load_checkpoint_file, load_weights
 from lanevil_train.models.laneatt.official import RELEASE as LANEATT
 from lanevil_train.models.release import Recognised, Release
+from lanevil_train.models.scnn.official import RELEASE as SCNN
 from lanevil_train.models.ufld.official import RELEASE as UFLD
 
 __all__ = ["Recognised", "Release", "load_detector_weights", "load_official", "official_state_dict", "recognise"]
@@ -31,7 +34,7 @@ DDP_PREFIX = "module."
 
 
 def _releases() -> list[Release]:
-    return [LANEATT, UFLD]
+    return [LANEATT, SCNN, UFLD]
 
 
 def is_ours(obj: object) -> bool:
@@ -73,6 +76,9 @@ def load_official(model, state: dict, where: str) -> str:
         raise CheckpointError(f"{where}: neither a checkpoint of this project (no 'state_dict') nor an official one "
                               f"of a release it reads ({known}); its first weight is {_first_weight(state)}")
     release, recognised = found
+    if recognised.unsupported:
+        raise CheckpointError(f"{where}: an official {release.name} checkpoint ({recognised.what}) that this project "
+                              f"cannot load: {recognised.unsupported}")
     spec = getattr(model, "build_config", None) or {}
     family = str(spec.get("model", {}).get("name", ""))
     if family != release.family:

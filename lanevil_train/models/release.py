@@ -10,10 +10,13 @@ from typing import Callable
 @dataclass(frozen=True)
 class Recognised:
     """What a file is: its release (e.g. "the TuSimple release, ResNet-18: 100 cells, 56 rows, 4 lanes") and the
-    command-line settings that build its network (e.g. "experiment=official_ufld_tusimple backbone=resnet18")."""
+    command-line settings that build its network (e.g. "experiment=official_ufld_tusimple backbone=resnet18"), or
+    why no network of this project computes it."""
 
     what: str
     config: str
+    # why this project cannot load it at all (e.g. a release of another network than this project's), or ""
+    unsupported: str = ""
 
 
 @dataclass(frozen=True)

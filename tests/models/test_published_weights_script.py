@@ -43,3 +43,31 @@ def test_each_file_gets_its_releases_clean_and_suite_commands(tmp_path, capsys):
     assert "task.suite=synthetic" in ufld_suite
     assert "experiment=official_laneatt_culane backbone=resnet18" in laneatt_clean
     assert "model.head.anchor_frequency_file=/src/LaneATT/data/culane_anchors_freq.pt" in laneatt_suite
+
+
+def _scnn_vgg(classes: int, exist_inputs: int) -> dict:
+    """pytorch-auto-drive's DeepLabV1 SCNN keys, with the two shapes that tell its release."""
+    return {"encoder.net.0.weight": torch.zeros(1), "fc67.0.weight": torch.zeros(1), "scnn.conv_d.weight":
+            torch.zeros(1), "fc8.1.weight": torch.zeros(classes, 128, 1, 1),
+            "lane_classifier.linear1.weight": torch.zeros(128, exist_inputs)}
+
+
+def test_scnn_files_get_their_commands_and_the_others_are_skipped_saying_why(tmp_path, capsys):
+    weights = tmp_path / "weights"
+    weights.mkdir()
+    torch.save({"model": _scnn_vgg(7, 6160), "optimizer": None, "lr_scheduler": None}, weights / "vgg16_tusimple.pt")
+    torch.save({"model": _scnn_vgg(5, 4400)}, weights / "vgg16_llamas.pt")
+    resnet = {"backbone.conv1.weight": torch.zeros(1), "channel_reducer.conv1.weight": torch.zeros(1),
+              "scnn_layer.conv_d.weight": torch.zeros(1), "classifier.0.conv.weight": torch.zeros(5, 128, 3, 3),
+              **_resnet18_keys("backbone.", ["layer1", "layer2", "layer3", "layer4"])}
+    torch.save({"model": resnet}, weights / "resnet18_culane.pt")
+
+    script.main(["--weights", str(weights), "--tusimple", "/data/tusimple", "--culane", "/data/culane",
+                 "--out", str(tmp_path / "runs"), "--dry-run"])
+    lines = capsys.readouterr().out.splitlines()
+    runs = [line for line in lines if "-m lanevil_train" in line]
+    assert len(runs) == 2 and "experiment=official_scnn_tusimple backbone=vgg16_bn" in runs[0]
+    skipped = {line.split(":", 1)[0].rsplit("/", 1)[-1]: line for line in lines if line.startswith("skipped")}
+    assert "that this project cannot load: its network is not this project's SCNN" in skipped["resnet18_culane.pt"]
+    assert "the llamas release" in skipped["vgg16_llamas.pt"] and "no dataset this benchmark scores" in \
+        skipped["vgg16_llamas.pt"]

@@ -39,7 +39,7 @@ from lanevil_train.models.scnn.codec import (
     encode_lanes,
     lane_points,
 )
-from lanevil_train.rules import check_settings, integer, number, one_of
+from lanevil_train.rules import boolean, check_settings, integer, number, one_of
 
 
 class SpatialMessagePassing(nn.Module):
@@ -87,7 +87,9 @@ class SCNNHead(LaneHead):
     Reads the last feature map it is given (stride 8 in the paper). ``hidden_channels`` is the dilated 3x3
     convolution's width (1024 in the paper), ``mp_channels`` the message-passing width (128), ``mp_kernel``
     its kernel width (9). ``lane_width`` px at ``reference_width`` is the drawn label width (CULane: 16 px
-    at 1640); ``slot_assignment`` "ego" or "packed" (see models/scnn/codec.py)."""
+    at 1640); ``slot_assignment`` "ego" or "packed" (see models/scnn/codec.py). ``align_corners`` is the bilinear
+    upsampling's to the input size: false by default, true for pytorch-auto-drive's published weights (its
+    inference upsamples so, utils/lane_det_utils.py l. 100)."""
 
     # The constructor's parameters with a range, and what a good value of each is: checked by the constructor,
     # and by the config check under model.head.* before any work (one place to say it).
@@ -104,6 +106,7 @@ class SCNNHead(LaneHead):
         "lane_width": number(0, low_open=True),
         "reference_width": number(0, low_open=True),
         "slot_assignment": one_of(*SLOT_ASSIGNMENTS),
+        "align_corners": boolean(),
     }
 
     def __init__(
@@ -123,6 +126,7 @@ class SCNNHead(LaneHead):
         lane_width: float = 16.0,
         reference_width: float = 1640.0,
         slot_assignment: str = "ego",
+        align_corners: bool = False,
     ) -> None:
         check_settings(self.SETTINGS, locals(), "model.head")
         super().__init__(in_channels, in_strides, image_size)
@@ -141,6 +145,7 @@ class SCNNHead(LaneHead):
         self.background_weight = float(background_weight)
         self.exist_loss_weight = float(exist_loss_weight)
         self.slot_assignment = slot_assignment
+        self.align_corners = bool(align_corners)
         self.line_width = draw_width(lane_width, reference_width, w)  # drawn label width, input px
 
         self.reduce = nn.Sequential(
@@ -174,7 +179,8 @@ class SCNNHead(LaneHead):
         exist_logits = self.exist_fc(pooled.flatten(1))
         s = self.feature_stride
         h, w = self.image_size
-        seg = F.interpolate(logits, size=(hf * s, wf * s), mode="bilinear", align_corners=False)[:, :, :h, :w]
+        seg = F.interpolate(logits, size=(hf * s, wf * s), mode="bilinear",
+                            align_corners=self.align_corners)[:, :, :h, :w]
         return {"seg": seg, "exist_logits": exist_logits, "exist": torch.sigmoid(exist_logits)}
 
     # ------------------------------------------------------------------ targets
