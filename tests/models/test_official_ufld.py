@@ -194,3 +194,26 @@ def test_task_evaluate_scores_an_official_file_on_a_culane_folder(culane_file, t
     assert (run_dir / "test_scores.json").is_file()
     listed = (run_dir / "predictions" / "culane" / "list.txt").read_text().split()
     assert listed == ["/" + name for name in names]
+
+
+def test_task_train_starts_from_an_official_file_with_init_from(culane_file, tmp_path, caplog):
+    """Fine-tuning a published model (the paper's MIDA use): `task=train task.init_from=culane_18.pth` converts the
+    file (its log line), then trains from it (one step here, on a tiny CULane folder)."""
+    import logging
+
+    from lanevil_train.data.formats import write_culane
+    from tests.tasks.cli_helpers import run_in_process, write_photo_dataset
+
+    _, path = culane_file
+    root = tmp_path / "culane"
+    names = [f"driver_00_01frame/05151640_0419.MP4/{i:05d}.jpg" for i in range(2)]
+    records = write_photo_dataset(root, names)
+    for split in ("train_gt", "val", "test"):
+        write_culane(records, root, root / "list" / f"{split}.txt")
+    with caplog.at_level(logging.INFO):
+        run_in_process(["experiment=official_ufld_culane", f"data.root={root}", f"task.init_from={path}",
+                        "data.val.list_file=list/val.txt", "trainer=cpu", "trainer.fast_dev_run=true",
+                        "task.test_after_fit=false", "progress=none", "data.num_workers=0", "data.batch_size=2"],
+                       tmp_path / "run")
+    assert f"task.init_from={path}: official UFLD v1 (cfzd/Ultra-Fast-Lane-Detection) checkpoint (the culane " \
+           f"release, resnet18" in caplog.text
