@@ -9,8 +9,8 @@ network the run's config builds (``experiment=official_<family>_<dataset>``). A 
 is refused naming what it is, the first weight that does not fit and the config that would.
 
 A family supports its published weights with one module, ``models/<family>/official.py``, holding a ``RELEASE``
-(``models/release.py``: its model name, how to recognise and convert a file, its optional training-only parts),
-listed in ``_releases`` below.
+(``models/release.py``: its model name, how to recognise, check and convert a file, its optional training-only
+parts), listed in ``_releases`` below.
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ from pathlib import Path
 import torch
 
 from lanevil_train.checkpoints import CheckpointError, fit_weights, load_checkpoint_file, load_weights
+from lanevil_train.models.clrnet.official import RELEASE as CLRNET
 from lanevil_train.models.laneatt.official import RELEASE as LANEATT
 from lanevil_train.models.release import Recognised, Release
 from lanevil_train.models.ufld.official import RELEASE as UFLD
@@ -31,7 +32,7 @@ DDP_PREFIX = "module."
 
 
 def _releases() -> list[Release]:
-    return [LANEATT, UFLD]
+    return [LANEATT, UFLD, CLRNET]
 
 
 def is_ours(obj: object) -> bool:
@@ -78,7 +79,7 @@ def load_official(model, state: dict, where: str) -> str:
     if family != release.family:
         raise CheckpointError(f"{where}: an official {release.name} checkpoint ({recognised.what}), and this run "
                               f"builds model={family}; run it with {recognised.config}")
-    needed = release.missing_setting(model)
+    needed = release.missing_setting(model) or release.check(model, state)
     if needed:
         raise CheckpointError(f"{where}: an official {release.name} checkpoint ({recognised.what}); {needed}")
     converted = _fit_optional(release.convert(state), model.state_dict(), release.optional)
