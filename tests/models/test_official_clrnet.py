@@ -59,6 +59,98 @@ class Backbone(nn.Module):
         return out
 
 
+def _bn_relu_conv_level(cin, cout, stride):
+    return nn.Sequential(nn.Conv2d(cin, cout, 3, stride=stride, padding=1, bias=False), nn.BatchNorm2d(cout),
+                         nn.ReLU())
+
+
+class DLABlock(nn.Module):
+    """dla34.py's BasicBlock: two 3x3 convs with BN, the residual given by the tree (or its input)."""
+
+    def __init__(self, cin, cout, stride=1):
+        super().__init__()
+        self.conv1 = nn.Conv2d(cin, cout, 3, stride=stride, padding=1, bias=False)
+        self.bn1 = nn.BatchNorm2d(cout)
+        self.conv2 = nn.Conv2d(cout, cout, 3, padding=1, bias=False)
+        self.bn2 = nn.BatchNorm2d(cout)
+
+    def forward(self, x, residual=None):
+        residual = x if residual is None else residual
+        return F.relu(self.bn2(self.conv2(F.relu(self.bn1(self.conv1(x))))) + residual)
+
+
+class DLARoot(nn.Module):
+    def __init__(self, cin, cout):
+        super().__init__()
+        self.conv = nn.Conv2d(cin, cout, 1, bias=False)
+        self.bn = nn.BatchNorm2d(cout)
+
+    def forward(self, *children):
+        return F.relu(self.bn(self.conv(torch.cat(children, 1))))
+
+
+class DLATree(nn.Module):
+    """dla34.py's Tree: a `project` whenever the channels change, used only by a one-level tree."""
+
+    def __init__(self, levels, cin, cout, stride=1, level_root=False, root_dim=0):
+        super().__init__()
+        root_dim = (root_dim or 2 * cout) + (cin if level_root else 0)
+        self.levels, self.level_root = levels, level_root
+        if levels == 1:
+            self.tree1, self.tree2 = DLABlock(cin, cout, stride), DLABlock(cout, cout)
+            self.root = DLARoot(root_dim, cout)
+        else:
+            self.tree1 = DLATree(levels - 1, cin, cout, stride)
+            self.tree2 = DLATree(levels - 1, cout, cout, root_dim=root_dim + cout)
+        self.downsample = nn.MaxPool2d(stride, stride) if stride > 1 else None
+        self.project = nn.Sequential(nn.Conv2d(cin, cout, 1, bias=False), nn.BatchNorm2d(cout)) if cin != cout \
+            else None
+
+    def forward(self, x, residual=None, children=None):
+        children = [] if children is None else children
+        bottom = self.downsample(x) if self.downsample is not None else x
+        residual = self.project(bottom) if self.project is not None else bottom
+        if self.level_root:
+            children.append(bottom)
+        if self.levels == 1:
+            x1 = self.tree1(x, residual)
+            return self.root(self.tree2(x1), x1, *children)
+        x1 = self.tree1(x)  # a tree computes its own residual: the one above goes unused
+        children.append(x1)
+        return self.tree2(x1, children=children)
+
+
+class DLA34(nn.Module):
+    """dla34.py's DLA with levels [1, 1, 1, 2, 2, 1] and channels [16, 32, 64, 128, 256, 512]: levels 2-5's maps."""
+
+    def __init__(self):
+        super().__init__()
+        self.base_layer = nn.Sequential(nn.Conv2d(3, 16, 7, padding=3, bias=False), nn.BatchNorm2d(16), nn.ReLU())
+        self.level0 = _bn_relu_conv_level(16, 16, 1)
+        self.level1 = _bn_relu_conv_level(16, 32, 2)
+        self.level2 = DLATree(1, 32, 64, 2)
+        self.level3 = DLATree(2, 64, 128, 2, level_root=True)
+        self.level4 = DLATree(2, 128, 256, 2, level_root=True)
+        self.level5 = DLATree(1, 256, 512, 2, level_root=True)
+
+    def forward(self, x):
+        x = self.level1(self.level0(self.base_layer(x)))
+        out = []
+        for level in (self.level2, self.level3, self.level4, self.level5):
+            x = level(x)
+            out.append(x)
+        return out
+
+
+class DLAWrapper(nn.Module):
+    def __init__(self):
+        super().__init__()
+        self.model = DLA34()
+
+    def forward(self, x):
+        return self.model(x)
+
+
 class Neck(nn.Module):
     """The FPN without norm or activation over the last three maps (the first of four dropped)."""
 
@@ -178,9 +270,9 @@ class Head(nn.Module):
 
 
 class OfficialCLRNet(nn.Module):
-    def __init__(self, classes=5, depth=18):
+    def __init__(self, classes=5, backbone="resnet18"):
         super().__init__()
-        self.backbone = Backbone(depth)
+        self.backbone = DLAWrapper() if backbone == "dla34" else Backbone(int(backbone[len("resnet"):]))
         self.neck = Neck()
         self.heads = Head(classes)
 
@@ -363,3 +455,22 @@ def test_the_official_rows_hold_for_targets_priors_and_decoding():
     (decoded,) = head.decode({"cls_logits": cls, "lines": lines, "xs": xs_raw})[0]
     np.testing.assert_allclose(decoded[:, 1], rows, atol=1e-4)  # y from H (the official's bottom row) to 0
     np.testing.assert_allclose(decoded[:, 0], 300.0 + (H - rows) / 2, atol=1e-3)
+
+
+def test_a_dla34_file_loads_into_timms_dla34_its_unused_projections_dropped(tmp_path):
+    """The CULane DLA-34 release: timm's dla34 keeps the official names and computes the same maps; the projections
+    the official builds in its two-level trees (level3, level4) and never uses are not in it."""
+    torch.manual_seed(2)
+    official = randomised(OfficialCLRNet(classes=5, backbone="dla34"))
+    assert "backbone.model.level3.project.0.weight" in official.state_dict()
+    path = save_official(official, tmp_path / "culane_dla34.pth")
+    state = official_state_dict(torch.load(path, weights_only=True))
+    assert recognise(state)[1].config == "experiment=official_clrnet_culane backbone=dla34"
+    model = _ours("official_clrnet_culane", "backbone=dla34")
+    assert "backbone.level3.project.0.weight" not in model.state_dict()
+    assert "backbone.level3.tree1.project.0.weight" in model.state_dict()
+    line = load_detector_weights(model, path, "ckpt_path")
+    assert "the culane release (or LLAMAS', of the same shapes), dla34" in line
+    x = torch.rand(1, 3, H, W)
+    with torch.no_grad():
+        assert_official_outputs(model(x), official(x))
