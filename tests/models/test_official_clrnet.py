@@ -474,3 +474,52 @@ def test_a_dla34_file_loads_into_timms_dla34_its_unused_projections_dropped(tmp_
     x = torch.rand(1, 3, H, W)
     with torch.no_grad():
         assert_official_outputs(model(x), official(x))
+
+
+def official_points(pred, ori_h, ori_w, cut):
+    """predictions_to_pred (clr_head.py l. 279-319) for one kept prediction (6 + S values, its length already
+    rounded to rows, l. 477): its points (x, y) in the original image, bottom first, x as its writers scale it
+    (x / (W-1) times ori_img_w: lane.py l. 35-36, tusimple.py l. 67-69)."""
+    xs = pred[6:].astype(np.float64).copy()
+    ys = np.linspace(1.0, 0.0, S)
+    start = min(max(0, int(round(pred[2] * (S - 1)))), S - 1)
+    end = min(start + int(round(pred[5])) - 1, S - 1)
+    below = ((xs[:start] >= 0) & (xs[:start] <= 1))[::-1].cumprod()[::-1].astype(bool)  # extended while inside
+    xs[:start][~below] = -2
+    xs[end + 1:] = -2
+    keep = xs >= 0
+    return np.stack([xs[keep] * ori_w, ys[keep] * (ori_h - cut) + cut], axis=1)
+
+
+@pytest.mark.parametrize("case", ["bottom", "side_extended", "leaves_right"])
+def test_decoding_keeps_the_official_points_at_its_rows(case):
+    """A constructed output with one confident lane, decoded by our detector into the 1640x590 CULane image: the
+    official formula's points at the same rows, x within 2.1 px (ours scale x by ori_w / W, the official by ori_w /
+    (W-1)); the official keeps points right of the image, which we drop (adding the border crossing)."""
+    model = _ours("official_clrnet_culane")
+    ori_h, ori_w, cut = 590, 1640, 270
+    fractions = np.linspace(0.0, 1.0, S)
+    start_y, start_x, theta, rows = {"bottom": (0.0, 0.45, 0.4, 60), "side_extended": (0.3, 0.05, 0.3, 30),
+                                     "leaves_right": (0.0, 0.7, 0.2, 60)}[case]
+    xs = start_x + (fractions - start_y) * H / math.tan(theta * math.pi) / (W - 1)  # the prior line, x / (W-1)
+    xs = xs + 0.01 * np.sin(np.arange(S))  # plus offsets
+    cls = torch.tensor([5.0, -5.0]).repeat(1, STAGES, P, 1)
+    cls[0, -1, 11] = torch.tensor([-5.0, 5.0])
+    lines = torch.zeros(1, STAGES, P, 4)
+    lines[0, -1, 11] = torch.tensor([start_y, start_x, theta, rows / (S - 1)])
+    raw_xs = torch.zeros(1, STAGES, P, S)
+    raw_xs[0, -1, 11] = torch.tensor(xs * (W - 1), dtype=torch.float32)
+    (lane,) = model.decode_lanes({"cls_logits": cls, "lines": lines, "xs": raw_xs}, (H, W), [(ori_h, ori_w)])[0]
+    official = official_points(np.concatenate([[0.0, 0.0, start_y, start_x, theta, rows], xs]), ori_h, ori_w, cut)
+    inside = official[official[:, 0] <= ori_w]
+    same_row = np.isin(np.round(lane[:, 1], 3), np.round(inside[:, 1], 3))
+    assert same_row.sum() == len(inside)  # every official point inside the image at its row ...
+    np.testing.assert_allclose(lane[same_row, 1], inside[:, 1], atol=1e-3)  # both bottom first
+    assert np.abs(lane[same_row, 0] - inside[:, 0]).max() <= 2.1  # ... x within 2.1 px
+    # ... and beside them at most the point where the lane crosses the image's border
+    assert (~same_row).sum() <= 1 and np.all(np.isclose(lane[~same_row, 0], 0.0, atol=1e-6)
+                                             | np.isclose(lane[~same_row, 0], (W - 1) * ori_w / W, atol=1e-3))
+    if case == "side_extended":
+        assert inside[0, 1] > ori_h - start_y * (ori_h - cut) + 1  # extended below its start while inside
+    if case == "leaves_right":
+        assert len(official) > len(inside)  # the official keeps points past the right edge
