@@ -51,8 +51,9 @@ Facts of the official code this conversion rests on (files under ``clrnet/`` unl
   TuSimple 160 of 720 (``clr_resnet18_tusimple.py`` l. 47-51), max_lanes 5 (l. 12), num_classes 6 + 1 (l. 124);
   CULane 270 of 590 (``clr_resnet34_culane.py`` l. 47-51), max_lanes 4 (l. 12), num_classes 4 + 1 (l. 123); LLAMAS
   300 of 717, 4 + 1 classes (``clr_resnet18_llamas.py`` l. 12, 47-51, 123); test conf 0.4 and NMS 50 (TuSimple,
-  CULane; l. 34), LLAMAS 0.45 and 60; ResNet-101's FPN reads [512, 1024, 2048] (``clr_resnet101_*.py`` l. 29).
-  The README publishes ResNet-18/34/101 for CULane and TuSimple, DLA-34 for CULane, ResNet-18 and DLA-34 for LLAMAS.
+  CULane; l. 34), LLAMAS 0.45 and 60 (DLA-34: 50); ResNet-101's FPN reads [512, 1024, 2048]
+  (``clr_resnet101_*.py`` l. 29). The README publishes ResNet-18/34/101 for CULane and TuSimple, DLA-34 for
+  CULane, ResNet-18 and DLA-34 for LLAMAS.
 
 This project's CLRNet keeps the layers under other names (``head.roi_gather.{convs,catconvs}.<i>.{0,1}`` = the
 ConvModules' ``conv``/``bn``, ``head.cls_fc``/``reg_fc`` = ``cls_modules``/``reg_modules``, ``head.cls_layer``/
