@@ -523,3 +523,23 @@ def test_decoding_keeps_the_official_points_at_its_rows(case):
         assert inside[0, 1] > ori_h - start_y * (ori_h - cut) + 1  # extended below its start while inside
     if case == "leaves_right":
         assert len(official) > len(inside)  # the official keeps points past the right edge
+
+
+def test_task_evaluate_scores_an_official_file_on_a_culane_folder(culane, tmp_path):
+    """`python -m lanevil_train task=evaluate experiment=official_clrnet_culane ckpt_path=culane_r18.pth
+    data.root=R`, in this process: the config check passes, the file is converted, the images scored and the
+    prediction files written."""
+    from lanevil_train.data.formats import write_culane
+    from tests.tasks.cli_helpers import run_in_process, write_photo_dataset
+
+    _, path = culane
+    root = tmp_path / "culane"
+    names = [f"driver_00_01frame/05151640_0419.MP4/{i:05d}.jpg" for i in range(2)]
+    write_culane(write_photo_dataset(root, names), root, root / "list" / "test.txt")
+    run_dir = tmp_path / "run"
+    run_in_process(["task=evaluate", "experiment=official_clrnet_culane", f"data.root={root}", f"ckpt_path={path}",
+                    "trainer=cpu", "progress=none", "data.num_workers=0", "data.batch_size=2",
+                    "task.predictions=true"], run_dir)
+    assert (run_dir / "test_scores.json").is_file()
+    listed = (run_dir / "predictions" / "culane" / "list.txt").read_text().split()
+    assert listed == ["/" + name for name in names]
