@@ -8,8 +8,9 @@ Usage (a GPU machine with the datasets and the downloaded files):
         --laneatt-data /src/LaneATT/data --out /runs/published
 
 Each file in --weights (``*.pth``, ``*.pt``, searched recursively) is recognised from its keys and shapes (as
-``task=evaluate`` does it); the dataset of a LaneATT file, which its shapes cannot tell, from its path
-(``laneatt_r18_tusimple/models/model_0100.pt``). Then, per file, two runs of the project's own commands:
+``task=evaluate`` does it); the dataset of a LaneATT file (or a CLRNet file without its segmentation decoder),
+which its shapes cannot tell, from its path (``laneatt_r18_tusimple/models/model_0100.pt``). Then, per file, two
+runs of the project's own commands:
 
     python -m lanevil_train task=evaluate experiment=official_<family>_<dataset> backbone=<backbone>
         ckpt_path=<file> data.root=<root> task.predictions=true task.out_dir=<out>/<label>/clean
@@ -42,6 +43,13 @@ PUBLISHED = {
     ("laneatt", "culane", "resnet34"): ("CULane_F1", 76.68),
     ("scnn", "tusimple", "vgg16_bn"): ("Accuracy", 95.17),  # pytorch-auto-drive docs/MODEL_ZOO.md, "best" (the file)
     ("scnn", "culane", "vgg16_bn"): ("CULane_F1", 74.29),
+    ("clrnet", "tusimple", "resnet18"): ("Accuracy", 96.84),  # Turoad/CLRNet README, "TuSimple" Acc
+    ("clrnet", "tusimple", "resnet34"): ("Accuracy", 96.87),
+    ("clrnet", "tusimple", "resnet101"): ("Accuracy", 96.83),
+    ("clrnet", "culane", "resnet18"): ("CULane_F1", 79.58),  # README, "CULane" F1@50
+    ("clrnet", "culane", "resnet34"): ("CULane_F1", 79.73),
+    ("clrnet", "culane", "resnet101"): ("CULane_F1", 80.13),
+    ("clrnet", "culane", "dla34"): ("CULane_F1", 80.47),
 }
 DATASETS = ("tusimple", "culane")
 

@@ -53,7 +53,9 @@ def stage_strides(name: str, output_stride: int | None = None) -> tuple[int, ...
             strides = timm.create_model(name, features_only=True).feature_info.reduction()
             return tuple(min(s, output_stride or s) for s in strides)
         kwargs = {"output_stride": output_stride} if output_stride else {}
-        return tuple(timm.create_model(name, features_only=True, **kwargs).feature_info.reduction())
+        # every stage, indexed as timm's out_indices are (its default out_indices skip DLA's stride-1 level0)
+        return tuple(stage["reduction"] for stage in timm.create_model(name, features_only=True,
+                                                                       **kwargs).feature_info.info)
 
 
 def indices_for_strides(name: str, strides: Sequence[int], output_stride: int | None = None) -> tuple[int, ...]:

@@ -11,8 +11,8 @@ whose network no config of this project computes (e.g. pytorch-auto-drive's SCNN
 why.
 
 A family supports its published weights with one module, ``models/<family>/official.py``, holding a ``RELEASE``
-(``models/release.py``: its model name, how to recognise and convert a file, its optional training-only parts),
-listed in ``_releases`` below.
+(``models/release.py``: its model name, how to recognise, check and convert a file, its optional training-only
+parts), listed in ``_releases`` below.
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ from pathlib import Path
 import torch
 
 from lanevil_train.checkpoints import CheckpointError, fit_weights, load_checkpoint_file, load_weights
+from lanevil_train.models.clrnet.official import RELEASE as CLRNET
 from lanevil_train.models.laneatt.official import RELEASE as LANEATT
 from lanevil_train.models.release import Recognised, Release
 from lanevil_train.models.scnn.official import RELEASE as SCNN
@@ -34,7 +35,7 @@ DDP_PREFIX = "module."
 
 
 def _releases() -> list[Release]:
-    return [LANEATT, SCNN, UFLD]
+    return [CLRNET, LANEATT, SCNN, UFLD]
 
 
 def is_ours(obj: object) -> bool:
@@ -84,7 +85,7 @@ def load_official(model, state: dict, where: str) -> str:
     if family != release.family:
         raise CheckpointError(f"{where}: an official {release.name} checkpoint ({recognised.what}), and this run "
                               f"builds model={family}; run it with {recognised.config}")
-    needed = release.missing_setting(model)
+    needed = release.missing_setting(model) or release.check(model, state)
     if needed:
         raise CheckpointError(f"{where}: an official {release.name} checkpoint ({recognised.what}); {needed}")
     converted = _fit_optional(release.convert(state), model.state_dict(), release.optional)

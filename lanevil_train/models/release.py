@@ -33,3 +33,6 @@ class Release:
     # what the network needs beyond the file before it can take these weights (e.g. LaneATT's anchors chosen by the
     # repository's frequency file): a problem in words, or None
     missing_setting: Callable[[object], str | None] = lambda model: None
+    # what in the file this network would compute otherwise (e.g. CLRNet's priors, stored as buffers, against the
+    # ones the network derives for its input size): a problem in words, or None; (model, official state dict)
+    check: Callable[[object, dict], str | None] = lambda model, state: None

@@ -33,16 +33,21 @@ def lane_theta(xs_inside: np.ndarray, strip: float) -> float:
     return float(np.mean(thetas)) if thetas else 0.5
 
 
-def encode_lanes(lanes: list[np.ndarray], image_size: tuple[int, int], n_points: int, max_lanes: int) -> np.ndarray:
+def encode_lanes(lanes: list[np.ndarray], image_size: tuple[int, int], n_points: int, max_lanes: int,
+                 row_span: float | None = None) -> np.ndarray:
     """Ground-truth lanes (input pixels) -> float32 (max_lanes, TARGET_META + n_points) rows
     [valid, start_y, start_x, theta, length, xs...]; xs are pixels, UNDEFINED_X above the lane. Lanes with fewer
-    than two rows inside the image are dropped (the official too); more than max_lanes left is an error."""
+    than two rows inside the image are dropped (the official too); more than max_lanes left is an error.
+    `row_span`: the pixels from the bottom row to the top one (default H-1; the official's H, its bottom row one
+    pixel below the image, generate_lane_line.py:21-23)."""
     h, w = image_size
+    span = h - 1 if row_span is None else row_span
     n_strips = n_points - 1
-    strip = (h - 1) / n_strips
+    strip = span / n_strips
     rows = []
     for lane in lanes:
-        enc = encode_lane(np.asarray(lane, dtype=np.float64), image_size, n_points)
+        # LaneATT's encoder puts its rows from y = height - 1 to 0: a height of span + 1 gives ours
+        enc = encode_lane(np.asarray(lane, dtype=np.float64), (span + 1, w), n_points)
         if enc is None or enc[1] < 2:
             continue
         start, length, xs = enc

@@ -11,11 +11,17 @@ every stage's predictions, with a dynamic assignment of predictions to lanes; NM
 The official training's auxiliary segmentation loss is an option (``seg_loss_weight`` > 0; the official
 weight is 1.0): a 1x1 convolution (after dropout 0.1) over the refined levels resized to the finest one and
 concatenated, upsampled to the input, trained by a cross-entropy with the background weighted 0.4 against
-lane masks drawn per lane slot (scnn.codec, as CULane's labels). It runs in training only, so decoding and
-export never see it; with the weight 0 the decoder is not built.
+lane masks drawn per lane slot (scnn.codec, as CULane's labels; ``seg_lanes`` slots, max_lanes unless set: the
+official TuSimple masks have 6 while it keeps 5 lanes, tools/generate_seg_tusimple.py:45-57 and
+configs/clrnet/clr_resnet18_tusimple.py:12, 124). It runs in training only, so decoding and export never see it;
+with the weight 0 the decoder is not built.
 
 Distances the official gives in pixels at its 800 px wide input (the Line IoU radius 15, the NMS threshold 50,
 the start_x loss) are scaled to the input width by W / reference_width.
+
+The S rows lie from the bottom row to y = 0, ``row_span`` pixels: ``last_pixel`` (the default) puts the bottom row
+on the image's last pixel row (y = H-1), ``height`` one pixel below it (y = H), as the official (priors.py), whose
+published weights need it (models/clrnet/official.py).
 """
 
 from __future__ import annotations
@@ -45,7 +51,9 @@ from lanevil_train.models.clrnet.priors import (
 from lanevil_train.models.head import LaneHead
 from lanevil_train.models.scnn.codec import draw_width
 from lanevil_train.models.scnn.codec import encode_lanes as encode_masks
-from lanevil_train.rules import check_settings, integer, number
+from lanevil_train.rules import check_settings, integer, null_or, number, one_of
+
+ROW_SPANS = ("last_pixel", "height")  # the bottom row at y = H-1 (ours) or y = H (the official's)
 
 
 def _conv_bn_relu(c_in: int, c_out: int, kernel, padding) -> nn.Sequential:
@@ -130,6 +138,8 @@ class CLRNetHead(LaneHead):
         "seg_background_weight": number(0, low_open=True),
         "seg_lane_width": number(0, low_open=True),
         "seg_reference_width": number(0, low_open=True),
+        "seg_lanes": null_or(integer(1)),  # null: max_lanes
+        "row_span": one_of(*ROW_SPANS),
     }
 
     def __init__(self, in_channels: list[int], in_strides: list[int], image_size: tuple[int, int],
@@ -138,7 +148,8 @@ class CLRNetHead(LaneHead):
                  iou_radius: float = 15.0, cls_loss_weight: float = 2.0, xyt_loss_weight: float = 0.2,
                  iou_loss_weight: float = 2.0, focal_alpha: float = 0.25, focal_gamma: float = 2.0,
                  seg_loss_weight: float = 0.0, seg_background_weight: float = 0.4, seg_lane_width: float = 16.0,
-                 seg_reference_width: float = 1640.0) -> None:
+                 seg_reference_width: float = 1640.0, seg_lanes: int | None = None,
+                 row_span: str = "last_pixel") -> None:
         check_settings(self.SETTINGS, locals(), "model.head")
         super().__init__(in_channels, in_strides, image_size)
         h, w = self.image_size
@@ -158,7 +169,9 @@ class CLRNetHead(LaneHead):
         self.focal_alpha, self.focal_gamma = focal_alpha, focal_gamma
         self.seg_loss_weight, self.seg_background_weight = float(seg_loss_weight), float(seg_background_weight)
         self.seg_line_width = draw_width(seg_lane_width, seg_reference_width, w)  # drawn mask width, input px
-        self.row_ys = row_ys(h, num_points).double().numpy()
+        self.seg_lanes = max_lanes if seg_lanes is None else int(seg_lanes)  # lane slots of the masks
+        self.row_span = float(h - 1 if row_span == "last_pixel" else h)  # pixels from the bottom row to the top one
+        self.row_ys = row_ys(h, num_points, self.row_span).double().numpy()
 
         self.prior_embeddings = nn.Parameter(init_prior_embeddings(num_priors))  # validates num_priors
         self.register_buffer("fractions", row_fractions(num_points), persistent=False)
@@ -179,7 +192,7 @@ class CLRNetHead(LaneHead):
         self.seg_decoder = None
         if self.seg_loss_weight > 0:
             self.seg_decoder = nn.Sequential(nn.Dropout2d(0.1),
-                                             nn.Conv2d(fc_hidden_dim * refine_layers, max_lanes + 1, 1))
+                                             nn.Conv2d(fc_hidden_dim * refine_layers, self.seg_lanes + 1, 1))
 
     # ------------------------------------------------------------------ forward
     def _pool(self, fmap: torch.Tensor, xs: torch.Tensor) -> torch.Tensor:
@@ -193,7 +206,7 @@ class CLRNetHead(LaneHead):
         b = levels[0].shape[0]
         w = self.image_size[1]
         lines = self.prior_embeddings[None].expand(b, -1, -1)  # (B, P, 3), learnt through stage 0
-        xs = line_xs(lines, self.fractions, self.image_size)
+        xs = line_xs(lines, self.fractions, self.image_size, self.row_span)
         rois, out_cls, out_lines, out_xs = [], [], [], []
         for stage, fmap in enumerate(levels):
             rois.append(self.roi_gather.transform(self._pool(fmap, xs), stage))
@@ -201,7 +214,7 @@ class CLRNetHead(LaneHead):
             cls = self.cls_layer(self.cls_fc(feat))
             reg = self.reg_layer(self.reg_fc(feat))
             refined = lines + reg[..., :3]
-            line = line_xs(refined, self.fractions, self.image_size)
+            line = line_xs(refined, self.fractions, self.image_size, self.row_span)
             out_cls.append(cls)
             out_lines.append(torch.cat([refined, reg[..., 3:4]], dim=-1))
             out_xs.append((line + reg[..., 4:]) * (w - 1))
@@ -213,7 +226,7 @@ class CLRNetHead(LaneHead):
         return out
 
     def _segment(self, levels: list[torch.Tensor]) -> torch.Tensor:
-        """The auxiliary segmentation logits (B, max_lanes + 1, H, W): the levels (coarsest first) resized to the
+        """The auxiliary segmentation logits (B, seg_lanes + 1, H, W): the levels (coarsest first) resized to the
         finest one's size, concatenated in that order, through the decoder, upsampled to the input size."""
         size = levels[-1].shape[-2:]
         stacked = torch.cat([F.interpolate(f, size=size, mode="bilinear", align_corners=False) for f in levels], 1)
@@ -224,9 +237,9 @@ class CLRNetHead(LaneHead):
         """GT lanes (input pixels) -> {"lanes": float32 (max_lanes, 5 + S)} [valid, start_y, start_x, theta,
         length, xs] (codec.py); with the auxiliary segmentation also "seg": uint8 (H, W), 0 background and
         1 + slot on each lane's drawn line (slots as CULane's labels: scnn.codec, "ego")."""
-        out = {"lanes": encode_lanes(lanes, self.image_size, self.n_points, self.max_lanes)}
+        out = {"lanes": encode_lanes(lanes, self.image_size, self.n_points, self.max_lanes, self.row_span)}
         if self.seg_decoder is not None:
-            out["seg"] = encode_masks(lanes, self.image_size, self.max_lanes, self.seg_line_width)["seg"]
+            out["seg"] = encode_masks(lanes, self.image_size, self.seg_lanes, self.seg_line_width)["seg"]
         return out
 
     def loss(self, raw: dict, targets: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:

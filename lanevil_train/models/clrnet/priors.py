@@ -10,8 +10,10 @@ normalised ones:
 - ``theta``: the line's angle to the x axis (y pointing up) in units of pi: 0.5 is vertical, below 0.5 the
   line leans right as it goes up, above 0.5 left.
 
-Where the official uses ``img_h`` for the vertical extent we use H-1 (the pixel distance from the bottom
-to the top row), so a line's x is exact at our row positions; the difference is one pixel in H.
+The rows span ``row_span`` pixels: by default H-1 (the bottom row on the last pixel row, y = H-1), so a line's x
+is exact at our row positions. The official spans ``img_h`` (its bottom row at y = H, one pixel below the image:
+``prior_ys`` x img_h, clr_head.py:136-139 and 245-249; GenerateLaneLine's ``offsets_ys``, generate_lane_line.py:21-23);
+the head's ``row_span: height`` computes that, as the official weights need (models/clrnet/official.py).
 """
 
 from __future__ import annotations
@@ -50,17 +52,20 @@ def row_fractions(n_points: int) -> torch.Tensor:
     return torch.linspace(0.0, 1.0, n_points)
 
 
-def row_ys(height: int, n_points: int) -> torch.Tensor:
-    """y (pixels) of the rows, bottom row (H-1) first, top row (0) last."""
-    return (height - 1) * (1.0 - row_fractions(n_points))
+def row_ys(height: int, n_points: int, row_span: float | None = None) -> torch.Tensor:
+    """y (pixels) of the rows, bottom row (y = row_span, default H-1) first, top row (0) last."""
+    return (height - 1 if row_span is None else row_span) * (1.0 - row_fractions(n_points))
 
 
-def line_xs(lines: torch.Tensor, fractions: torch.Tensor, image_size: tuple[int, int]) -> torch.Tensor:
+def line_xs(lines: torch.Tensor, fractions: torch.Tensor, image_size: tuple[int, int],
+            row_span: float | None = None) -> torch.Tensor:
     """x of each straight line (..., 3) [start_y, start_x, theta] at the rows `fractions` (S,), as a fraction of
-    W-1: shape (..., S). The 1e-5 keeps tan away from 0 at theta = 0 or 1, as the official."""
+    W-1: shape (..., S). `row_span`: the pixels from the bottom row to the top one (default H-1; the official's
+    H). The 1e-5 keeps tan away from 0 at theta = 0 or 1, as the official."""
     h, w = image_size
+    span = h - 1 if row_span is None else row_span
     start_y, start_x, theta = lines[..., 0:1], lines[..., 1:2], lines[..., 2:3]
-    rise = (fractions - start_y) * (h - 1)  # pixels above the start point
+    rise = (fractions - start_y) * span  # pixels above the start point
     return start_x + rise / torch.tan(theta * math.pi + 1e-5) / (w - 1)
 
 
