@@ -8,9 +8,9 @@ Usage (a GPU machine with the datasets and the downloaded files):
         --laneatt-data /src/LaneATT/data --out /runs/published
 
 Each file in --weights (``*.pth``, ``*.pt``, searched recursively) is recognised from its keys and shapes (as
-``task=evaluate`` does it); the dataset of a LaneATT file (or a CLRNet file without its segmentation decoder),
-which its shapes cannot tell, from its path (``laneatt_r18_tusimple/models/model_0100.pt``). Then, per file, two
-runs of the project's own commands:
+``task=evaluate`` does it); the dataset of a file whose shapes cannot tell it (LaneATT, BezierLaneNet, a CLRNet file
+without its segmentation decoder) from its path (``laneatt_r18_tusimple/models/model_0100.pt``,
+``resnet34_bezierlanenet_culane-aug2/model.pt``). Then, per file, two runs of the project's own commands:
 
     python -m lanevil_train task=evaluate experiment=official_<family>_<dataset> backbone=<backbone>
         ckpt_path=<file> data.root=<root> task.predictions=true task.out_dir=<out>/<label>/clean
@@ -50,6 +50,11 @@ PUBLISHED = {
     ("clrnet", "culane", "resnet34"): ("CULane_F1", 79.73),
     ("clrnet", "culane", "resnet101"): ("CULane_F1", 80.13),
     ("clrnet", "culane", "dla34"): ("CULane_F1", 80.47),
+    # pytorch-auto-drive docs/MODEL_ZOO.md l. 133-134, 174-175: "best" (the file)
+    ("bezierlanenet", "tusimple", "resnet18"): ("Accuracy", 95.41),
+    ("bezierlanenet", "tusimple", "resnet34"): ("Accuracy", 95.65),
+    ("bezierlanenet", "culane", "resnet18"): ("CULane_F1", 73.67),
+    ("bezierlanenet", "culane", "resnet34"): ("CULane_F1", 75.57),
 }
 DATASETS = ("tusimple", "culane")
 
@@ -71,9 +76,15 @@ def describe_file(path: Path) -> dict | None:
     if not experiment or any(key.startswith("data.") for key in words):
         return {"skip": f"an official {release.name} file ({recognised.what}) of no dataset this benchmark scores "
                         f"(its settings: {recognised.config})"}
+    if "unpublished setting" in recognised.what:  # its config needs settings beyond the release's experiment
+        return {"skip": f"an official {release.name} file ({recognised.what}) of no published release (its "
+                        f"settings: {recognised.config})"}
     dataset = experiment.rsplit("_", 1)[-1]
-    if dataset not in DATASETS:  # a LaneATT file: the dataset is in its path
+    if dataset not in DATASETS:  # a LaneATT or BezierLaneNet file: the dataset is in its path
         dataset = next((d for d in DATASETS if d in str(path).lower()), None)
+        if dataset is None and "llamas" in str(path).lower():
+            return {"skip": f"an official {release.name} file ({recognised.what}) of LLAMAS (its path says so), a "
+                            f"dataset this benchmark does not score"}
         if dataset is None:
             raise SystemExit(f"{path}: an official {release.name} file; name its dataset in its path (tusimple or "
                              f"culane), as the repository's experiment folders do")

@@ -71,3 +71,42 @@ def test_scnn_files_get_their_commands_and_the_others_are_skipped_saying_why(tmp
     assert "that this project cannot load: its network is not this project's SCNN" in skipped["resnet18_culane.pt"]
     assert "the llamas release" in skipped["vgg16_llamas.pt"] and "no dataset this benchmark scores" in \
         skipped["vgg16_llamas.pt"]
+
+
+def _bezierlanenet(depth_blocks: tuple[int, int, int], head_layers: int = 2) -> dict:
+    """pytorch-auto-drive's BezierLaneNet keys (the ResNet up to layer3), the same shapes for every dataset."""
+    state = {"backbone.conv1.weight": torch.zeros(1), "simple_flip_2d.proj1.0.weight": torch.zeros(1),
+             "simple_flip_2d.proj2_conv.weight": torch.zeros(1), "proj_classification.weight": torch.zeros(1, 256, 1),
+             "proj_regression.weight": torch.zeros(8, 256, 1)}
+    for stage, blocks in zip(("layer1", "layer2", "layer3"), depth_blocks):
+        state.update({f"backbone.{stage}.{b}.conv1.weight": torch.zeros(1) for b in range(blocks)})
+    state.update({f"regression_head.hidden_layers.{i}.weight": torch.zeros(256, 256, 3) for i in range(head_layers)})
+    state.update({f"dilated_blocks.{i}.conv1.0.weight": torch.zeros(64, 256, 1, 1) for i in range(2)})
+    return state
+
+
+def test_bezierlanenet_files_get_the_commands_of_the_dataset_their_path_names(tmp_path, capsys):
+    weights = tmp_path / "weights"
+    for folder, blocks, layers in (("resnet34_bezierlanenet_culane-aug2", (3, 4, 6), 2),
+                                   ("resnet18_bezierlanenet_tusimple-aug2", (2, 2, 2), 2),
+                                   ("resnet18_bezierlanenet-aug2_llamas", (2, 2, 2), 2),
+                                   ("resnet18_bezierlanenet_culane-1layer", (2, 2, 2), 1)):
+        (weights / folder).mkdir(parents=True)
+        torch.save({"model": _bezierlanenet(blocks, layers), "optimizer": None, "lr_scheduler": None},
+                   weights / folder / "model.pt")
+
+    script.main(["--weights", str(weights), "--tusimple", "/data/tusimple", "--culane", "/data/culane",
+                 "--out", str(tmp_path / "runs"), "--dry-run"])
+    lines = capsys.readouterr().out.splitlines()
+    runs = [line for line in lines if "-m lanevil_train" in line]
+    assert len(runs) == 4  # clean and suite of each file, in the order of their paths
+    tusimple_clean, _, culane_clean, _ = runs
+    assert "experiment=official_bezierlanenet_culane backbone=resnet34" in culane_clean
+    assert "data.root=/data/culane" in culane_clean and "task.label=bezierlanenet-resnet34-culane" in culane_clean
+    assert "experiment=official_bezierlanenet_tusimple backbone=resnet18" in tusimple_clean
+    skipped = [line for line in lines if line.startswith("skipped")]
+    assert len(skipped) == 2
+    assert any("aug2_llamas" in line and "of LLAMAS (its path says so)" in line for line in skipped)
+    assert any("culane-1layer" in line and "of no published release" in line
+               and "model.head.projection_layers=1" in line for line in skipped)
+    assert script.PUBLISHED[("bezierlanenet", "culane", "resnet34")] == ("CULane_F1", 75.57)

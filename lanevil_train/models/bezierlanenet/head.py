@@ -15,7 +15,8 @@ position, zero outside, times its mask, then one matrix product with the kernel)
 offsets follow mmcv's layout (channel 2k the y and 2k + 1 the x offset of tap k, row-major taps, then 9 mask
 channels) and start at zero as the official. The segmentation logits are computed only in training mode (so export
 sees the same keys as eval), and its loss is zero when they are absent. A backbone map that is not ``channels``
-wide (ResNet-50's 1024) goes through a 1x1 conv + BN + ReLU first (the official's optional "reducer"). The
+wide (ResNet-50's 1024) goes through a 1x1 conv + BN + ReLU first (the official's optional "reducer"). Under
+mixed precision (autocast) the fusion runs in float32, as the official's (``bezier_lane_net.py`` l. 59-60). The
 official trains the offset convolution (``conv_offset``: offsets and masks) at 0.1x the rate; the family config
 gives it through model.lr_multipliers. The local-maximum window of the matching and the decoding is by default
 (``"auto"``) the official 9 scaled to the query count (loss.scaled_window): 9 would let at most 4
@@ -193,7 +194,12 @@ class BezierLaneNetHead(LaneHead):
         out = {}
         if self.training:  # the auxiliary segmentation: training only
             out["seg_logits"] = self.seg_head(x)
-        x = self.fusion(self.dilated_blocks(x))
+        x = self.dilated_blocks(x)
+        if torch.is_autocast_enabled(x.device.type):  # as the official (mmcv's DCN has no fp16): fp32 under autocast
+            with torch.autocast(x.device.type, enabled=False):
+                x = self.fusion(x.float())
+        else:
+            x = self.fusion(x)
         x = self.projection(x.mean(dim=2))  # the official AvgPool2d over the whole height -> (B, C, Q)
         b, q = x.shape[0], x.shape[-1]
         out["logits"] = self.proj_classification(x)[:, 0]
