@@ -22,6 +22,7 @@ from pathlib import Path
 import torch
 
 from lanevil_train.checkpoints import CheckpointError, fit_weights, load_checkpoint_file, load_weights
+from lanevil_train.models.ganet.official import RELEASE as GANET
 from lanevil_train.models.laneatt.official import RELEASE as LANEATT
 from lanevil_train.models.release import Recognised, Release
 from lanevil_train.models.scnn.official import RELEASE as SCNN
@@ -34,7 +35,7 @@ DDP_PREFIX = "module."
 
 
 def _releases() -> list[Release]:
-    return [LANEATT, SCNN, UFLD]
+    return [LANEATT, SCNN, UFLD, GANET]
 
 
 def is_ours(obj: object) -> bool:
