@@ -8,8 +8,9 @@ Usage (a GPU machine with the datasets and the downloaded files):
         --laneatt-data /src/LaneATT/data --out /runs/published
 
 Each file in --weights (``*.pth``, ``*.pt``, searched recursively) is recognised from its keys and shapes (as
-``task=evaluate`` does it); the dataset of a LaneATT file, which its shapes cannot tell, from its path
-(``laneatt_r18_tusimple/models/model_0100.pt``). Then, per file, two runs of the project's own commands:
+``task=evaluate`` does it); the dataset of a LaneATT or GANet file, which its shapes cannot tell, from its path
+(``laneatt_r18_tusimple/models/model_0100.pt``, ``ganet_culane_resnet18.pth``). Then, per file, two runs of the
+project's own commands:
 
     python -m lanevil_train task=evaluate experiment=official_<family>_<dataset> backbone=<backbone>
         ckpt_path=<file> data.root=<root> task.predictions=true task.out_dir=<out>/<label>/clean
@@ -42,6 +43,13 @@ PUBLISHED = {
     ("laneatt", "culane", "resnet34"): ("CULane_F1", 76.68),
     ("scnn", "tusimple", "vgg16_bn"): ("Accuracy", 95.17),  # pytorch-auto-drive docs/MODEL_ZOO.md, "best" (the file)
     ("scnn", "culane", "vgg16_bn"): ("CULane_F1", 74.29),
+    # Wolfwjs/GANet README "Evaluation" (its TuSimple F1 from the mean FP and FN rates, as ours)
+    ("ganet", "tusimple", "resnet18"): ("F1", 97.71),
+    ("ganet", "tusimple", "resnet34"): ("F1", 97.68),
+    ("ganet", "tusimple", "resnet101"): ("F1", 97.45),
+    ("ganet", "culane", "resnet18"): ("CULane_F1", 78.79),
+    ("ganet", "culane", "resnet34"): ("CULane_F1", 79.39),
+    ("ganet", "culane", "resnet101"): ("CULane_F1", 79.63),
 }
 DATASETS = ("tusimple", "culane")
 
@@ -60,17 +68,18 @@ def describe_file(path: Path) -> dict | None:
                         f"{recognised.unsupported}"}
     words = dict(item.split("=", 1) for item in recognised.config.split() if "=" in item)
     experiment = words.get("experiment", "")
-    if not experiment or any(key.startswith("data.") for key in words):
+    if not experiment or any(key.startswith("data.") for key in words) or \
+            recognised.what.startswith("an unpublished setting"):
         return {"skip": f"an official {release.name} file ({recognised.what}) of no dataset this benchmark scores "
                         f"(its settings: {recognised.config})"}
     dataset = experiment.rsplit("_", 1)[-1]
-    if dataset not in DATASETS:  # a LaneATT file: the dataset is in its path
+    if dataset not in DATASETS:  # a LaneATT or GANet file (official_<...>_<tusimple|culane>): its path names it
         dataset = next((d for d in DATASETS if d in str(path).lower()), None)
         if dataset is None:
             raise SystemExit(f"{path}: an official {release.name} file; name its dataset in its path (tusimple or "
-                             f"culane), as the repository's experiment folders do")
+                             f"culane), as the repository's experiment folders and file names do")
     return {"family": release.family, "dataset": dataset, "backbone": words.get("backbone", "resnet18"),
-            "experiment": f"official_{release.family}_{dataset}"}
+            "experiment": experiment.replace("<tusimple|culane>", dataset)}
 
 
 def commands(path: Path, info: dict, roots: dict, laneatt_data: Path | None, out: Path) -> dict[str, list[str]]:
