@@ -8,9 +8,10 @@ Usage (a GPU machine with the datasets and the downloaded files):
         --laneatt-data /src/LaneATT/data --out /runs/published
 
 Each file in --weights (``*.pth``, ``*.pt``, searched recursively) is recognised from its keys and shapes (as
-``task=evaluate`` does it); the dataset of a file whose shapes cannot tell it (LaneATT, BezierLaneNet, a CLRNet file
-without its segmentation decoder) from its path (``laneatt_r18_tusimple/models/model_0100.pt``,
-``resnet34_bezierlanenet_culane-aug2/model.pt``). Then, per file, two runs of the project's own commands:
+``task=evaluate`` does it); the dataset of a file whose shapes cannot tell it (LaneATT, BezierLaneNet, GANet, a
+CLRNet file without its segmentation decoder) from its path (``laneatt_r18_tusimple/models/model_0100.pt``,
+``resnet34_bezierlanenet_culane-aug2/model.pt``, ``ganet_culane_resnet18.pth``). Then, per file, two runs of the
+project's own commands:
 
     python -m lanevil_train task=evaluate experiment=official_<family>_<dataset> backbone=<backbone>
         ckpt_path=<file> data.root=<root> task.predictions=true task.out_dir=<out>/<label>/clean
@@ -55,6 +56,13 @@ PUBLISHED = {
     ("bezierlanenet", "tusimple", "resnet34"): ("Accuracy", 95.65),
     ("bezierlanenet", "culane", "resnet18"): ("CULane_F1", 73.67),
     ("bezierlanenet", "culane", "resnet34"): ("CULane_F1", 75.57),
+    # Wolfwjs/GANet README "Evaluation" (its TuSimple F1 from the mean FP and FN rates, as ours)
+    ("ganet", "tusimple", "resnet18"): ("F1", 97.71),
+    ("ganet", "tusimple", "resnet34"): ("F1", 97.68),
+    ("ganet", "tusimple", "resnet101"): ("F1", 97.45),
+    ("ganet", "culane", "resnet18"): ("CULane_F1", 78.79),
+    ("ganet", "culane", "resnet34"): ("CULane_F1", 79.39),
+    ("ganet", "culane", "resnet101"): ("CULane_F1", 79.63),
 }
 DATASETS = ("tusimple", "culane")
 
@@ -73,23 +81,24 @@ def describe_file(path: Path) -> dict | None:
                         f"{recognised.unsupported}"}
     words = dict(item.split("=", 1) for item in recognised.config.split() if "=" in item)
     experiment = words.get("experiment", "")
-    if not experiment or any(key.startswith("data.") for key in words):
+    if not experiment or any(key.startswith("data.") for key in words) or \
+            recognised.what.startswith("an unpublished setting"):
         return {"skip": f"an official {release.name} file ({recognised.what}) of no dataset this benchmark scores "
                         f"(its settings: {recognised.config})"}
     if "unpublished setting" in recognised.what:  # its config needs settings beyond the release's experiment
         return {"skip": f"an official {release.name} file ({recognised.what}) of no published release (its "
                         f"settings: {recognised.config})"}
     dataset = experiment.rsplit("_", 1)[-1]
-    if dataset not in DATASETS:  # a LaneATT or BezierLaneNet file: the dataset is in its path
+    if dataset not in DATASETS:  # a LaneATT or GANet file (official_<...>_<tusimple|culane>): its path names it
         dataset = next((d for d in DATASETS if d in str(path).lower()), None)
         if dataset is None and "llamas" in str(path).lower():
             return {"skip": f"an official {release.name} file ({recognised.what}) of LLAMAS (its path says so), a "
                             f"dataset this benchmark does not score"}
         if dataset is None:
             raise SystemExit(f"{path}: an official {release.name} file; name its dataset in its path (tusimple or "
-                             f"culane), as the repository's experiment folders do")
+                             f"culane), as the repository's experiment folders and file names do")
     return {"family": release.family, "dataset": dataset, "backbone": words.get("backbone", "resnet18"),
-            "experiment": f"official_{release.family}_{dataset}"}
+            "experiment": experiment.replace("<tusimple|culane>", dataset)}
 
 
 def commands(path: Path, info: dict, roots: dict, laneatt_data: Path | None, out: Path) -> dict[str, list[str]]:

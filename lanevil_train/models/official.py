@@ -24,6 +24,7 @@ import torch
 from lanevil_train.checkpoints import CheckpointError, fit_weights, load_checkpoint_file, load_weights
 from lanevil_train.models.bezierlanenet.official import RELEASE as BEZIERLANENET
 from lanevil_train.models.clrnet.official import RELEASE as CLRNET
+from lanevil_train.models.ganet.official import RELEASE as GANET
 from lanevil_train.models.laneatt.official import RELEASE as LANEATT
 from lanevil_train.models.release import Recognised, Release
 from lanevil_train.models.scnn.official import RELEASE as SCNN
@@ -36,7 +37,7 @@ DDP_PREFIX = "module."
 
 
 def _releases() -> list[Release]:
-    return [BEZIERLANENET, CLRNET, LANEATT, SCNN, UFLD]
+    return [BEZIERLANENET, CLRNET, GANET, LANEATT, SCNN, UFLD]
 
 
 def is_ours(obj: object) -> bool:

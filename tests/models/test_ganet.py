@@ -348,10 +348,21 @@ def test_constructor_checks_name_the_argument():
                          ({"lfa_gt_points": 5}, "lfa_gt_points"), ({"lfa_gradient_mul": 1.5}, "lfa_gradient_mul"),
                          ({"offset_loss_weight": -1.0}, "offset_loss_weight"), ({"max_lanes": 0}, "max_lanes"),
                          ({"reference_width": 0.0}, "reference_width"), ({"attention_ratio": 32}, "attention_ratio"),
-                         ({"fpn_channels": 15}, "fpn_channels"), ({"attention_layers": 0}, "attention_layers")):
+                         ({"fpn_channels": 15}, "fpn_channels"), ({"attention_layers": 0}, "attention_layers"),
+                         ({"attention_channels": 15}, "attention_channels")):
         with pytest.raises(ValueError, match=name):
             _head((64, 160), **kwargs)
     head = _head((64, 160), top_attention=False, lfa_points=3, lfa_gt_points=3)
     raw = head.eval()([torch.randn(1, 16, 8, 20)])  # a single level will do without the attention
     assert raw["heatmap"].shape == (1, 1, 8, 20)
     assert GANetHead.decode_options() == ("kpt_threshold", "root_threshold", "cluster_threshold", "min_points")
+
+
+def test_the_attention_may_be_wider_than_the_fpn():
+    """attention_channels (the official ResNet-101 release: 256 before a 64-channel FPN): the attended C5 keeps
+    that width and its lateral maps it to fpn_channels."""
+    head = _head((64, 160), attention_channels=32)
+    assert head.neck.attention[1].post[0].out_channels == 32 and head.neck.lateral[2].in_channels == 32
+    assert head.neck.lateral[2].out_channels == 16
+    raw = head.eval()([torch.randn(1, 16, 8, 20), torch.randn(1, 16, 4, 10), torch.randn(1, 16, 2, 5)])
+    assert raw["heatmap"].shape == (1, 1, 8, 20)

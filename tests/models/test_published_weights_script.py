@@ -110,3 +110,46 @@ def test_bezierlanenet_files_get_the_commands_of_the_dataset_their_path_names(tm
     assert any("culane-1layer" in line and "of no published release" in line
                and "model.head.projection_layers=1" in line for line in skipped)
     assert script.PUBLISHED[("bezierlanenet", "culane", "resnet34")] == ("CULane_F1", 75.57)
+
+
+def _ganet(depth: int, levels: int, points: int, attention: int | None) -> dict:
+    """Wolfwjs/GANet's keys (mmcv's 'state_dict'), with the shapes that tell its release: the ResNet's blocks, the
+    FPN levels, the LFA's points and the attention's width."""
+    blocks = {18: (2, 2, 2, 2), 101: (3, 4, 23, 3)}[depth]
+    state = {f"backbone.layer{i + 1}.{b}.conv{'3' if depth > 34 else '1'}.weight": torch.zeros(1)
+             for i, n in enumerate(blocks) for b in range(n)}
+    state.update({"backbone.conv1.weight": torch.zeros(1), "neck.fpn_convs.0.conv.weight": torch.zeros(1),
+                  "neck.def_convs.0.reppoints_cls_conv.weight": torch.zeros(64, 256, 1, points),
+                  "bbox_head.keypts_head.hm.0.weight": torch.zeros(1),
+                  "bbox_head.offset_head.offset_map.0.weight": torch.zeros(1),
+                  "bbox_head.reg_head.offset_map.0.weight": torch.zeros(1),
+                  **{f"neck.lateral_convs.{i}.conv.weight": torch.zeros(64, 1, 1, 1) for i in range(levels)}})
+    if attention:
+        state.update({f"neck.trans_head.attn_layers.{i}.pre_conv.conv.weight": torch.zeros(attention, 1, 3, 3)
+                      for i in range(2)})
+    return state
+
+
+def test_ganet_files_get_their_releases_commands_the_dataset_from_their_names(tmp_path, capsys):
+    weights = tmp_path / "weights"
+    weights.mkdir()
+    meta = {"mmdet_version": "2.0.0", "config": "...", "CLASSES": None}
+    torch.save({"meta": meta, "state_dict": _ganet(18, 3, 7, 64), "optimizer": {}},
+               weights / "ganet_culane_resnet18.pth")
+    torch.save({"meta": meta, "state_dict": _ganet(101, 4, 9, 256)}, weights / "ganet_tusimple_resnet101.pth")
+    torch.save({"meta": meta, "state_dict": _ganet(18, 3, 7, None)}, weights / "ganet_culane_plain.pth")
+
+    script.main(["--weights", str(weights), "--tusimple", "/data/tusimple", "--culane", "/data/culane",
+                 "--out", str(tmp_path / "runs"), "--dry-run"])
+    lines = capsys.readouterr().out.splitlines()
+    runs = [line for line in lines if "-m lanevil_train" in line]
+    assert len(runs) == 4  # clean and suite of the two releases
+    culane_clean, _, tusimple_clean, tusimple_suite = runs
+    assert "experiment=official_ganet_culane backbone=resnet18" in culane_clean
+    assert "data.root=/data/culane" in culane_clean and "task.label=ganet-resnet18-culane" in culane_clean
+    assert "experiment=official_ganet_large_tusimple backbone=resnet101" in tusimple_clean
+    assert "data.root=/data/tusimple" in tusimple_suite and "task.suite=synthetic" in tusimple_suite
+    skipped = [line for line in lines if line.startswith("skipped")]
+    assert len(skipped) == 1 and "ganet_culane_plain.pth" in skipped[0] and "an unpublished setting" in skipped[0]
+    assert script.PUBLISHED[("ganet", "tusimple", "resnet18")] == ("F1", 97.71)
+    assert script.PUBLISHED[("ganet", "culane", "resnet101")] == ("CULane_F1", 79.63)

@@ -32,7 +32,7 @@ from lanevil_train.models.ganet.codec import decode_lanes, encode_targets, heatm
 from lanevil_train.models.ganet.loss import heatmap_focal_loss, lfa_loss, masked_l1
 from lanevil_train.models.ganet.neck import GANetNeck
 from lanevil_train.models.head import LaneHead
-from lanevil_train.rules import boolean, check_settings, integer, number
+from lanevil_train.rules import boolean, check_settings, integer, null_or, number
 
 HEATMAP_BIAS = -2.19  # CenterNet's initial heatmap bias (sigmoid 0.1), the official CtnetHead's
 
@@ -52,6 +52,7 @@ class GANetHead(LaneHead):
         "max_lanes": integer(1),
         "fpn_channels": integer(2),
         "attention_layers": integer(1),
+        "attention_channels": null_or(integer(2)),
         "head_channels": integer(1),
         "lfa_channels": integer(1),
         "lfa_convs": integer(0),
@@ -88,6 +89,7 @@ class GANetHead(LaneHead):
         top_attention: bool = True,
         attention_layers: int = 2,
         attention_ratio: int = 4,
+        attention_channels: int | None = None,
         heatmap_loss_weight: float = 1.0,
         error_loss_weight: float = 1.0,
         offset_loss_weight: float = 0.5,
@@ -101,12 +103,14 @@ class GANetHead(LaneHead):
             raise ValueError(f"GANetHead: lfa_gt_points ({lfa_gt_points}) must be >= lfa_points ({lfa_points}): "
                              f"each predicted point is matched to its own lane point")
         channels = int(fpn_channels)
-        if top_attention and channels % 2:
-            raise ValueError(f"GANetHead: fpn_channels must be even with top_attention (the sine position "
-                             f"embedding gives half its channels to y, half to x), got {channels}")
-        if top_attention and channels // attention_ratio < 1:
-            raise ValueError(f"GANetHead: attention_ratio {attention_ratio} leaves no query channels of "
-                             f"fpn_channels {channels}")
+        attended = channels if attention_channels is None else int(attention_channels)
+        if top_attention and attended % 2:
+            raise ValueError(f"GANetHead: the attention's channels (attention_channels, or fpn_channels when null) "
+                             f"must be even with top_attention (the sine position embedding gives half its channels "
+                             f"to y, half to x), got {attended}")
+        if top_attention and attended // attention_ratio < 1:
+            raise ValueError(f"GANetHead: attention_ratio {attention_ratio} leaves no query channels of the "
+                             f"attention's {attended}")
         self.max_lanes = int(max_lanes)
         self.stride = self.in_strides[0]
         self.fmap_size = heatmap_size(self.image_size, self.stride)
@@ -118,7 +122,7 @@ class GANetHead(LaneHead):
         self.weights = {k: float(v) for k, v in weights.items()}
         self.neck = GANetNeck(self.in_channels, channels, int(attention_layers) if top_attention else 0,
                               int(attention_ratio), int(lfa_channels), int(lfa_convs), int(lfa_points),
-                              float(lfa_gradient_mul))
+                              float(lfa_gradient_mul), attended)
         self.heatmap_head = _branch(channels, head_channels, 1)
         self.offset_head = _branch(channels, head_channels, 2)
         self.error_head = _branch(channels, head_channels, 2)

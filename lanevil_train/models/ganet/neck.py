@@ -135,14 +135,17 @@ class GANetNeck(nn.Module):
     - ``points``: the LFA's points (B, 2K, h, w)."""
 
     def __init__(self, in_channels: list[int], channels: int, attention_layers: int, attention_ratio: int,
-                 lfa_channels: int, lfa_convs: int, lfa_points: int, lfa_gradient_mul: float) -> None:
+                 lfa_channels: int, lfa_convs: int, lfa_points: int, lfa_gradient_mul: float,
+                 attention_channels: int | None = None) -> None:
         super().__init__()
         in_channels = list(in_channels)
-        # the official trans_cfg: attn_in_dims [C5, channels, ...], attn_out_dims [channels, ...], ratio 4, stride 1
-        self.attention = nn.Sequential(*[SelfAttention(in_channels[-1] if i == 0 else channels, channels,
+        attended = channels if attention_channels is None else attention_channels
+        # the official trans_cfg: attn_in_dims [C5, A, ...], attn_out_dims [A, ...], ratio 4, stride 1, where A is
+        # the FPN's channels (ResNet-18/34: 64) or its own (ResNet-101: 256, its lateral then 256 -> 64)
+        self.attention = nn.Sequential(*[SelfAttention(in_channels[-1] if i == 0 else attended, attended,
                                                        attention_ratio) for i in range(attention_layers)])
         if attention_layers:
-            in_channels[-1] = channels  # the attended map replaces C5
+            in_channels[-1] = attended  # the attended map replaces C5
         self.lateral = nn.ModuleList(nn.Conv2d(c, channels, 1) for c in in_channels)
         self.lfa = LaneAwareAggregator(channels, lfa_channels, lfa_points, lfa_convs, lfa_gradient_mul)
         self.output = nn.Conv2d(channels, channels, 3, padding=1)
