@@ -72,6 +72,7 @@ class DetectorPolicy:
 
     def __init__(self, model, controller: PurePursuit | None = None, name: str = "detector"):
         from lanevil_train.data.normalization import spec_normalization
+        from lanevil_train.data.resize import spec_resize
         from lanevil_train.data.transforms import LaneSampleProcessor
 
         self.model = model.eval()
@@ -80,7 +81,8 @@ class DetectorPolicy:
             raise ValueError(f"{name}: the checkpoint records no input_size (build config {sorted(spec)}); "
                              f"it was not written by this project's task=train")
         self.processor = LaneSampleProcessor(tuple(spec["input_size"]), augment=False,
-                                             crop_top=spec.get("crop_top", 0.0), normalize=spec_normalization(spec))
+                                             crop_top=spec.get("crop_top", 0.0), normalize=spec_normalization(spec),
+                                             resize=spec_resize(spec))
         self.controller = controller or PurePursuit()
         self.name = name
 

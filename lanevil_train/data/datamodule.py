@@ -10,6 +10,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 from lanevil_train.data.normalization import DEFAULT_NORMALIZATION
+from lanevil_train.data.resize import DEFAULT_RESIZE
 from lanevil_train.data.transforms import LaneSampleProcessor
 from lanevil_train.errors import prefixed
 
@@ -107,7 +108,8 @@ def check_lane_counts(dataset: Dataset | None, max_lanes: int, split: str = "tra
 class LaneDataModule(pl.LightningDataModule):
     """Train/val/test loaders over sample datasets; `encode` is the detector family's target encoder.
 
-    `normalize` is the input normalisation preset (data/normalization.py) of both processors.
+    `normalize` is the input normalisation preset (data/normalization.py) of both processors, `resize` their
+    resize filter (data/resize.py).
     `train_mixer` (e.g. mixers.MixUp) mixes each train batch before its targets are encoded;
     val and test batches are never mixed. When `encode` has a lane limit (the head's max_lanes, see
     encoder_max_lanes) every record dataset is checked against it here, before any training.
@@ -117,7 +119,7 @@ class LaneDataModule(pl.LightningDataModule):
                  input_size: tuple[int, int], batch_size: int = 8, num_workers: int = 0,
                  augment: bool = True, encode: Callable | None = None, train_transforms: list | None = None,
                  crop_top: float = 0.0, train_mixer: Callable[[list[dict]], list[dict]] | None = None,
-                 normalize: str = DEFAULT_NORMALIZATION):
+                 normalize: str = DEFAULT_NORMALIZATION, resize: str = DEFAULT_RESIZE):
         super().__init__()
         self.sets = {"train": train, "val": val, "test": test}
         self.input_size = tuple(input_size)
@@ -127,9 +129,9 @@ class LaneDataModule(pl.LightningDataModule):
         # with a mixer the train items leave the processor unencoded and MixingCollate encodes them
         train_encode = encode if train_mixer is None else None
         self.train_processor = LaneSampleProcessor(self.input_size, augment, train_encode, train_transforms, crop_top,
-                                                   normalize)
+                                                   normalize, resize)
         self.eval_processor = LaneSampleProcessor(self.input_size, False, encode, crop_top=crop_top,
-                                                  normalize=normalize)
+                                                  normalize=normalize, resize=resize)
         self.train_collate = collate_lanes if train_mixer is None else MixingCollate(train_mixer, encode)
         self.max_lanes = encoder_max_lanes(encode)
         if self.max_lanes is not None:

@@ -17,17 +17,19 @@ from __future__ import annotations
 from typing import Callable
 
 import albumentations as A
-import cv2
 import numpy as np
 
 from lanevil_train.data.normalization import DEFAULT_NORMALIZATION, normalization, normalize_image
+from lanevil_train.data.resize import DEFAULT_RESIZE, resize_filter, resize_transform
 from lanevil_train.lanes import as_lane
 
 
-def build_pipeline(input_size: tuple[int, int], augment: bool, extra: list | None = None) -> A.Compose:
+def build_pipeline(input_size: tuple[int, int], augment: bool, extra: list | None = None,
+                   resize: str = DEFAULT_RESIZE) -> A.Compose:
     """Resize to the network input (H, W), with photometric and mild geometric augmentation when asked.
 
-    `extra` transforms (e.g. a defense's data augmentation) run before the resize.
+    `extra` transforms (e.g. a defense's data augmentation) run before the resize; `resize` names its filter
+    (data/resize.py: `area`, the default, has no aliasing when shrinking).
     """
     height, width = input_size
     steps: list = []
@@ -39,7 +41,7 @@ def build_pipeline(input_size: tuple[int, int], augment: bool, extra: list | Non
             A.HueSaturationValue(hue_shift_limit=8, sat_shift_limit=20, val_shift_limit=15, p=0.4),
         ]
     steps += list(extra or [])
-    steps.append(A.Resize(height, width, interpolation=cv2.INTER_AREA))  # no aliasing when shrinking
+    steps.append(resize_transform(height, width, resize))
     return A.Compose(steps, keypoint_params=A.KeypointParams(format="xy", label_fields=["lane_ids"]))
 
 
@@ -135,14 +137,17 @@ class LaneSampleProcessor:
     arrays),
     passed in by the task so data/ never imports models/. `crop_top` is the fraction of the image
     height cut from the top before anything else (as CLRNet's and UFLD's cut_height). `normalize` names the
-    input normalisation preset (data/normalization.py: the model's build config records the one it trained with).
+    input normalisation preset (data/normalization.py: the model's build config records the one it trained with),
+    `resize` the resize filter (data/resize.py, recorded the same way).
     """
 
     def __init__(self, input_size: tuple[int, int], augment: bool, encode: Callable | None = None,
                  extra_transforms: list | None = None, crop_top: float = 0.0,
-                 normalize: str = DEFAULT_NORMALIZATION):
+                 normalize: str = DEFAULT_NORMALIZATION, resize: str = DEFAULT_RESIZE):
         self.input_size = tuple(input_size)
-        self.pipeline = build_pipeline(self.input_size, augment, extra_transforms)
+        resize_filter(resize)  # validate before building anything
+        self.resize = resize
+        self.pipeline = build_pipeline(self.input_size, augment, extra_transforms, resize)
         self.encode = encode
         crop_rows(crop_top, 1)  # validate now, not in a data worker
         self.crop_top = crop_top

@@ -16,6 +16,7 @@ from torch.utils.data import DataLoader, Dataset, Subset
 
 from lanevil_train.data.datamodule import ProcessedDataset, collate_lanes
 from lanevil_train.data.normalization import DEFAULT_NORMALIZATION, spec_normalization
+from lanevil_train.data.resize import DEFAULT_RESIZE, spec_resize
 from lanevil_train.data.transforms import LaneSampleProcessor
 from lanevil_train.evaluation.prediction_files import prediction_fields
 from lanevil_train.evaluation.scoring import lane_record
@@ -43,7 +44,8 @@ def stream_evaluate(model: LaneDetector, dataset: Dataset, out_path: str | Path,
     todo = [i for i in range(len(dataset)) if dataset.item_key(i) not in done]
     spec = model.build_config or {}
     processor = LaneSampleProcessor(tuple(spec.get("input_size", dataset[0]["image"].shape[:2])), augment=False,
-                                    crop_top=spec.get("crop_top", 0.0), normalize=spec_normalization(spec))
+                                    crop_top=spec.get("crop_top", 0.0), normalize=spec_normalization(spec),
+                                    resize=spec_resize(spec))
     loader = DataLoader(ProcessedDataset(Subset(dataset, todo), processor), batch_size=batch_size,
                         shuffle=False, num_workers=num_workers, collate_fn=collate_lanes)
     bar = progress_counter(len(dataset), len(dataset) - len(todo), "evaluate", "img", progress)
@@ -69,7 +71,7 @@ def stream_evaluate(model: LaneDetector, dataset: Dataset, out_path: str | Path,
 
 def run_identity(model: LaneDetector, label: dict) -> dict:
     """What makes two evaluations the same: the label, the network's weights (a hash), input geometry and
-    normalisation, decoding."""
+    normalisation, resize filter, decoding."""
     weights = getattr(model, "weights_sha256", None)  # an ONNX model's: its file's hash (tasks/detector/export.py)
     if weights is None:
         digest = hashlib.sha256()
@@ -78,11 +80,14 @@ def run_identity(model: LaneDetector, label: dict) -> dict:
             digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
         weights = digest.hexdigest()
     spec = model.build_config or {}
-    # the normalisation only when not the default, so the identities written before it was recorded still match
+    # the normalisation and resize filter only when not the default, so the identities written before they were
+    # recorded still match
     normalize = spec_normalization(spec)
+    resize = spec_resize(spec)
     return {**{k: str(v) for k, v in label.items()}, "weights_sha256": weights,
             "input_size": list(spec.get("input_size", [])), "crop_top": spec.get("crop_top", 0.0),
             **({"normalize": normalize} if normalize != DEFAULT_NORMALIZATION else {}),
+            **({"resize": resize} if resize != DEFAULT_RESIZE else {}),
             "decode": {k: v for k, v in sorted(model.decode_kwargs.items())}}
 
 

@@ -22,6 +22,7 @@ from lanevil_train.checkpoints import (
 from lanevil_train.data.datamodule import LaneDataModule
 from lanevil_train.data.datasets import EmptySplitError
 from lanevil_train.data.normalization import DEFAULT_NORMALIZATION, Normalization, normalization, spec_normalization
+from lanevil_train.data.resize import DEFAULT_RESIZE, resize_filter, spec_resize
 from lanevil_train.errors import prefixed
 from lanevil_train.models.backbones import indices_for_strides
 from lanevil_train.models.detector import LaneDetector
@@ -35,13 +36,16 @@ MODEL_KEYS = ("model", "backbone")
 
 
 def model_config(cfg: DictConfig) -> dict:
-    """The network-defining part of cfg, as a plain dict (model, backbone, input size, crop, normalisation)."""
+    """The network-defining part of cfg, as a plain dict (model, backbone, input size, crop, normalisation, resize
+    filter)."""
     out = {key: OmegaConf.to_container(cfg[key], resolve=True) for key in MODEL_KEYS}
     out["input_size"] = list(cfg.data.input_size)
     out["crop_top"] = float(cfg.data.get("crop_top", 0.0))
     # the input normalisation preset (data/normalization.py): the weights only mean something under it
     out["normalize"] = str(cfg.data.get("normalize") or DEFAULT_NORMALIZATION)
     normalization(out["normalize"])
+    # the resize filter (data/resize.py): the official weights were measured on images resized with theirs
+    out["resize"] = resize_filter(str(cfg.data.get("resize") or DEFAULT_RESIZE))
     return out
 
 
@@ -195,7 +199,7 @@ def build_datamodule(cfg: DictConfig, splits: tuple[str, ...], model: LaneDetect
                           batch_size=cfg.data.batch_size, num_workers=cfg.data.num_workers,
                           augment=cfg.data.augment, encode=model.head.encode, crop_top=spec.get("crop_top", 0.0),
                           train_transforms=transforms, train_mixer=defense.get("mixer"),
-                          normalize=spec_normalization(spec))
+                          normalize=spec_normalization(spec), resize=spec_resize(spec))
 
 
 def build_callbacks(cfg: DictConfig) -> list[pl.Callback]:

@@ -139,6 +139,7 @@ BAD = [
     (["data.crop_top=1.0"], "data.crop_top: expected a number in [0, 1), got 1.0"),
     (["data.crop_top=half"], "data.crop_top: expected a number in [0, 1), got 'half'"),
     (["data.normalize=caffe"], "data.normalize: expected one of imagenet, laneatt, clrnet, ganet, got 'caffe'"),
+    (["data.resize=bicubic"], "data.resize: expected one of area, linear, cubic, pil_bilinear, got 'bicubic'"),
     (["data.augment=maybe"], "data.augment: expected true or false, got 'maybe'"),
     (["data.max_lanes=0"], "data.max_lanes: expected an integer >= 1, got 0"),
     (["data.train.num_scenes=0"], "data.train.num_scenes: expected an integer >= 1, got 0"),

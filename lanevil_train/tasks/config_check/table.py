@@ -9,6 +9,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
 
 from lanevil_train.data.normalization import NORMALIZATIONS
+from lanevil_train.data.resize import RESIZE_FILTERS
 from lanevil_train.illusions import SEVERITIES
 from lanevil_train.models.backbones import OUTPUT_STRIDES
 from lanevil_train.models.schedules import LR_SCALINGS
@@ -66,6 +67,7 @@ RULES: dict[str, Rule] = {
     "data.input_size": int_pair(16),
     "data.crop_top": number(0, 1, high_open=True),
     "data.normalize": one_of(*NORMALIZATIONS),
+    "data.resize": one_of(*RESIZE_FILTERS),
     "data.batch_size": integer(1),
     "data.num_workers": integer(0),
     "data.augment": boolean(),

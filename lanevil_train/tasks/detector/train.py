@@ -16,6 +16,7 @@ from lanevil_train.checkpoints import (
     remove_stale_checkpoint_temporaries,
 )
 from lanevil_train.data.normalization import spec_normalization
+from lanevil_train.data.resize import spec_resize
 from lanevil_train.evaluation.results import score_test_set, write_results
 from lanevil_train.evaluation.scoring import RESULTS, PerImageWriter
 from lanevil_train.models.official import load_detector_weights, official_state_dict
@@ -82,10 +83,11 @@ def train(cfg: DictConfig) -> float | None:
 
 
 # The parts of a checkpoint's network spec that a resumed run must share: the weights fit either way, but
-# the same weights fed another input geometry (size, top crop) or normalisation would silently learn something else.
-RESUME_KEYS = (("input_size",), ("crop_top",), ("normalize",), ("backbone", "name"), ("backbone", "out_indices"),
-               ("model", "head"))
-DATA_KEYS = ("input_size", "crop_top", "normalize")  # named data.<key> in the messages
+# the same weights fed another input geometry (size, top crop), normalisation or resize filter would silently learn
+# something else.
+RESUME_KEYS = (("input_size",), ("crop_top",), ("normalize",), ("resize",), ("backbone", "name"),
+               ("backbone", "out_indices"), ("model", "head"))
+DATA_KEYS = ("input_size", "crop_top", "normalize", "resize")  # named data.<key> in the messages
 
 
 def check_same_network(checkpoint: dict, spec: dict, path) -> None:
@@ -99,7 +101,9 @@ def check_same_network(checkpoint: dict, spec: dict, path) -> None:
             tree = tree.get(key) if isinstance(tree, dict) else None
         return list(tree) if isinstance(tree, tuple) else tree
 
-    saved = {**saved, "normalize": spec_normalization(saved)}  # checkpoints older than the key: imagenet
+    # checkpoints (and specs) older than the keys: imagenet, area
+    saved = {**saved, "normalize": spec_normalization(saved), "resize": spec_resize(saved)}
+    spec = {**spec, "normalize": spec_normalization(spec), "resize": spec_resize(spec)}
     changed = [(".".join(k), at(saved, k), at(spec, k)) for k in RESUME_KEYS if at(saved, k) != at(spec, k)]
     if changed:
         differences = "; ".join(f"{'data.' if key in DATA_KEYS else ''}{key} was {old!r}, now "
