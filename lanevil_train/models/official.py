@@ -47,13 +47,18 @@ def is_ours(obj: object) -> bool:
 
 
 def official_state_dict(obj: object) -> dict[str, torch.Tensor] | None:
-    """The weights of a file in an official layout, 'module.' prefixes dropped; None when it holds none."""
+    """The weights of a file in an official layout, 'module.' prefixes dropped; None when it holds none. A dict with
+    a 'state_dict' is an official file (mmcv's layout) only when a release recognises its weights: otherwise it is
+    taken for one of this project's checkpoints (whose own checks then say what does not fit)."""
     if not isinstance(obj, dict) or is_ours(obj):
         return None
     state = next((obj[key] for key in WEIGHT_KEYS if isinstance(obj.get(key), dict)), obj)
     if not state or not all(isinstance(v, torch.Tensor) for v in state.values()):
         return None
-    return {(k[len(DDP_PREFIX):] if k.startswith(DDP_PREFIX) else k): v for k, v in state.items()}
+    state = {(k[len(DDP_PREFIX):] if k.startswith(DDP_PREFIX) else k): v for k, v in state.items()}
+    if "state_dict" in obj and recognise(state) is None:
+        return None
+    return state
 
 
 def recognise(state: dict) -> tuple[Release, Recognised] | None:
