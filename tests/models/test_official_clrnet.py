@@ -17,26 +17,10 @@ from torch import nn
 from lanevil_train.checkpoints import CheckpointError
 from lanevil_train.models.official import load_detector_weights, official_state_dict, recognise
 from lanevil_train.tasks.builders import build_model, checkpoint_model, model_config
+from tests.models.official_layouts import ConvModule
 from tests.tasks.cli_helpers import composed
 
 H, W, S, P, C, NS, STAGES = 320, 800, 72, 192, 64, 36, 3
-
-
-class ConvModule(nn.Module):
-    """mmcv's ConvModule as CLRNet builds it: `conv` (biased unless normed), then `bn` and a ReLU where asked."""
-
-    def __init__(self, cin, cout, kernel, padding=0, norm=False, act=False):
-        super().__init__()
-        self.conv = nn.Conv2d(cin, cout, kernel, padding=padding, bias=not norm)
-        if norm:
-            self.bn = nn.BatchNorm2d(cout)
-        self.act = act
-
-    def forward(self, x):
-        x = self.conv(x)
-        if hasattr(self, "bn"):
-            x = self.bn(x)
-        return F.relu(x) if self.act else x
 
 
 class Backbone(nn.Module):

@@ -20,29 +20,12 @@ from torch.nn import functional as F
 from lanevil_train.checkpoints import CheckpointError
 from lanevil_train.models.official import is_ours, load_detector_weights, official_state_dict, recognise
 from lanevil_train.tasks.builders import build_model, checkpoint_model, model_config
+from tests.models.official_layouts import ConvModule, ufld_culane_file_keys
 from tests.tasks.cli_helpers import composed
 
 SMALL = (64, 160)  # a small input: C3 8 x 20 (the heatmap), C5 2 x 5 (the attention's 10 positions)
 SMALL_S4 = (32, 96)  # the stride-4 release's: a 8 x 24 heatmap, C5 1 x 3
 SMALL_SIZE = f"data.input_size=[{SMALL[0]},{SMALL[1]}]"
-
-
-class ConvModule(nn.Module):
-    """mmcv's ConvModule as the official configs build it: `conv` (a bias only without a norm), then `bn` and a
-    ReLU when asked."""
-
-    def __init__(self, cin, cout, kernel, norm=False, act=True):
-        super().__init__()
-        self.conv = nn.Conv2d(cin, cout, kernel, padding=kernel // 2, bias=not norm)
-        if norm:
-            self.bn = nn.BatchNorm2d(cout)
-        self.act = act
-
-    def forward(self, x):
-        x = self.conv(x)
-        if hasattr(self, "bn"):
-            x = self.bn(x)
-        return F.relu(x) if self.act else x
 
 
 def official_position_embedding(dim, height, width):
@@ -66,11 +49,11 @@ class OfficialAttentionLayer(nn.Module):
 
     def __init__(self, cin, cout, ratio=4):
         super().__init__()
-        self.pre_conv = ConvModule(cin, cout, 3, norm=True)
+        self.pre_conv = ConvModule(cin, cout, 3, padding=1, norm=True, act=True)
         self.query_conv = nn.Conv2d(cout, cout // ratio, 1)
         self.key_conv = nn.Conv2d(cout, cout // ratio, 1)
         self.value_conv = nn.Conv2d(cout, cout, 1)
-        self.final_conv = ConvModule(cout, cout, 3, norm=True)
+        self.final_conv = ConvModule(cout, cout, 3, padding=1, norm=True, act=True)
         self.gamma = nn.Parameter(torch.zeros(1))
 
     def forward(self, x, pos):
@@ -100,8 +83,11 @@ class OfficialLanePointsConv(nn.Module):
 
     def __init__(self, channels, taps, feat=256):
         super().__init__()
-        self.cls_convs = nn.ModuleList(ConvModule(channels if i == 0 else feat, feat, 3) for i in range(3))
-        self.reg_convs = nn.ModuleList(ConvModule(channels if i == 0 else feat, feat, 3) for i in range(3))
+        def convs():
+            return nn.ModuleList(ConvModule(channels if i == 0 else feat, feat, 3, padding=1, act=True)
+                                 for i in range(3))
+
+        self.cls_convs, self.reg_convs = convs(), convs()
         self.reppoints_cls_conv = OfficialDeformConv1D(feat, channels, taps)
         self.reppoints_pts_init_conv = nn.Conv2d(feat, channels, 3, padding=1)
         self.reppoints_pts_init_out = nn.Conv2d(channels, 2 * taps, 1)
@@ -145,9 +131,9 @@ class OfficialDeformFPN(nn.Module):
         self.num_ins = len(in_channels)
         self.trans_head = OfficialTransHead(attn_in, attn_out)
         in_channels = [*in_channels[:-1], attn_out[-1]]
-        self.lateral_convs = nn.ModuleList(ConvModule(c, out, 1, act=False) for c in in_channels)
+        self.lateral_convs = nn.ModuleList(ConvModule(c, out, 1) for c in in_channels)
         self.def_convs = nn.ModuleList(OfficialLanePointsConv(out, taps - 2 * i) for i in range(len(in_channels)))
-        self.fpn_convs = nn.ModuleList(ConvModule(out, out, 3, act=False) for _ in in_channels)
+        self.fpn_convs = nn.ModuleList(ConvModule(out, out, 3, padding=1) for _ in in_channels)
 
     def forward(self, inputs):
         inputs = list(inputs)[-self.num_ins:]  # C2 dropped when there are more maps than in_channels
@@ -400,10 +386,7 @@ def test_a_ganet_file_with_a_ufld_config_is_refused_naming_the_ganet_config(smal
 
 
 def test_a_ufld_file_with_the_ganet_config_is_refused_naming_the_ufld_config(tmp_path):
-    ufld = {"model.conv1.weight": torch.zeros(1), "pool.weight": torch.zeros(1), "cls.0.weight": torch.zeros(1),
-            "cls.2.weight": torch.zeros(201 * 18 * 4, 1),
-            **{f"model.layer{i}.{b}.conv1.weight": torch.zeros(1) for i in range(1, 5) for b in (0, 1)}}
-    torch.save({"model": ufld}, tmp_path / "culane_18.pth")
+    torch.save({"model": ufld_culane_file_keys()}, tmp_path / "culane_18.pth")
     cfg = composed(["task=evaluate", "experiment=official_ganet_culane", "data.root=/unused",
                     f"ckpt_path={tmp_path / 'culane_18.pth'}", SMALL_SIZE])
     with pytest.raises(CheckpointError, match="an official UFLD v1 .* this run builds model=ganet; run it with "

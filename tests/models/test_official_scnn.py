@@ -18,6 +18,7 @@ from torch.nn import functional as F
 from lanevil_train.checkpoints import CheckpointError
 from lanevil_train.models.official import load_detector_weights, official_state_dict, recognise
 from lanevil_train.tasks.builders import build_model, checkpoint_model, model_config
+from tests.models.official_layouts import ufld_culane_file_keys
 from tests.tasks.cli_helpers import composed
 
 SMALL = (64, 160)  # a small input for the forward checks: a stride-8 map of 8 x 20, 5 x 4 x 10 = 200 exist inputs
@@ -234,10 +235,7 @@ def test_an_scnn_file_with_a_ufld_config_is_refused_naming_the_scnn_config(culan
 
 
 def test_a_ufld_file_with_the_scnn_config_is_refused_naming_the_ufld_config(tmp_path):
-    ufld = {"model.conv1.weight": torch.zeros(1), "pool.weight": torch.zeros(1), "cls.0.weight": torch.zeros(1),
-            "cls.2.weight": torch.zeros(201 * 18 * 4, 1),
-            **{f"model.layer{i}.{b}.conv1.weight": torch.zeros(1) for i in range(1, 5) for b in (0, 1)}}
-    torch.save({"model": ufld}, tmp_path / "culane_18.pth")
+    torch.save({"model": ufld_culane_file_keys()}, tmp_path / "culane_18.pth")
     cfg = composed(["task=evaluate", "experiment=official_scnn_culane", "data.root=/unused",
                     f"ckpt_path={tmp_path / 'culane_18.pth'}", f"data.input_size=[{SMALL[0]},{SMALL[1]}]"])
     with pytest.raises(CheckpointError, match="an official UFLD v1 .* this run builds model=scnn; run it with "
