@@ -3,8 +3,22 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Callable
+
+# torchvision's ResNets: blocks per stage (layer1..layer4) and whether a block is a bottleneck (has a conv3)
+RESNET_BLOCKS = {18: ((2, 2, 2, 2), False), 34: ((3, 4, 6, 3), False), 50: ((3, 4, 6, 3), True),
+                 101: ((3, 4, 23, 3), True)}
+
+
+def resnet_depth(state: dict, stages: Sequence[str]) -> int | None:
+    """The depth of the torchvision-named ResNet in an official state dict, or None: from the number of blocks under
+    each stage's key prefix (``stages``: e.g. ``model.layer1.`` .. ``model.layer4.``, or the first three where a
+    network stops at layer3) and whether the first block has a conv3."""
+    blocks = tuple(len({k[len(p):].split(".", 1)[0] for k in state if k.startswith(p)}) for p in stages)
+    bottleneck = any(k.startswith(f"{stages[0]}0.conv3.") for k in state)
+    return next((depth for depth, (counts, is_bottleneck) in RESNET_BLOCKS.items()
+                 if counts[:len(blocks)] == blocks and is_bottleneck == bottleneck), None)
 
 
 @dataclass(frozen=True)

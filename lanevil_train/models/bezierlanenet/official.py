@@ -94,9 +94,8 @@ from __future__ import annotations
 
 import torch
 
-from lanevil_train.models.release import Recognised, Release
+from lanevil_train.models.release import Recognised, Release, resnet_depth
 
-RESNET_DEPTH = {(2, 2, 2, False): 18, (3, 4, 6, False): 34, (3, 4, 6, True): 50, (3, 4, 23, True): 101}
 REGRESSION_PARAMETERS = 8  # 4 control points (x, y): the releases' cubic curves, the only order of this head
 # The releases' head settings (the configs' model dict) as this project's model.head keys
 RELEASE_SETTINGS = {"channels": 256, "dilated_mid_channels": 64, "projection_layers": 2, "projection_kernel": 3,
@@ -110,11 +109,6 @@ _NO_BIAS = {"head.seg_head.0.0.weight", "head.reducer.0.0.weight"}  # the offici
 
 def _count(state: dict, prefix: str) -> int:
     return len({k[len(prefix):].split(".", 1)[0] for k in state if k.startswith(prefix)})
-
-
-def _resnet_depth(state: dict) -> int | None:
-    blocks = tuple(_count(state, f"backbone.layer{i}.") for i in range(1, 4))
-    return RESNET_DEPTH.get((*blocks, "backbone.layer1.0.conv3.weight" in state))
 
 
 def _settings(state: dict) -> dict:
@@ -149,7 +143,7 @@ def describe(state: dict) -> Recognised | None:
     the releases'), or None if it is not one. The dataset is not in the file: every release has the same shapes."""
     if not _REQUIRED <= state.keys():
         return None
-    depth = _resnet_depth(state)
+    depth = resnet_depth(state, [f"backbone.layer{i}." for i in range(1, 4)])  # up to layer3
     backbone = f"resnet{depth}" if depth else "an unknown backbone"
     why = _unsupported(state)
     if why:

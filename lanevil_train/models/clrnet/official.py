@@ -74,7 +74,7 @@ import re
 import torch
 
 from lanevil_train.models.clrnet.priors import line_xs
-from lanevil_train.models.release import Recognised, Release
+from lanevil_train.models.release import Recognised, Release, resnet_depth
 
 # The published releases' settings, as the configs set them (the file's shapes tell the rest)
 PUBLISHED = {"num_priors": 192, "num_points": 72, "refine_layers": 3, "sample_points": 36}
@@ -83,7 +83,6 @@ _WORDS = {"num_priors": "priors", "num_points": "points", "refine_layers": "refi
 # num_classes of the segmentation decoder (and criterion weight) -> the dataset: 6 + 1 TuSimple, 4 + 1 CULane (and
 # LLAMAS, whose shapes are CULane's; this project reads no LLAMAS data)
 DATASETS = {7: "tusimple", 5: "culane"}
-RESNET_DEPTH = {(2, 2, 2, 2, False): 18, (3, 4, 6, 3, False): 34, (3, 4, 6, 3, True): 50, (3, 4, 23, 3, True): 101}
 # buffers the official head derives from its settings and the embeddings: checked here, not loaded
 DERIVED = ("sample_x_indexs", "prior_feat_ys", "prior_ys", "priors", "priors_on_featmap", "criterion.weight")
 _CONV_MODULE = {"conv": "0", "bn": "1"}  # mmcv ConvModule attributes -> our Sequential(conv, bn, relu) indices
@@ -95,10 +94,7 @@ def _backbone(state: dict) -> str | None:
     """resnet<depth> or dla34 from the backbone's keys (``backbone.model.``), or None."""
     if any(k.startswith("backbone.model.level5.") for k in state):
         return "dla34" if state.get("backbone.model.base_layer.0.weight", torch.empty(0)).shape[:1] == (16,) else None
-    blocks = tuple(len({k.split(".")[3] for k in state if k.startswith(f"backbone.model.layer{i}.")})
-                   for i in range(1, 5))
-    bottleneck = any(k.startswith("backbone.model.layer1.0.conv3.") for k in state)
-    depth = RESNET_DEPTH.get((*blocks, bottleneck))
+    depth = resnet_depth(state, [f"backbone.model.layer{i}." for i in range(1, 5)])
     return f"resnet{depth}" if depth else None
 
 

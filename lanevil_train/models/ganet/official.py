@@ -109,9 +109,8 @@ import re
 
 import torch
 
-from lanevil_train.models.release import Recognised, Release
+from lanevil_train.models.release import Recognised, Release, resnet_depth
 
-RESNET_DEPTH = {(2, 2, 2, 2, False): 18, (3, 4, 6, 3, False): 34, (3, 4, 6, 3, True): 50, (3, 4, 23, 3, True): 101}
 # (depth, levels, LFA points, attention channels) of the published files -> (version, experiment)
 RELEASES = {(18, 3, 7, 64): ("Small", "official_ganet_<tusimple|culane>"),
             (34, 3, 7, 64): ("Medium", "official_ganet_<tusimple|culane>"),
@@ -127,12 +126,6 @@ _ATTENTION_PARTS = {"pre_conv": "pre", "final_conv": "post", "query_conv": "quer
                     "value_conv": "value"}
 _HEAD_BRANCHES = {"keypts_head.hm": "heatmap_head", "offset_head.offset_map": "offset_head",
                   "reg_head.offset_map": "error_head"}
-
-
-def _resnet_depth(state: dict) -> int | None:
-    blocks = tuple(len({k.split(".")[2] for k in state if k.startswith(f"backbone.layer{i}.")}) for i in range(1, 5))
-    bottleneck = any(k.startswith("backbone.layer1.0.conv3.") for k in state)
-    return RESNET_DEPTH.get((*blocks, bottleneck))
 
 
 def _indices(state: dict, prefix: str) -> set[int]:
@@ -166,7 +159,7 @@ def describe(state: dict) -> Recognised | None:
     """The release of a GANet state dict (backbone, levels, LFA points, attention width), or None if not one."""
     if not _REQUIRED <= state.keys():
         return None
-    depth = _resnet_depth(state)
+    depth = resnet_depth(state, [f"backbone.layer{i}." for i in range(1, 5)])
     backbone = f"resnet{depth}" if depth else "an unknown backbone"
     levels = len(_indices(state, "neck.lateral_convs."))
     stride = 32 // 2 ** (levels - 1)

@@ -24,24 +24,17 @@ file given to the head.
 
 from __future__ import annotations
 
-from lanevil_train.models.release import Recognised, Release
+from lanevil_train.models.release import Recognised, Release, resnet_depth
 
 _STAGES = {"0": "conv1", "1": "bn1", "4": "layer1", "5": "layer2", "6": "layer3", "7": "layer4"}
-RESNET_DEPTH = {(2, 2, 2, 2): 18, (3, 4, 6, 3): 34}
 _HEAD = ("conv1.", "cls_layer.", "reg_layer.", "attention_layer.")
-
-
-def _resnet_depth(state: dict) -> int | None:
-    blocks = tuple(len({k.split(".")[2] for k in state if k.startswith(f"feature_extractor.{i}.")})
-                   for i in range(4, 8))
-    return RESNET_DEPTH.get(blocks)
 
 
 def describe(state: dict) -> Recognised | None:
     """What a LaneATT state dict is (backbone, anchors, input height), or None if it is not one."""
     if not {"feature_extractor.0.weight", "conv1.weight", "attention_layer.weight", "cls_layer.weight"} <= state.keys():
         return None
-    depth = _resnet_depth(state)
+    depth = resnet_depth(state, [f"feature_extractor.{i}." for i in range(4, 8)])  # layer1-4
     backbone = f"resnet{depth}" if depth else "an unknown backbone"
     anchors = state["attention_layer.weight"].shape[0] + 1
     fmap_h = state["attention_layer.weight"].shape[1] // state["conv1.weight"].shape[0]

@@ -61,27 +61,20 @@ layers: the conversion renames only (``encoder.net.<i>`` -> ``backbone.features_
 
 from __future__ import annotations
 
-from lanevil_train.models.release import Recognised, Release
+from lanevil_train.models.release import Recognised, Release, resnet_depth
 
 # (classes, existence-head inputs) of the published VGG-16 files -> (dataset, input height, width)
 RELEASES = {(5, 4500): ("culane", 288, 800), (7, 6160): ("tusimple", 360, 640), (5, 4400): ("llamas", 360, 640)}
 _EXIST = ("lane_classifier.", "aux_head.")  # the existence head's name, before ac9d815: aux_head
 _EXIST_LINEAR = {"linear1": "0", "linear2": "2"}
-RESNET_DEPTH = {(2, 2, 2, 2, False): 18, (3, 4, 6, 3, False): 34, (3, 4, 6, 3, True): 50, (3, 4, 23, 3, True): 101}
 
 
 def _exist_key(state: dict, name: str) -> str | None:
     return next((prefix + name for prefix in _EXIST if prefix + name in state), None)
 
 
-def _resnet_depth(state: dict) -> int | None:
-    blocks = tuple(len({k.split(".")[2] for k in state if k.startswith(f"backbone.layer{i}.")}) for i in range(1, 5))
-    bottleneck = any(k.startswith("backbone.layer1.0.conv3.") for k in state)
-    return RESNET_DEPTH.get((*blocks, bottleneck))
-
-
 def _describe_resnet(state: dict) -> Recognised:
-    depth = _resnet_depth(state)
+    depth = resnet_depth(state, [f"backbone.layer{i}." for i in range(1, 5)])
     backbone = f"resnet{depth}" if depth else "an unknown ResNet"
     classes = state["classifier.0.conv.weight"].shape[0]
     why = ("its network is not this project's SCNN: a 1x1 channel reducer (channel_reducer) where the SCNN head has "

@@ -22,19 +22,12 @@ from __future__ import annotations
 
 import re
 
-from lanevil_train.models.release import Recognised, Release
+from lanevil_train.models.release import Recognised, Release, resnet_depth
 
 RELEASES = {(100, 56): "tusimple", (200, 18): "culane"}  # (cells, rows) of the published files -> dataset
 NUM_LANES = 4
-RESNET_DEPTH = {(2, 2, 2, 2, False): 18, (3, 4, 6, 3, False): 34, (3, 4, 6, 3, True): 50, (3, 4, 23, 3, True): 101}
 _AUX_HEADERS = {"aux_header2": 0, "aux_header3": 1, "aux_header4": 2}
 _BLOCK = {"conv": "0", "bn": "1"}
-
-
-def _resnet_depth(state: dict) -> int | None:
-    blocks = tuple(len({k.split(".")[2] for k in state if k.startswith(f"model.layer{i}.")}) for i in range(1, 5))
-    bottleneck = any(k.startswith("model.layer1.0.conv3.") for k in state)
-    return RESNET_DEPTH.get((*blocks, bottleneck))
 
 
 def describe(state: dict) -> Recognised | None:
@@ -42,7 +35,7 @@ def describe(state: dict) -> Recognised | None:
     if not {"pool.weight", "cls.0.weight", "cls.2.weight", "model.conv1.weight"} <= state.keys():
         return None
     total = state["cls.2.weight"].shape[0]
-    depth = _resnet_depth(state)
+    depth = resnet_depth(state, [f"model.layer{i}." for i in range(1, 5)])
     backbone = f"resnet{depth}" if depth else "an unknown backbone"
     for (cells, rows), dataset in RELEASES.items():
         if total == (cells + 1) * rows * NUM_LANES:
