@@ -30,8 +30,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-import torch
-
+from lanevil_train.checkpoints import load_checkpoint_file
 from lanevil_train.models.official import official_state_dict, recognise
 
 # What each repository's README reports for its files: (family, dataset, backbone) -> (score, value)
@@ -71,7 +70,7 @@ def describe_file(path: Path) -> dict | None:
     """{family, dataset, backbone, config} of an official file; {"skip": why} for an official file this benchmark
     does not score (a network this project cannot compute, a setting of no published release or dataset here); None
     if it is not an official file this project reads."""
-    state = official_state_dict(torch.load(path, map_location="cpu", weights_only=True))
+    state = official_state_dict(load_checkpoint_file(path, "--weights"))
     found = recognise(state) if state is not None else None
     if found is None:
         return None
