@@ -25,6 +25,16 @@ class ConvModule(nn.Module):
         return F.relu(x) if self.act else x
 
 
+def randomise_batch_norm(m: nn.Module) -> None:
+    """A BatchNorm layer's weights and running statistics away from their initial values (a trained file's), so a
+    statistic left unloaded or read in the wrong order shows in the outputs."""
+    nn.init.uniform_(m.weight, 0.5, 1.5)
+    nn.init.normal_(m.bias, 0.0, 0.1)
+    m.running_mean.normal_(0.0, 0.1)
+    m.running_var.uniform_(0.5, 2.0)
+    m.num_batches_tracked.fill_(1234)
+
+
 def ufld_culane_file_keys() -> dict:
     """The keys (placeholder values, the shapes that tell the release) of a UFLD v1 CULane ResNet-18 file: a file of
     another family for the refusal tests."""

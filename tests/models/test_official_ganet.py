@@ -20,7 +20,7 @@ from torch.nn import functional as F
 from lanevil_train.checkpoints import CheckpointError
 from lanevil_train.models.official import is_ours, load_detector_weights, official_state_dict, recognise
 from lanevil_train.tasks.builders import build_model, checkpoint_model, model_config
-from tests.models.official_layouts import ConvModule, ufld_culane_file_keys
+from tests.models.official_layouts import ConvModule, randomise_batch_norm, ufld_culane_file_keys
 from tests.tasks.cli_helpers import composed
 
 SMALL = (64, 160)  # a small input: C3 8 x 20 (the heatmap), C5 2 x 5 (the attention's 10 positions)
@@ -221,11 +221,7 @@ def _away_from_init(net):
             if getattr(m, "bias", None) is not None:
                 nn.init.normal_(m.bias, 0.0, 0.1)
         elif isinstance(m, nn.BatchNorm2d):
-            nn.init.uniform_(m.weight, 0.5, 1.5)
-            nn.init.normal_(m.bias, 0.0, 0.1)
-            m.running_mean.normal_(0.0, 0.1)
-            m.running_var.uniform_(0.5, 2.0)
-            m.num_batches_tracked.fill_(1234)
+            randomise_batch_norm(m)
         elif isinstance(m, OfficialAttentionLayer):
             nn.init.uniform_(m.gamma, 0.5, 1.5)
     for lfa in net.neck.def_convs:  # points a few cells from their location, some off the map

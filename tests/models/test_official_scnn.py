@@ -18,7 +18,7 @@ from torch.nn import functional as F
 from lanevil_train.checkpoints import CheckpointError
 from lanevil_train.models.official import load_detector_weights, official_state_dict, recognise
 from lanevil_train.tasks.builders import build_model, checkpoint_model, model_config
-from tests.models.official_layouts import ufld_culane_file_keys
+from tests.models.official_layouts import randomise_batch_norm, ufld_culane_file_keys
 from tests.tasks.cli_helpers import composed
 
 SMALL = (64, 160)  # a small input for the forward checks: a stride-8 map of 8 x 20, 5 x 4 x 10 = 200 exist inputs
@@ -104,11 +104,7 @@ def _away_from_init(net):
             if m.bias is not None:
                 nn.init.normal_(m.bias, 0.0, 0.05)
         elif isinstance(m, nn.BatchNorm2d):
-            nn.init.uniform_(m.weight, 0.5, 1.5)
-            nn.init.normal_(m.bias, 0.0, 0.1)
-            m.running_mean.normal_(0.0, 0.1)
-            m.running_var.uniform_(0.5, 2.0)
-            m.num_batches_tracked.fill_(1234)
+            randomise_batch_norm(m)
         elif isinstance(m, nn.Linear):
             nn.init.normal_(m.weight, 0.0, 1.0 / math.sqrt(m.in_features))
             nn.init.normal_(m.bias, 0.0, 0.1)
