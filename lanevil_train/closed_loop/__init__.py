@@ -1,12 +1,14 @@
 """Closed loop: a lane-keeping car in the simulator, steered by a policy from its camera, driven through illusions.
 
 sim.vehicle moves the car (kinematic bicycle); episode.drive renders each step from the car's pose and runs the
-policy (policies: a lane detector + pure pursuit, the ground truth, a VLM); scoring gives the paper's attack
+policy (policies: a lane detector or the ground truth through a lane keeper: ground lanes, a tracker, a controller;
+a VLM); scoring gives the paper's attack
 success rule and the deviation and departure scores; tasks/closed_loop.py runs the grid of cases, illusions,
 severities and repeats, resumable, and report/closed_loop.py writes its tables and plots.
 """
 
-from lanevil_train.closed_loop.controller import PurePursuit
+from lanevil_train.closed_loop.controller import LaneKeeper, lane_keeper
+from lanevil_train.closed_loop.controllers import LinearMPC, PurePursuit, Stanley
 from lanevil_train.closed_loop.episode import LoopSettings, Run, drive
 from lanevil_train.closed_loop.policies import (
                                                 DRIVING_QUESTION,
@@ -18,6 +20,6 @@ from lanevil_train.closed_loop.policies import (
 )
 from lanevil_train.closed_loop.scoring import ASR_THRESHOLD_M, ASR_WINDOW_S, run_scores, wilson_interval
 
-__all__ = ["PurePursuit", "LoopSettings", "Run", "drive", "DRIVING_QUESTION", "DetectorPolicy", "Observation",
+__all__ = ["LaneKeeper", "lane_keeper", "LinearMPC", "PurePursuit", "Stanley", "LoopSettings", "Run", "drive", "DRIVING_QUESTION", "DetectorPolicy", "Observation",
            "TruthPolicy", "VLMPolicy", "parse_direction", "ASR_THRESHOLD_M", "ASR_WINDOW_S", "run_scores",
            "wilson_interval"]

@@ -126,7 +126,7 @@ def drive(run: Run, policy: Policy, settings: LoopSettings) -> list[dict]:
     trace, entered_at = [], None
     while True:
         image, posed = render_view(run, state, settings.size)
-        command, info = policy.act(Observation(image, scene.camera, vehicle.speed_mps, state.t, posed))
+        command, info = policy.act(Observation(image, scene.camera, vehicle.speed_mps, state.t, posed, state.steer))
         deviation = state.d - centre
         trace.append({"t": round(state.t, 6), "s": round(state.s, 6), "d": round(state.d, 6),
                       "deviation": round(deviation, 6), "heading": round(state.heading, 8),

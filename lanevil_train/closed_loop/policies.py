@@ -3,8 +3,9 @@
 A policy is anything with `name`, `reset()` (a new run) and `act(observation) -> (steer_rad, info)`, where info is
 a small JSON-able dict kept in the run's trace (`lanes`: how many lanes it saw, where that applies). Three ship:
 
-* DetectorPolicy: a lane detector (a trained LaneDetector, any family) + PurePursuit on its lanes;
-* TruthPolicy: the simulator's ground-truth lanes + PurePursuit (an oracle, optionally with every lane moved by
+* DetectorPolicy: a lane detector (a trained LaneDetector, any family) + a LaneKeeper (tracker and controller,
+  closed_loop/controller.py) on its lanes;
+* TruthPolicy: the simulator's ground-truth lanes + a LaneKeeper (an oracle, optionally with every lane moved by
   `shift_m` on the ground: a detector that is wrong by a known amount);
 * VLMPolicy: a driving VLM (any vlm/ backend) asked DRIVING_QUESTION about the last frames; its answer, read by
   parse_direction, becomes a fixed steering angle left, zero or right (LMDrive-style: the language model decides).
@@ -20,7 +21,7 @@ from typing import Protocol
 
 import numpy as np
 
-from lanevil_train.closed_loop.controller import PurePursuit
+from lanevil_train.closed_loop.controller import LaneKeeper
 from lanevil_train.sim import Camera, Scene
 
 DRIVING_QUESTION = "Should the ego vehicle steer left, keep straight or steer right?"
@@ -29,14 +30,16 @@ DRIVING_QUESTION = "Should the ego vehicle steer left, keep straight or steer ri
 @dataclass(frozen=True)
 class Observation:
     """What a policy sees at one control step: the camera image (uint8 HxWx3 RGB), the car's camera as mounted
-    (its calibration, which a real car knows), speed (m/s) and time (s). `scene` is the simulator's posed scene,
-    for oracle policies only: a real policy never reads it."""
+    (its calibration, which a real car knows), speed (m/s), time (s) and its front-wheel angle (rad, + right: the
+    steering sensor; with the speed, the car's odometry). `scene` is the simulator's posed scene, for oracle
+    policies only: a real policy never reads it."""
 
     image: np.ndarray
     camera: Camera
     speed_mps: float
     t: float
     scene: Scene | None = None
+    steer_rad: float = 0.0
 
 
 class Policy(Protocol):
@@ -48,10 +51,10 @@ class Policy(Protocol):
 
 
 class TruthPolicy:
-    """Pure pursuit on the scene's true lane lines (each moved by shift_m metres on the ground, + right)."""
+    """Lane keeping on the scene's true lane lines (each moved by shift_m metres on the ground, + right)."""
 
-    def __init__(self, controller: PurePursuit | None = None, shift_m: float = 0.0, name: str = "ground-truth"):
-        self.controller = controller or PurePursuit()
+    def __init__(self, controller: LaneKeeper | None = None, shift_m: float = 0.0, name: str = "ground-truth"):
+        self.controller = controller or LaneKeeper()
         self.shift_m = float(shift_m)
         self.name = name
 
@@ -64,13 +67,14 @@ class TruthPolicy:
             raise ValueError("TruthPolicy needs observation.scene (the simulator's posed scene)")
         lanes = [scene.lane_polyline(b.d + self.shift_m) for b in scene.road.boundaries if b.marking != "none"]
         lanes = [lane for lane in lanes if len(lane) >= 2]
-        return self.controller.steer(lanes, observation.camera, observation.speed_mps)
+        return self.controller.steer(lanes, observation.camera, observation.speed_mps, observation.t,
+                                     observation.steer_rad)
 
 
 class DetectorPolicy:
-    """A lane detector's lanes, through pure pursuit. `model` is a LaneDetector (eval mode, on its device)."""
+    """A lane detector's lanes, through a LaneKeeper. `model` is a LaneDetector (eval mode, on its device)."""
 
-    def __init__(self, model, controller: PurePursuit | None = None, name: str = "detector"):
+    def __init__(self, model, controller: LaneKeeper | None = None, name: str = "detector"):
         from lanevil_train.data.normalization import spec_normalization
         from lanevil_train.data.resize import spec_resize
         from lanevil_train.data.transforms import LaneSampleProcessor
@@ -83,7 +87,7 @@ class DetectorPolicy:
         self.processor = LaneSampleProcessor(tuple(spec["input_size"]), augment=False,
                                              crop_top=spec.get("crop_top", 0.0), normalize=spec_normalization(spec),
                                              resize=spec_resize(spec))
-        self.controller = controller or PurePursuit()
+        self.controller = controller or LaneKeeper()
         self.name = name
 
     def reset(self) -> None:
@@ -100,7 +104,8 @@ class DetectorPolicy:
             return self.model.predict_lanes(batch, [image.shape[:2]])[0]
 
     def act(self, observation: Observation) -> tuple[float, dict]:
-        return self.controller.steer(self.lanes(observation.image), observation.camera, observation.speed_mps)
+        return self.controller.steer(self.lanes(observation.image), observation.camera, observation.speed_mps,
+                                     observation.t, observation.steer_rad)
 
 
 _WORDS = re.compile(r"\b(left|right|straight|keep|stay|maintain|continue)\b")
