@@ -1,0 +1,195 @@
+"""Collisions of the closed-loop car with the objects a standing illusion puts on the road.
+
+Road coordinates throughout: s (m along the road's centre line), d (m lateral, + right), as sim.vehicle and the
+traces. Both footprints are rectangles in (s, d) treated as a local Cartesian plane: this ignores the road's
+curvature across the car and the object (under 1 cm at the simulator's curvatures and a 4.6 m car) and the
+stretching of s away from the centre line (a factor 1 - kappa d, under 0.1 % there).
+
+**Where standing illusions stand** (illusions/traffic.py, illusions/road_damage.py), at severity 3:
+* `vehicle`: 2 cars or box trucks, 12-26 m ahead, each centred within 0.8 m of a lane line (the camera's own lane
+  lines first, then the next): a car 1.8 m wide reaches 0.1-1.7 m into the lane beside that line, so about half
+  of them block part of the ego lane. Heading within 0.06 rad of the road's.
+* `bicycle`: 3 cyclists, 7-16 m ahead, within 0.4 m of a lane line; along the road or across it (1.7 m wheel to
+  wheel either way).
+* `pedestrian`: 4 people, 7-16 m ahead, within 0.4 m of a lane line, walking across the road (about 0.5 m wide
+  and 0.3 m deep).
+* `guard_rail`: a W-beam on posts beyond the road's outermost lane line on one side (0.9 m outside it at
+  severity 3; both sides, 0.4 and 0.0 m outside, at severities 4 and 5), from 6 m ahead to 120 m: on the
+  shoulder, not in a lane; a car reaches it only by leaving the road.
+
+**The object** (obstacles): the base of each object is where changed_road_points(standing=True) puts it, the
+ground point under the lowest changed pixel of each image column. Those points include the object's contact
+shadow and its cast shadow, so the near end and the sides they give are where the object or its shadow
+meets the road: nearer and wider than the object itself by up to the shadow's reach (seed 1000000: 1.4 m nearer
+for a car, 2.9 m for a 3.3 m high truck). The collision model is conservative by that much. An illusion with
+several objects gives one obstacle per object: the base points are split into groups whose points lie within
+LINK_M of another point of their group (guard rails: one group per side of the camera). Each group gives an
+Obstacle: s_near and the lateral extent are the 2nd and 98th percentiles of its points; the object's depth along
+the road is not seen from the camera, so it reaches LENGTH_M[kind] beyond s_near (a car; a bicycle along the
+road; a pedestrian), or farther where the group's points reach farther (a truck's side seen obliquely, a guard
+rail's visible extent).
+
+**The car**: a rectangle around the rear axle (where a trace's s, d are): from REAR_OVERHANG_M behind it to
+wheelbase + FRONT_OVERHANG_M ahead, 2 * HALF_CAR_WIDTH_M (1.8 m) wide, turned by the step's heading.
+collision() tests it against each obstacle (separating-axis test) at every step and at points between steps
+at most SUBSTEP_M apart (pose interpolated linearly), so a car cannot pass through a thin object between two
+steps, and bisects the first contact to its time.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.sparse.csgraph import connected_components
+
+from lanevil_train.closed_loop.scoring import HALF_CAR_WIDTH_M
+from lanevil_train.illusions.footprint import STANDING, changed_road_points
+from lanevil_train.sim import Scene
+
+WHEELBASE_M = 2.7  # sim.vehicle.VehicleParams' default
+REAR_OVERHANG_M = 1.0  # rear axle to rear bumper (a 4.6 m mid-size car with a 2.7 m wheelbase)
+FRONT_OVERHANG_M = 0.9  # front axle to front bumper
+SUBSTEP_M = 0.25  # most distance the car moves between two tested poses
+LENGTH_M = {"vehicle": 4.5, "bicycle": 1.8, "pedestrian": 0.6, "guard_rail": 0.0}  # depth along the road
+LINK_M = 1.0  # base points nearer than this to one another belong to one object
+MIN_POINTS = 3  # fewer base points than this are stray pixels, not an object
+PERCENTILES = (2.0, 98.0)
+_BISECT_STEPS = 30
+
+
+@dataclass(frozen=True)
+class Obstacle:
+    """An object's footprint on the road: s from s_near to s_far, d from d_left to d_right (m)."""
+
+    kind: str
+    s_near: float
+    s_far: float
+    d_left: float
+    d_right: float
+
+    def corners(self) -> np.ndarray:
+        """(4, 2) corners (s, d), counter-clockwise in the (s, d) plane."""
+        return np.array([[self.s_near, self.d_left], [self.s_far, self.d_left], [self.s_far, self.d_right],
+                         [self.s_near, self.d_right]], np.float64)
+
+    def as_dict(self) -> dict:
+        return {"kind": self.kind, "s_near": round(self.s_near, 4), "s_far": round(self.s_far, 4),
+                "d_left": round(self.d_left, 4), "d_right": round(self.d_right, 4)}
+
+
+def obstacles(scene: Scene, clean: np.ndarray, perturbed: np.ndarray, illusion: str) -> list[Obstacle]:
+    """The objects a standing illusion drew into `perturbed` (a render of `scene`; `clean` without it), nearest
+    first (by s_near), from their changed pixels (see the module docstring); [] when the illusion is not standing
+    or nothing it changed meets the road."""
+    if illusion not in STANDING:
+        return []
+    s, d = changed_road_points(scene, clean, perturbed, standing=True)
+    if len(s) == 0:
+        return []
+    if illusion == "guard_rail":
+        d_cam = float(scene.road.lateral(0.0, 0.0))
+        labels = (d > d_cam).astype(int)
+    else:
+        labels = _groups(s, d, LINK_M)
+    out = []
+    for label in np.unique(labels):
+        gs, gd = s[labels == label], d[labels == label]
+        if len(gs) < MIN_POINTS:
+            continue
+        s_near, s_hi = np.percentile(gs, PERCENTILES)
+        d_left, d_right = np.percentile(gd, PERCENTILES)
+        out.append(Obstacle(kind=illusion, s_near=float(s_near), s_far=float(max(s_near + LENGTH_M[illusion], s_hi)),
+                            d_left=float(d_left), d_right=float(d_right)))
+    return sorted(out, key=lambda o: (o.s_near, o.d_left))
+
+
+def obstacle(scene: Scene, clean: np.ndarray, perturbed: np.ndarray, illusion: str) -> Obstacle | None:
+    """The nearest (smallest s_near) of obstacles(): the object whose near end is the illusion region's near end
+    (episode.illusion_region). Traffic illusions draw several objects (2 vehicles at severity 3): collide with
+    obstacles()' whole list. None when the illusion is not standing or nothing changed on the road."""
+    found = obstacles(scene, clean, perturbed, illusion)
+    return found[0] if found else None
+
+
+def _groups(s: np.ndarray, d: np.ndarray, link: float) -> np.ndarray:
+    """Group labels of points (s, d): single linkage, points within `link` m (Euclidean) join."""
+    pts = np.stack([s, d], 1)
+    near = np.linalg.norm(pts[:, None, :] - pts[None, :, :], axis=2) <= link
+    return connected_components(near, directed=False)[1]
+
+
+def car_corners(s: float, d: float, heading: float, wheelbase_m: float = WHEELBASE_M,
+                half_width_m: float = HALF_CAR_WIDTH_M) -> np.ndarray:
+    """(4, 2) corners (s, d) of the car whose rear axle is at (s, d), turned by heading (rad, + right)."""
+    fwd = np.array([math.cos(heading), math.sin(heading)])
+    right = np.array([-math.sin(heading), math.cos(heading)])
+    back, front = -REAR_OVERHANG_M, wheelbase_m + FRONT_OVERHANG_M
+    centre = np.array([s, d], np.float64)
+    return np.array([centre + a * fwd + b * right for a, b in
+                     ((back, -half_width_m), (front, -half_width_m), (front, half_width_m), (back, half_width_m))])
+
+
+def rectangles_overlap(a: np.ndarray, b: np.ndarray, eps: float = 1e-9) -> bool:
+    """Whether two rectangles (each (4, 2) corners in order) overlap by more than eps (separating-axis test:
+    they are apart iff their projections onto one of their edges' normals are)."""
+    for poly in (a, b):
+        edges = np.roll(poly, -1, axis=0) - poly
+        for ex, ey in edges[:2]:  # a rectangle has two edge directions
+            axis = np.array([-ey, ex])
+            pa, pb = a @ axis, b @ axis
+            if pa.max() <= pb.min() + eps * np.linalg.norm(axis) or pb.max() <= pa.min() + eps * np.linalg.norm(axis):
+                return False
+    return True
+
+
+def collision(trace: Sequence[dict], obstacle: Obstacle | Sequence[Obstacle] | None, wheelbase_m: float = WHEELBASE_M,
+              entry_s: float | None = None, substep_m: float = SUBSTEP_M) -> dict:
+    """Whether the car of `trace` (steps with t, s, d, heading) touches the obstacle (or any of a list).
+
+    collision (bool); collision_t: the first time its rectangle overlaps one (between steps, the pose is
+    interpolated linearly at most substep_m apart and the contact bisected to 1e-6 of a step); time_to_collision_s:
+    collision_t minus the run's start (trace[0]['t']); collision_after_entry_s: collision_t minus entry_s (the run's
+    entry into the illusion region, scoring.entry_time; negative when the car's front reaches the object before
+    its rear axle enters the region; None without an entry); obstacle: the obstacle hit (as_dict), else None."""
+    if not trace:
+        raise ValueError("collision: an empty trace")
+    targets = [] if obstacle is None else [obstacle] if isinstance(obstacle, Obstacle) else list(obstacle)
+    boxes = [(o, o.corners()) for o in targets]
+
+    def hit(pose):
+        car = car_corners(pose[1], pose[2], pose[3], wheelbase_m)
+        return next((o for o, box in boxes if rectangles_overlap(car, box)), None)
+
+    poses = [(float(p["t"]), float(p["s"]), float(p["d"]), float(p.get("heading", 0.0))) for p in trace]
+    found = None
+    if boxes and hit(poses[0]) is not None:
+        found = (poses[0][0], hit(poses[0]))
+    for before, after in zip(poses, poses[1:]):
+        if found is not None or not boxes:
+            break
+        n = max(1, math.ceil(math.hypot(after[1] - before[1], after[2] - before[2]) / substep_m))
+        lo = 0.0
+        for k in range(1, n + 1):
+            hi = k / n
+            if hit(_lerp(before, after, hi)) is not None:
+                for _ in range(_BISECT_STEPS):  # contact between lo (apart) and hi (overlapping)
+                    mid = (lo + hi) / 2.0
+                    lo, hi = (lo, mid) if hit(_lerp(before, after, mid)) is not None else (mid, hi)
+                pose = _lerp(before, after, hi)
+                found = (pose[0], hit(pose))
+                break
+            lo = hi
+    if found is None:
+        return {"collision": False, "collision_t": None, "time_to_collision_s": None,
+                "collision_after_entry_s": None, "obstacle": None}
+    t, what = found
+    return {"collision": True, "collision_t": round(t, 4), "time_to_collision_s": round(t - poses[0][0], 4),
+            "collision_after_entry_s": None if entry_s is None else round(t - entry_s, 4),
+            "obstacle": what.as_dict()}
+
+
+def _lerp(a: tuple, b: tuple, f: float) -> tuple:
+    return tuple(x + f * (y - x) for x, y in zip(a, b))
