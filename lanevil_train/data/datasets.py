@@ -1,7 +1,8 @@
-"""Datasets yielding samples {"image", "lanes", "meta"}: simulated scenes, TuSimple and CULane folders.
+"""Datasets yielding samples {"image", "lanes", "meta"}: simulated scenes, TuSimple, CULane and LLAMAS folders.
 
 Every sample's meta carries a stable "case_id" and the "h_samples" rows at which the TuSimple
-metric scores it.
+metric scores it; a dataset scored by another CULane-style procedure than CULane's says which in "culane_metric"
+(LLAMAS: "llamas", see lanevil_train/metrics/llamas.py).
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ import numpy as np
 from torch.utils.data import Dataset
 
 from lanevil_train.data.formats import load_image, read_culane, read_tusimple
+from lanevil_train.data.formats.llamas import read_llamas
 from lanevil_train.errors import prefixed
 from lanevil_train.lanes import default_h_samples, lane_extent_problem
 from lanevil_train.sim import render_scene
@@ -76,6 +78,8 @@ class _RecordDataset(Dataset):
     A record's "source" is the label file and line it came from; a bad image is reported with it.
     """
 
+    culane_metric: str | None = None  # the CULane-style procedure that scores this dataset, when not CULane's
+
     def __init__(self, records: list[dict]):
         self.records = records
 
@@ -102,6 +106,8 @@ class _RecordDataset(Dataset):
         meta = {"case_id": self.item_key(index), "source": source,
                 "h_samples": np.asarray(h_samples, dtype=np.float64),
                 "image_path": str(record["image_path"]), "height": image.shape[0], "width": image.shape[1]}
+        if self.culane_metric is not None:
+            meta["culane_metric"] = self.culane_metric
         return {"image": image, "lanes": record["lanes"], "meta": meta}
 
 
@@ -138,3 +144,21 @@ class CULaneDataset(_RecordDataset):
         super().__init__(read_culane(root / list_file, root, check_images=check_images))
         if not self.records:
             raise EmptySplitError(f"the CULane list file {root / list_file} lists no images", "list_file")
+
+
+class LLAMASDataset(_RecordDataset):
+    """A LLAMAS folder: ``labels/<split>/<recording>/<name>.json``, images at ``color_images/<split>/...``.
+
+    ``split`` is the folder name (train, valid; test has no public labels). The lanes are the official l1, l0, r0,
+    r1 per-row lanes (data/formats/llamas.py); the images are scored with the official LLAMAS procedure
+    (metrics/llamas.py)."""
+
+    culane_metric = "llamas"
+
+    def __init__(self, root: str | Path, split: str = "valid", check_images: bool = True):
+        root = Path(root)
+        super().__init__(read_llamas(root, split, check_images=check_images))
+        if not self.records:
+            where = root / ("color_images/test" if split == "test" else f"labels/{split}")
+            raise EmptySplitError(f"the LLAMAS {split} split ({where}) holds no "
+                                  f"{'images' if split == 'test' else 'labels'}", "split")

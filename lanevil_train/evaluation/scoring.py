@@ -16,7 +16,7 @@ import numpy as np
 import pytorch_lightning as pl
 
 from lanevil_train.lanes import lanes_to_rows
-from lanevil_train.metrics import culane_image_counts, tusimple_lane_scores
+from lanevil_train.metrics import culane_image_counts, llamas_image_counts, tusimple_lane_scores
 from lanevil_train.report.specs import LANE_SPEC
 from lanevil_train.results_log import ResultsLog
 
@@ -36,11 +36,18 @@ def _compact(lanes: list[np.ndarray], rows: np.ndarray) -> list[list[list[int]]]
 def lane_record(pred: list[np.ndarray], gt: list[np.ndarray], meta: dict, keep_lanes: bool = True) -> dict:
     """The per-image record of predicted vs ground-truth lanes (original-image pixels) of the sample `meta`
     describes: TuSimple accuracy/FP/FN and lane counts (F1_count's TP/FP/FN) at its h_samples and CULane TP/FP/FN
-    (30 px lanes at 1640 px wide)."""
+    (30 px lanes at 1640 px wide; a LLAMAS image, meta "culane_metric" "llamas", by the official LLAMAS procedure:
+    metrics/llamas.py)."""
     acc, fp, fn, tp_count, fp_count, fn_count = tusimple_lane_scores(pred, gt, meta["h_samples"], with_counts=True)
     width, height = int(meta["width"]), int(meta["height"])
-    lane_width = max(1, round(30 * width / 1640))  # CULane draws 30 px lanes on 1640 px wide images
-    tp, cfp, cfn = culane_image_counts(pred, gt, width=width, height=height, lane_width=lane_width)
+    if meta.get("culane_metric") == "llamas":
+        if (width, height) != (1276, 717):
+            raise ValueError(f"{meta.get('source') or meta['case_id']}: a LLAMAS image is 1276x717 (the official "
+                             f"metric's canvas), got {width}x{height}")
+        tp, cfp, cfn = llamas_image_counts(pred, gt)  # its own 30 px on its 1276x717 images, rows >= 300
+    else:
+        lane_width = max(1, round(30 * width / 1640))  # CULane draws 30 px lanes on 1640 px wide images
+        tp, cfp, cfn = culane_image_counts(pred, gt, width=width, height=height, lane_width=lane_width)
     record = {"spec": LANE_SPEC.name, "key": meta.get("key", meta["case_id"]), "case_id": meta["case_id"],
               "image": meta.get("image_path"), "illusion": meta.get("illusion"), "category": meta.get("category"),
               "severity": int(meta.get("severity") or 0), "accuracy": acc, "fp": fp, "fn": fn,

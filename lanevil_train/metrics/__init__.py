@@ -1,4 +1,4 @@
-"""Lane metrics (TuSimple, CULane; VQA later): plain numpy scores plus torchmetrics wrappers.
+"""Lane metrics (TuSimple, CULane, LLAMAS; VQA later): plain numpy scores plus torchmetrics wrappers.
 
 Every name loads on first use (module ``__getattr__``), so ``python -m lanevil_train.metrics`` and other
 torch-free users import only what they touch: ``tusimple`` needs numpy, ``culane`` numpy and OpenCV, and
@@ -18,6 +18,7 @@ _EXPORTS = {
     "culane_summary": "culane",
     "evaluate_culane_dirs": "culane_files",
     "evaluate_tusimple_files": "tusimple",
+    "llamas_image_counts": "llamas",
     "tusimple_count_f1": "tusimple",
     "tusimple_image_scores": "tusimple",
     "tusimple_lane_scores": "tusimple",

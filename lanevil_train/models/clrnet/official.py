@@ -81,7 +81,7 @@ PUBLISHED = {"num_priors": 192, "num_points": 72, "refine_layers": 3, "sample_po
 _WORDS = {"num_priors": "priors", "num_points": "points", "refine_layers": "refinement stages",
           "sample_points": "sampled rows"}
 # num_classes of the segmentation decoder (and criterion weight) -> the dataset: 6 + 1 TuSimple, 4 + 1 CULane (and
-# LLAMAS, whose shapes are CULane's; this project reads no LLAMAS data)
+# LLAMAS, whose shapes are CULane's: its files load with experiment=official_clrnet_llamas; the shapes cannot tell)
 DATASETS = {7: "tusimple", 5: "culane"}
 # buffers the official head derives from its settings and the embeddings: checked here, not loaded
 DERIVED = ("sample_x_indexs", "prior_feat_ys", "prior_ys", "priors", "priors_on_featmap", "criterion.weight")
