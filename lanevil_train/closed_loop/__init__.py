@@ -20,6 +20,6 @@ from lanevil_train.closed_loop.policies import (
 )
 from lanevil_train.closed_loop.scoring import ASR_THRESHOLD_M, ASR_WINDOW_S, run_scores, wilson_interval
 
-__all__ = ["LaneKeeper", "lane_keeper", "LinearMPC", "PurePursuit", "Stanley", "LoopSettings", "Run", "drive", "DRIVING_QUESTION", "DetectorPolicy", "Observation",
-           "TruthPolicy", "VLMPolicy", "parse_direction", "ASR_THRESHOLD_M", "ASR_WINDOW_S", "run_scores",
-           "wilson_interval"]
+__all__ = ["LaneKeeper", "lane_keeper", "LinearMPC", "PurePursuit", "Stanley", "LoopSettings", "Run", "drive",
+           "DRIVING_QUESTION", "DetectorPolicy", "Observation", "TruthPolicy", "VLMPolicy", "parse_direction",
+           "ASR_THRESHOLD_M", "ASR_WINDOW_S", "run_scores", "wilson_interval"]

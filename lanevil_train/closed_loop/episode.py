@@ -19,6 +19,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from lanevil_train.closed_loop.collisions import Obstacle, obstacles
 from lanevil_train.closed_loop.policies import Observation, Policy
 from lanevil_train.illusions.context import context_for_frame, context_from_scene
 from lanevil_train.illusions.footprint import STANDING, footprint
@@ -101,6 +102,17 @@ def illusion_region(seed: int, illusion: str, size: tuple[int, int]) -> tuple[fl
     perturbed = get_illusion(illusion)(clean, context_from_scene(scene), REGION_SEVERITY, seed)
     area = footprint(scene, clean, perturbed, standing=illusion in STANDING)
     return area.near_m, area.far_m
+
+
+@lru_cache(maxsize=64)
+def run_obstacles(seed: int, illusion: str, severity: int, size: tuple[int, int]) -> tuple[Obstacle, ...]:
+    """The objects a standing illusion puts on the road of the case at this severity (closed_loop/collisions.py);
+    none for a clean twin or an illusion that stands on nothing."""
+    if not severity or illusion not in STANDING:
+        return ()
+    scene, clean = case_scene(seed, size)
+    perturbed = get_illusion(illusion)(clean, context_from_scene(scene), severity, seed)
+    return tuple(obstacles(scene, clean, perturbed, illusion))
 
 
 def render_view(run: Run, state: VehicleState, size: tuple[int, int]) -> tuple[np.ndarray, Scene]:

@@ -17,15 +17,16 @@ lane width and how far ahead it is known (`CentreLine`). Two ship (`task.tracker
       rate' = rate,   width' = width,
   with process noise: the curvature rate drifts as white noise (spectral density `curvature_rate_sigma`^2 per
   metre, integrated into the lower terms), the width as a random walk (`width_sigma`^2 per metre), the yaw as the
-  gyro's error (`yaw_rate_sigma` rad/s). *Update* with each boundary seen: its x at up to SAMPLES distances over
-  its seen span is x(z) -/+ width / 2 (left / right), measured with standard deviation `point_sigma_m` + `point_sigma_per_m` z (back-projection
-  error grows with distance). *Association and gating*: each side takes the detected lane nearest its predicted
-  boundary in Mahalanobis distance; a lane beyond the chi-square gate (`gate_probability`, as many degrees of
-  freedom as points) is rejected, and counted when it lies within half a lane of a boundary, so a line that appears suddenly beside the boundary (a shadow, a
-  repair seam) does not move the lane. *Confidence*: 1 after an accepted update, decaying as
-  exp(-dt / `confidence_time_s`) while nothing is accepted (the prediction alone carries the lane); under
-  `min_confidence` the lane is lost: no centre line (the controller holds its last plan) and the next frame
-  starts the track afresh from the prior (offset 0 +- 2 m, slope 0 +- 0.2, curvature 0 +- 0.01 / m, width
+  gyro's error (`yaw_rate_sigma` rad/s). *Update* with each boundary seen: its x at up to SAMPLES distances
+  over its seen span is x(z) -/+ width / 2 (left / right), measured with standard deviation `point_sigma_m` +
+  `point_sigma_per_m` z (back-projection error grows with distance). *Association and gating*: each side takes
+  the detected lane nearest its predicted boundary in Mahalanobis distance; a lane beyond the chi-square gate
+  (`gate_probability`, as many degrees of freedom as points) is rejected, and counted when it lies within half
+  a lane of a boundary, so a line that appears suddenly beside the boundary (a shadow, a repair seam) does not
+  move the lane. *Confidence*: 1 after an accepted update, decaying as exp(-dt / `confidence_time_s`) while
+  nothing is accepted (the prediction alone carries the lane); under `min_confidence` the lane is lost: no
+  centre line (the controller holds its last plan) and the next frame starts the track afresh from the prior
+  (offset 0 +- 2 m, slope 0 +- 0.2, curvature 0 +- 0.01 / m, curvature rate 0 +- 1e-4 / m^2, width
   `lane_width_m` +- 0.5 m) with the nearest-lanes rule.
 
 The noise settings (conf/task/closed_loop.yaml) are measured, not tuned on the test cases:

@@ -13,15 +13,28 @@ the traces alone.
 from __future__ import annotations
 
 import json
+import math
+import multiprocessing
+import os
 from pathlib import Path
 
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
-from lanevil_train.closed_loop.controller import PurePursuit
-from lanevil_train.closed_loop.episode import LoopSettings, Run, case_scene, drive, ego_lane, illusion_region
+from lanevil_train.closed_loop.collisions import collision
+from lanevil_train.closed_loop.controller import LaneKeeper, lane_keeper
+from lanevil_train.closed_loop.controllers import Limits
+from lanevil_train.closed_loop.episode import (
+    LoopSettings,
+    Run,
+    case_scene,
+    drive,
+    ego_lane,
+    illusion_region,
+    run_obstacles,
+)
 from lanevil_train.closed_loop.policies import DetectorPolicy, TruthPolicy, VLMPolicy
-from lanevil_train.closed_loop.scoring import run_scores
+from lanevil_train.closed_loop.scoring import run_scores, twin_scores
 from lanevil_train.evaluation.streaming import claim_results
 from lanevil_train.files.atomic import atomic_write_text
 from lanevil_train.progress import progress_counter
@@ -44,8 +57,14 @@ def loop_settings(task: DictConfig) -> LoopSettings:
                         after_s=task.after_s, vehicle=params)
 
 
-def controller(task: DictConfig) -> PurePursuit:
-    return PurePursuit(wheelbase_m=task.vehicle.wheelbase_m, **OmegaConf.to_container(task.controller, resolve=True))
+def controller(task: DictConfig) -> LaneKeeper:
+    """The lane keeper of task.tracker and task.controller with their settings (task.kalman, task.mpc, ...)."""
+    vehicle = task.vehicle
+    limits = Limits(vehicle.wheelbase_m, math.radians(vehicle.max_steer_deg), math.radians(vehicle.max_steer_rate_dps))
+    settings = {name: OmegaConf.to_container(task[name], resolve=True) for name in (task.tracker, task.controller)
+                if name in task and task[name] is not None}
+    return lane_keeper(task.tracker, task.controller, limits, task.max_range_m, task.lane_width_m,
+                       1.0 / task.control_hz, settings)
 
 
 def policy_kind(cfg: DictConfig) -> str:
@@ -133,9 +152,70 @@ def claim_model(out: Path, label: str, identity: dict, resuming: bool) -> None:
     atomic_write_text(marker, text)
 
 
+def plan_groups(runs: list[Run]) -> list[list[Run]]:
+    """The runs in groups of one case, illusion and repeat: the clean twin first, then each severity."""
+    groups: dict[tuple, list[Run]] = {}
+    for run in runs:
+        groups.setdefault((run.case_id, run.illusion, run.repeat), []).append(run)
+    return [sorted(group, key=lambda run: run.severity) for group in groups.values()]
+
+
+def score_run(run: Run, trace: list[dict], twin_trace: list[dict] | None, settings: LoopSettings,
+              task: DictConfig) -> dict:
+    """A run's scores: the paper's rule from the lane centre, the same rule from the clean twin's path (a perturbed
+    run), a collision with a standing illusion."""
+    _, lane_width = ego_lane(case_scene(run.seed, settings.size)[0])
+    scores = run_scores(trace, run.region[0], lane_width, task.threshold_m, task.window_s)
+    if twin_trace is not None and run.severity:
+        scores.update(twin_scores(trace, twin_trace, run.region[0], task.threshold_m, task.window_s))
+    blockers = run_obstacles(run.seed, run.illusion, run.severity, settings.size)
+    scores.update(collision(trace, list(blockers), settings.vehicle.wheelbase_m, scores["entry_s"]))
+    return {**scores, "lane_width_m": lane_width}
+
+
+def drive_group(policy, group: list[Run], settings: LoopSettings, task: DictConfig, out: Path,
+                done: frozenset) -> list[dict]:
+    """Drive the runs of one group that are not `done` (keys), each trace written whole; their records."""
+    records, twin_trace = [], None
+    for run in group:
+        key = f"{policy.name}|{run.key}"
+        path = trace_path(out, policy.name, run.key)
+        if key in done:
+            if run.severity == 0:
+                twin_trace = read_trace(out, {"trace": str(path.relative_to(out))})
+            continue
+        trace = drive(run, policy, settings)
+        write_trace(path, trace)
+        if run.severity == 0:
+            twin_trace = trace
+        scores = score_run(run, trace, twin_trace, settings, task)
+        records.append({"key": key, "model": policy.name, **run.as_dict(), **scores,
+                        "off_road": bool(trace[-1].get("off_road", False)), "steps": len(trace),
+                        "trace": str(path.relative_to(out))})
+    return records
+
+
+_WORKER: dict = {}
+
+
+def _start_worker(cfg: dict, threads: int) -> None:
+    """A worker process: its own models (each process loads them), so the runs it drives are as in one process."""
+    import torch
+
+    torch.set_num_threads(threads)
+    config = OmegaConf.create(cfg)
+    _WORKER.update(cfg=config, policies=[policy for policy, _ in build_policies(config)],
+                   settings=loop_settings(config.task))
+
+
+def _drive_in_worker(item: tuple[int, list[Run], Path, frozenset]) -> list[dict]:
+    index, group, out, done = item
+    return drive_group(_WORKER["policies"][index], group, _WORKER["settings"], _WORKER["cfg"].task, out, done)
+
+
 def closed_loop(cfg: DictConfig) -> float:
-    """Drive every run with every model, resumably; write the report; return the first model's ASR (%) under
-    illusions."""
+    """Drive every run with every model, resumably (in task.workers processes); write the report; return the first
+    model's ASR (%) under illusions."""
     settings = loop_settings(cfg.task)
     policies = build_policies(cfg)
     out = Path(cfg.task.out_dir) if cfg.task.out_dir else output_dir(cfg)
@@ -143,27 +223,37 @@ def closed_loop(cfg: DictConfig) -> float:
     log = ResultsLog(out / RUNS)
     done = log.resume()
     settings_identity = OmegaConf.to_container(cfg.task, resolve=True)
-    for key in ("out_dir", "models", "label", "policy", "animate"):  # which models drive may change between reruns
+    for key in ("out_dir", "models", "label", "policy", "animate", "workers"):  # may change between reruns
         settings_identity.pop(key, None)
     claim_results(log.path, {"settings": json.dumps(settings_identity, sort_keys=True), "seed": cfg.seed}, bool(done))
-    for policy, identity in policies:
-        claim_model(out, policy.name, identity, any(key.startswith(f"{policy.name}|") for key in done))
+    for policy, _identity in policies:
+        claim_model(out, policy.name, _identity, any(key.startswith(f"{policy.name}|") for key in done))
+    groups = plan_groups(runs)
+    items = []
+    for index, (policy, _) in enumerate(policies):
+        for group in groups:
+            keys = frozenset(f"{policy.name}|{run.key}" for run in group)
+            if keys - done:
+                items.append((index, group, out, frozenset(keys & done)))
     total = len(runs) * len(policies)
     bar = progress_counter(total, len(done), "closed loop", "run", cfg.get("progress", "auto"))
-    for policy, _ in policies:
-        for run in runs:
-            key = f"{policy.name}|{run.key}"
-            if key in done:
-                continue
-            trace = drive(run, policy, settings)
-            path = trace_path(out, policy.name, run.key)
-            write_trace(path, trace)
-            _, lane_width = ego_lane(case_scene(run.seed, settings.size)[0])
-            scores = run_scores(trace, run.region[0], lane_width, cfg.task.threshold_m, cfg.task.window_s)
-            log.append([{"key": key, "model": policy.name, **run.as_dict(), **scores, "lane_width_m": lane_width,
-                         "off_road": bool(trace[-1].get("off_road", False)), "steps": len(trace),
-                         "trace": str(path.relative_to(out))}])
-            bar.update(1, note=f"{policy.name} {run.key}")
+    workers = min(max(int(cfg.task.workers or 1), 1), max(len(items), 1))
+    pool = None
+    if workers > 1:
+        context = multiprocessing.get_context("spawn")  # no forked copy of a model's threads
+        threads = max(1, (os.cpu_count() or 1) // workers)
+        pool = context.Pool(workers, _start_worker, (OmegaConf.to_container(cfg, resolve=True), threads))
+        results = pool.imap(_drive_in_worker, items)  # in the planned order, whichever process finishes first
+    else:
+        results = (drive_group(policies[index][0], group, settings, cfg.task, out, skip)
+                   for index, group, out, skip in items)
+    try:
+        for records in results:
+            log.append(records)
+            bar.update(len(records), note=f"{records[-1]['key']}" if records else "")
+    finally:
+        if pool is not None:
+            pool.terminate()
     bar.close()
     return write_report(cfg, out, settings)
 

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from lanevil_train.closed_loop import (
+    LaneKeeper,
     LoopSettings,
     Observation,
     PurePursuit,
@@ -22,6 +23,7 @@ from lanevil_train.closed_loop import (
 )
 from lanevil_train.closed_loop.episode import case_scene, ego_lane, illusion_region
 from lanevil_train.closed_loop.scoring import attack_fired_at, departures, entry_time
+from lanevil_train.closed_loop.tracker import FrameTracker
 from lanevil_train.sim import Camera
 from lanevil_train.vlm.base import VLM
 
@@ -139,9 +141,9 @@ def _lane_pixels(camera, x, z=np.linspace(4.0, 40.0, 30)):
     return camera.project(np.stack([np.full_like(z, x), np.zeros_like(z), z], axis=1))
 
 
-def test_pure_pursuit_steers_to_the_lane_centre_and_falls_back_when_lanes_are_lost():
+def test_without_a_tracker_pure_pursuit_steers_to_the_lane_centre_and_falls_back_when_lanes_are_lost():
     camera = Camera(width=640, height=360, pitch_deg=2.0)
-    control = PurePursuit(lookahead_s=1.0, min_lookahead_m=6.0)
+    control = LaneKeeper(FrameTracker(), PurePursuit(lookahead_s=1.0, min_lookahead_m=6.0))
     left, right = _lane_pixels(camera, -1.5), _lane_pixels(camera, 2.1)  # the centre is 0.3 m right
     steer, info = control.steer([left, right], camera, 20.0)
     assert info["estimate"] == "both"

@@ -86,6 +86,10 @@ def test_an_interrupted_closed_loop_resumes_driving_only_the_unfinished_runs(tmp
     (["task.policy=truth", "task.vehicle.speed_mph=0"], "task.vehicle.speed_mph"),
     (["task.models={none: /no/such.ckpt}"], "task.models"),
     (["task.policy=vlm"], "task.policy: vlm needs a VLM"),
+    (["task.policy=truth", "task.controller=lqr"], "task.controller: expected one of pure_pursuit, stanley, mpc"),
+    (["task.policy=truth", "task.tracker=particle"], "task.tracker: expected one of kalman, none"),
+    (["task.policy=truth", "task.kalman.gate_probability=1.5"], "task.kalman.gate_probability"),
+    (["task.policy=truth", "task.mpc.horizon_s=0"], "task.mpc.horizon_s"),
 ])
 def test_bad_closed_loop_settings_fail_naming_the_key(override, message):
     cfg = composed(["task=closed_loop", *override])
@@ -160,3 +164,21 @@ def test_a_model_added_later_drives_only_its_own_runs_beside_the_finished_ones(t
     assert compared[0]["first ASR (%)"] == compared[0]["second ASR (%)"] == "0.0 [0.0, 79.3]"
     with pytest.raises(ValueError, match="holds results of another evaluation"):  # other settings: refused
         run_in_process([*args, "task.label=third", "task.window_s=2.0"], tmp_path / "run")
+
+
+def test_two_workers_drive_the_same_runs_as_one(tmp_path):
+    args = ["task=closed_loop", "task.policy=truth", *SMALL, "task.illusions=[tire_marks,vehicle]",
+            "task.animate=false", "task.severities=[3,5]"]
+    run_in_process([*args, f"task.out_dir={tmp_path / 'one'}"], tmp_path / "run1")
+    run_in_process([*args, f"task.out_dir={tmp_path / 'two'}", "task.workers=2"], tmp_path / "run2")
+    one, two = ((tmp_path / name / "runs.jsonl").read_text() for name in ("one", "two"))
+    assert one == two and len(one.splitlines()) == 6
+    records = ResultsLog(tmp_path / "two" / "runs.jsonl").records()
+    perturbed = [r for r in records if r["severity"]]
+    # each perturbed run is also scored from its clean twin's path, and a standing illusion for collisions
+    assert all("twin_success" in r and r["twin_max_deviation_m"] >= 0 for r in perturbed)
+    assert all(isinstance(r["collision"], bool) for r in records)
+    for name in ("one", "two"):
+        traces = sorted((tmp_path / name / "traces").rglob("*.jsonl"))
+        assert [t.read_text() for t in traces] == [
+            t.read_text() for t in sorted((tmp_path / "one" / "traces").rglob("*.jsonl"))]

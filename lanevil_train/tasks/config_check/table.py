@@ -8,6 +8,9 @@ from typing import Any
 from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
 
+from lanevil_train.closed_loop.controller import KEEPER_SETTINGS
+from lanevil_train.closed_loop.controllers import CONTROLLERS
+from lanevil_train.closed_loop.tracker import TRACKERS
 from lanevil_train.data.normalization import NORMALIZATIONS
 from lanevil_train.data.resize import RESIZE_FILTERS
 from lanevil_train.illusions import SEVERITIES
@@ -222,10 +225,11 @@ RULES: dict[str, Rule] = {
     "task.vehicle.speed_mph": number(0, 100, low_open=True),
     "task.vehicle.max_steer_deg": number(0, 80, low_open=True, high_open=True),
     "task.vehicle.max_steer_rate_dps": number(0, low_open=True),
-    "task.controller.lookahead_s": number(0, low_open=True),
-    "task.controller.min_lookahead_m": number(0, low_open=True),
-    "task.controller.max_range_m": number(1),
-    "task.controller.lane_width_m": number(2.0, 5.0),
+    "task.tracker": one_of(*TRACKERS),
+    "task.controller": one_of(*CONTROLLERS),
+    **{f"task.{key}": rule for key, rule in KEEPER_SETTINGS.items()},  # the lane keeper's own rules
+    **{f"task.{name}.{key}": rule for name, owner in {**TRACKERS, **CONTROLLERS}.items()
+       for key, rule in getattr(owner, "SETTINGS", {}).items()},
     "task.vlm.question": text(),
     "task.vlm.steer_deg": number(0, 30, low_open=True, high_open=True),
     "task.vlm.frames": integer(1),
