@@ -29,9 +29,10 @@ from lanevil_train.taxonomy import CATEGORIES, ILLUSION_NAMES  # noqa: E402
 ALL = "all"
 
 
-def _asr(records: Sequence[dict]) -> tuple[float, float, float]:
-    """ASR (%) and its Wilson 95 % interval (%)."""
-    wins = sum(bool(r["success"]) for r in records)
+def _asr(records: Sequence[dict], key: str = "success") -> tuple[float, float, float]:
+    """ASR (%) by the rule `key` (success: from the lane centre; twin_success: from the clean twin's path) and its
+    Wilson 95 % interval (%)."""
+    wins = sum(bool(r.get(key)) for r in records)
     low, high = wilson_interval(wins, len(records))
     return (100.0 * wins / len(records) if records else float("nan")), 100.0 * low, 100.0 * high
 
@@ -45,10 +46,15 @@ def _group_row(model: str, column: str, value, perturbed: list[dict], clean: lis
     asr, low, high = _asr(perturbed)
     asr0, low0, high0 = _asr(clean)
     departed = [r["first_departure_s"] for r in perturbed if r.get("first_departure_s") is not None]
+    twin, twin_low, twin_high = _asr(perturbed, "twin_success")
+    hits = [r["time_to_collision_s"] for r in perturbed if r.get("collision")]
     return {
         "model": model, column: value, "runs": len(perturbed),
         "clean ASR (%)": asr0, "clean 95% CI": f"[{low0:.1f}, {high0:.1f}]",
         "ASR (%)": asr, "95% CI": f"[{low:.1f}, {high:.1f}]",
+        "ASR vs twin (%)": twin, "twin 95% CI": f"[{twin_low:.1f}, {twin_high:.1f}]",
+        "collisions (%)": 100.0 * len(hits) / len(perturbed) if perturbed else float("nan"),
+        "time to collision (s)": float(np.median(hits)) if hits else float("nan"),
         "clean max dev (m)": _mean(r["max_deviation_m"] for r in clean),
         "max dev (m)": _mean(r["max_deviation_m"] for r in perturbed),
         "departed (%)": 100.0 * len(departed) / len(perturbed) if perturbed else float("nan"),
@@ -171,7 +177,10 @@ def write_closed_loop_report(records: Sequence[dict], trace_of: Callable[[dict],
     sections = [f"# Closed loop\n\nSettings: {', '.join(f'{k}={v}' for k, v in settings.items())}.\n",
                 f"A run is an attack success when the car deviates more than {ASR_THRESHOLD_M} m from its lane's "
                 f"centre within {ASR_WINDOW_S} s of entering the illusion region (the paper, after Sato et al. "
-                f"2021). Clean: the same starts without the illusion. CI: Wilson 95 % over the runs.\n"]
+                f"2021). Clean: the same starts without the illusion. ASR vs twin: the same rule on the deviation from "
+                f"the clean twin's path at the same arc length (the illusion's push without the detector's own "
+                f"bias). Collisions: the car's footprint met a standing illusion's (time from the run's start). "
+                f"CI: Wilson 95 % over the runs.\n"]
     for by in ("category", "illusion", "severity"):
         rows = asr_rows(records, by)
         write_table(rows, out, f"asr_by_{by}")

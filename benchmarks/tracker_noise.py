@@ -1,0 +1,111 @@
+"""The lane tracker's noise settings, measured (task.kalman.*): how far a detector's ego-lane boundaries lie from
+the true ones on the ground, by distance ahead, and how fast the simulator's roads change their curvature.
+
+Usage: python benchmarks/tracker_noise.py CKPT [--scenes 200] [--first-seed 900000] [--size 360 640]
+
+* point_sigma_m, point_sigma_per_m: the detector (CKPT) sees the synthetic validation scenes (seeds from
+  --first-seed: the validation split, never the closed loop's cases, which are test seeds); its lanes and the true
+  lane lines (the scene's own) are back-projected onto the ground as the lane keeper does (closed_loop/ground.py).
+  Each true ego boundary is paired with the detected lane nearest to it 6 m ahead (within 1 m; else it counts as
+  missed); the lateral error is read every 5 m where both are seen. Its robust spread per distance (1.4826 times
+  the median absolute deviation from the median: the tracker's gate, not its noise model, deals with the tails,
+  so the tails should not widen the gate) is fitted with sigma(z) = a + b z (least squares); a and b are the two
+  settings. The bias and the RMS are printed beside it.
+* curvature_rate_sigma: the roads' curvature rates j (1/m^2; sim/scene.py: S-curves reverse their curvature over
+  s_curve_flip metres, the other roads keep theirs) over as many scenes of the training split; the setting is
+  the white-noise density whose drift over the 50 m the car sees equals their spread: std(j) / sqrt(50 m).
+Prints a markdown table and the YAML lines for conf/task/closed_loop.yaml.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+import numpy as np
+from omegaconf import OmegaConf
+
+from lanevil_train.closed_loop import DetectorPolicy
+from lanevil_train.closed_loop.ground import NEAR_M, ground_lanes
+from lanevil_train.sim import build_scene, sample_scene_params, shade_scene
+from lanevil_train.tasks.builders import checkpoint_model
+
+DISTANCES = np.arange(5.0, 45.0, 5.0)
+PAIR_M = 1.0
+SEEN_M = 50.0
+
+
+def boundary_errors(policy: DetectorPolicy, seed: int, size: tuple[int, int]) -> tuple[list, int, int]:
+    """[(distance, detected - true x), ...] for the ego boundaries of one scene, and (boundaries, missed)."""
+    scene = build_scene(seed, sample_scene_params(seed), size[1], size[0])
+    image = shade_scene(scene)
+    detected = ground_lanes(policy.lanes(image), scene.camera, SEEN_M)
+    bounds = [b.d for b in scene.road.boundaries]
+    ego = scene.params.resolved_ego_lane
+    errors, total, missed = [], 0, 0
+    for d in (bounds[ego], bounds[ego + 1]):
+        truth = ground_lanes([scene.lane_polyline(d)], scene.camera, SEEN_M)
+        if not truth:
+            continue
+        true_lane = truth[0]
+        total += 1
+        near = [(abs(float(lane.x(NEAR_M) - true_lane.x(NEAR_M))), lane) for lane in detected]
+        best = min(near, key=lambda item: item[0], default=None)
+        if best is None or best[0] > PAIR_M:
+            missed += 1
+            continue
+        lane = best[1]
+        for z in DISTANCES:
+            if max(lane.z_near, true_lane.z_near) <= z <= min(lane.z_far, true_lane.z_far):
+                errors.append((float(z), float(lane.x(z) - true_lane.x(z))))
+    return errors, total, missed
+
+
+def curvature_rates(scenes: int) -> np.ndarray:
+    out = []
+    for seed in range(scenes):
+        params = sample_scene_params(seed)
+        out.append(-params.curvature / params.s_curve_flip if params.road == "s_curve" else 0.0)
+    return np.asarray(out)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("ckpt")
+    parser.add_argument("--scenes", type=int, default=200)
+    parser.add_argument("--first-seed", type=int, default=900000)
+    parser.add_argument("--size", type=int, nargs=2, default=[360, 640])
+    args = parser.parse_args()
+    cfg = OmegaConf.create({"ckpt_path": args.ckpt, "trainer": {"accelerator": "cpu"}})
+    policy = DetectorPolicy(checkpoint_model(cfg), name="detector")
+    errors, total, missed = [], 0, 0
+    for seed in range(args.first_seed, args.first_seed + args.scenes):
+        found, n, m = boundary_errors(policy, seed, tuple(args.size))
+        errors += found
+        total, missed = total + n, missed + m
+    z, e = (np.array(v) for v in zip(*errors))
+    print(f"{args.scenes} validation scenes, {total} ego boundaries, {missed} missed ({100 * missed / total:.1f} %)\n")
+    print("| distance (m) | points | bias (m) | RMS (m) | robust sigma (m) |\n|---:|---:|---:|---:|---:|")
+    spread = []
+    for distance in DISTANCES:
+        sel = e[z == distance]
+        if len(sel):
+            robust = 1.4826 * float(np.median(np.abs(sel - np.median(sel))))
+            spread.append((distance, robust))
+            print(f"| {distance:.0f} | {len(sel)} | {np.mean(sel):+.3f} | {math.sqrt(float(np.mean(sel ** 2))):.3f} "
+                  f"| {robust:.3f} |")
+    d, r = (np.array(v) for v in zip(*spread))
+    b, a = np.polyfit(d, r, 1)
+    a, b = max(float(a), 0.01), max(float(b), 0.0)
+    rates = curvature_rates(2000)
+    density = float(np.std(rates)) / math.sqrt(SEEN_M)
+    print(f"\nsigma(z) = {a:.4f} + {b:.5f} z;  curvature rate over 2000 training roads: std {np.std(rates):.2e} / m^2, "
+          f"largest {np.abs(rates).max():.2e}\n")
+    print("kalman:")
+    print(f"  point_sigma_m: {a:.3g}")
+    print(f"  point_sigma_per_m: {b:.3g}")
+    print(f"  curvature_rate_sigma: {density:.3g}")
+
+
+if __name__ == "__main__":
+    main()
