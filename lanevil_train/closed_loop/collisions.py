@@ -17,17 +17,12 @@ stretching of s away from the centre line (a factor 1 - kappa d, under 0.1 % the
   severity 3; both sides, 0.4 and 0.0 m outside, at severities 4 and 5), from 6 m ahead to 120 m: on the
   shoulder, not in a lane; a car reaches it only by leaving the road.
 
-**The object** (obstacles): the base of each object is where changed_road_points(standing=True) puts it, the
-ground point under the lowest changed pixel of each image column. Those points include the object's contact
-shadow and its cast shadow, so the near end and the sides they give are where the object or its shadow
-meets the road: nearer and wider than the object itself by up to the shadow's reach (seed 1000000: 1.4 m nearer
-for a car, 2.9 m for a 3.3 m high truck). The collision model is conservative by that much. An illusion with
-several objects gives one obstacle per object: the base points are split into groups whose points lie within
-LINK_M of another point of their group (guard rails: one group per side of the camera). Each group gives an
-Obstacle: s_near and the lateral extent are the 2nd and 98th percentiles of its points; the object's depth along
-the road is not seen from the camera, so it reaches LENGTH_M[kind] beyond s_near (a car; a bicycle along the
-road; a pedestrian), or farther where the group's points reach farther (a truck's side seen obliquely, a guard
-rail's visible extent).
+**The objects** (`obstacles`) are where the illusion itself put them: the same layout, drawn with the same seed
+(traffic.layout, road_damage.rail_offsets), in the case's reference view, where the closed loop lays every
+illusion out. A participant's footprint is the (s, d) box around every point of its parts (traffic
+participant_points: body, wheels, riders), so a car turned 0.06 rad is 0.1-0.3 m wider than itself; a guard
+rail's is its posts and beam (from the posts' outer face to the beam's road face) from where it starts to
+RAIL_Z_FAR. Shadows are not objects.
 
 **The car**: a rectangle around the rear axle (where a trace's s, d are): from REAR_OVERHANG_M behind it to
 wheelbase + FRONT_OVERHANG_M ahead, 2 * HALF_CAR_WIDTH_M (1.8 m) wide, turned by the step's heading.
@@ -43,21 +38,21 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.sparse.csgraph import connected_components
 
 from lanevil_train.closed_loop.scoring import HALF_CAR_WIDTH_M
-from lanevil_train.illusions.footprint import STANDING, changed_road_points
+from lanevil_train.illusions.context import context_from_scene
+from lanevil_train.illusions.footprint import STANDING
+from lanevil_train.illusions.road_damage import LEVELS, RAIL_Z_FAR, rail_offsets
+from lanevil_train.illusions.traffic import layout, participant_points
 from lanevil_train.sim import Scene
 
 WHEELBASE_M = 2.7  # sim.vehicle.VehicleParams' default
 REAR_OVERHANG_M = 1.0  # rear axle to rear bumper (a 4.6 m mid-size car with a 2.7 m wheelbase)
 FRONT_OVERHANG_M = 0.9  # front axle to front bumper
 SUBSTEP_M = 0.25  # most distance the car moves between two tested poses
-LENGTH_M = {"vehicle": 4.5, "bicycle": 1.8, "pedestrian": 0.6, "guard_rail": 0.0}  # depth along the road
-LINK_M = 1.0  # base points nearer than this to one another belong to one object
-MIN_POINTS = 3  # fewer base points than this are stray pixels, not an object
-PERCENTILES = (2.0, 98.0)
 _BISECT_STEPS = 30
+RAIL_BEAM_OFFSET_M = 0.15  # the beam's face, on the road side of the posts (road_damage._draw_rail)
+RAIL_POST_HALF_M = 0.08  # half a post's width
 
 
 @dataclass(frozen=True)
@@ -80,45 +75,27 @@ class Obstacle:
                 "d_left": round(self.d_left, 4), "d_right": round(self.d_right, 4)}
 
 
-def obstacles(scene: Scene, clean: np.ndarray, perturbed: np.ndarray, illusion: str) -> list[Obstacle]:
-    """The objects a standing illusion drew into `perturbed` (a render of `scene`; `clean` without it), nearest
-    first (by s_near), from their changed pixels (see the module docstring); [] when the illusion is not standing
-    or nothing it changed meets the road."""
-    if illusion not in STANDING:
+def obstacles(scene: Scene, illusion: str, severity: int, seed: int) -> list[Obstacle]:
+    """The objects a standing illusion at `severity` (drawn with `seed`) puts on the road of `scene`'s reference
+    view, nearest first (by s_near); [] for an illusion that stands on nothing (see the module docstring)."""
+    if illusion not in STANDING or not severity:
         return []
-    s, d = changed_road_points(scene, clean, perturbed, standing=True)
-    if len(s) == 0:
-        return []
+    ctx = context_from_scene(scene)
+    rng = np.random.default_rng(seed)  # as the illusion's registry entry seeds its renderer
     if illusion == "guard_rail":
-        d_cam = float(scene.road.lateral(0.0, 0.0))
-        labels = (d > d_cam).astype(int)
+        out = []
+        for d_rail, sign in rail_offsets(ctx, severity, rng):
+            inner, outer = d_rail - sign * RAIL_BEAM_OFFSET_M, d_rail + sign * RAIL_POST_HALF_M
+            z_start = LEVELS["guard_rail"][severity - 1]["z_start_m"]
+            near, far = (float(v) for v in scene.road.arc_length(np.array([z_start, RAIL_Z_FAR])))
+            out.append(Obstacle(illusion, near, far, min(inner, outer), max(inner, outer)))
     else:
-        labels = _groups(s, d, LINK_M)
-    out = []
-    for label in np.unique(labels):
-        gs, gd = s[labels == label], d[labels == label]
-        if len(gs) < MIN_POINTS:
-            continue
-        s_near, s_hi = np.percentile(gs, PERCENTILES)
-        d_left, d_right = np.percentile(gd, PERCENTILES)
-        out.append(Obstacle(kind=illusion, s_near=float(s_near), s_far=float(max(s_near + LENGTH_M[illusion], s_hi)),
-                            d_left=float(d_left), d_right=float(d_right)))
+        out = []
+        for participant in layout(illusion, ctx, severity, rng):
+            points = participant_points(ctx, participant)
+            s, d = scene.road_coords(points[:, 0], points[:, 2])
+            out.append(Obstacle(illusion, float(np.min(s)), float(np.max(s)), float(np.min(d)), float(np.max(d))))
     return sorted(out, key=lambda o: (o.s_near, o.d_left))
-
-
-def obstacle(scene: Scene, clean: np.ndarray, perturbed: np.ndarray, illusion: str) -> Obstacle | None:
-    """The nearest (smallest s_near) of obstacles(): the object whose near end is the illusion region's near end
-    (episode.illusion_region). Traffic illusions draw several objects (2 vehicles at severity 3): collide with
-    obstacles()' whole list. None when the illusion is not standing or nothing changed on the road."""
-    found = obstacles(scene, clean, perturbed, illusion)
-    return found[0] if found else None
-
-
-def _groups(s: np.ndarray, d: np.ndarray, link: float) -> np.ndarray:
-    """Group labels of points (s, d): single linkage, points within `link` m (Euclidean) join."""
-    pts = np.stack([s, d], 1)
-    near = np.linalg.norm(pts[:, None, :] - pts[None, :, :], axis=2) <= link
-    return connected_components(near, directed=False)[1]
 
 
 def car_corners(s: float, d: float, heading: float, wheelbase_m: float = WHEELBASE_M,

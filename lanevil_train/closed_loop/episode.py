@@ -108,11 +108,7 @@ def illusion_region(seed: int, illusion: str, size: tuple[int, int]) -> tuple[fl
 def run_obstacles(seed: int, illusion: str, severity: int, size: tuple[int, int]) -> tuple[Obstacle, ...]:
     """The objects a standing illusion puts on the road of the case at this severity (closed_loop/collisions.py);
     none for a clean twin or an illusion that stands on nothing."""
-    if not severity or illusion not in STANDING:
-        return ()
-    scene, clean = case_scene(seed, size)
-    perturbed = get_illusion(illusion)(clean, context_from_scene(scene), severity, seed)
-    return tuple(obstacles(scene, clean, perturbed, illusion))
+    return tuple(obstacles(case_scene(seed, size)[0], illusion, severity, seed))
 
 
 def render_view(run: Run, state: VehicleState, size: tuple[int, int]) -> tuple[np.ndarray, Scene]:

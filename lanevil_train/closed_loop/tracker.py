@@ -130,9 +130,9 @@ class KalmanLaneTracker:
         "min_confidence": number(0, 1, high_open=True),
     }
 
-    point_sigma_m: float = 0.05
-    point_sigma_per_m: float = 0.005
-    curvature_rate_sigma: float = 2e-4
+    point_sigma_m: float = 0.01
+    point_sigma_per_m: float = 0.025
+    curvature_rate_sigma: float = 3.4e-6
     width_sigma: float = 0.005
     yaw_rate_sigma: float = 0.005
     gate_probability: float = 0.999

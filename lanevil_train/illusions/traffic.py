@@ -194,6 +194,13 @@ def _frame(ctx: IllusionContext, p: Participant) -> tuple[np.ndarray, np.ndarray
     return origin, np.stack([right, up, fwd], axis=1)
 
 
+def participant_points(ctx: IllusionContext, participant: Participant) -> np.ndarray:
+    """World points (N, 3) outlining a participant's parts (box corners, sphere and wheel samples): where it
+    stands, for a collision model (closed_loop/collisions.py)."""
+    origin, axes = _frame(ctx, participant)
+    return np.concatenate([_world_vertices(prim, origin, axes) for prim in participant.prims])
+
+
 _BOX_FACES = np.array([[0, 1, 3, 2], [4, 6, 7, 5], [0, 4, 5, 1], [2, 3, 7, 6], [0, 2, 6, 4], [1, 5, 7, 3]])
 _BOX_CORNERS = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], np.float64)
 

@@ -14,7 +14,6 @@ from lanevil_train.closed_loop.collisions import (
     Obstacle,
     car_corners,
     collision,
-    obstacle,
     obstacles,
 )
 from lanevil_train.closed_loop.episode import case_scene, ego_lane, illusion_region
@@ -94,42 +93,48 @@ def test_the_first_obstacle_hit_in_time_is_reported_and_no_obstacle_is_no_collis
 
 
 def test_an_illusion_that_does_not_stand_on_the_road_has_no_obstacle():
-    scene, clean = case_scene(1000000, (360, 640))
-    assert obstacle(scene, clean, clean, "rail_shadow") is None
-    assert obstacle(scene, clean, clean, "vehicle") is None  # nothing changed
+    scene, _ = case_scene(1000000, (360, 640))
+    assert obstacles(scene, "rail_shadow", 3, 1000000) == []
+    assert obstacles(scene, "vehicle", 0, 1000000) == []  # a clean twin
 
 
 def test_the_vehicle_illusion_of_case_1000000_gives_its_two_vehicles_where_its_layout_put_them():
     seed, size = 1000000, (360, 640)
     scene, clean = case_scene(seed, size)
+    # the layout the illusion drew, from its parts' box corners (by hand from traffic.layout): a car on the ego
+    # lane's left line (s 14.75-19.19, d 0.72-2.82) and a box truck on its right line (s 15.55-23.10, d 4.48-7.25)
     ctx = context_from_scene(scene)
-    perturbed = get_illusion("vehicle")(clean, ctx, 3, seed)
-    # the layout the illusion drew: a car on the ego lane's left line (s 14.75-19.19, d 0.72-2.82) and a box truck
-    # on its right line (s 15.55-23.10, d 4.48-7.25); the camera (and the ego lane's centre) is right of the car
     truth = []
     for part in traffic.layout("vehicle", ctx, 3, np.random.default_rng(seed)):
-        pts = np.concatenate([traffic._world_vertices(q, *traffic._frame(ctx, part)) for q in part.prims])
-        s, d = scene.road_coords(pts[:, 0], pts[:, 2])
-        truth.append((s.min(), s.max(), d.min(), d.max()))
-    truth.sort(key=lambda box: box[2])
-    assert np.round(truth, 2).tolist() == [[14.75, 19.19, 0.72, 2.82], [15.55, 23.1, 4.48, 7.25]]
-    nearest = obstacle(scene, clean, perturbed, "vehicle")
-    assert abs(nearest.s_near - illusion_region(seed, "vehicle", size)[0]) < 0.5
-    found = sorted(obstacles(scene, clean, perturbed, "vehicle"), key=lambda o: o.d_left)
-    assert len(found) == 2 and nearest in found
-    for o, (s_min, _, d_min, d_max) in zip(found, truth):
-        assert scene.road.left_edge < o.d_left < o.d_right < scene.road.right_edge  # on the road
-        assert abs(o.d_left - d_min) < 0.3 and abs(o.d_right - d_max) < 0.3
-        # the base is the object's shadow on the road: nearer than its rear, by at most 3.1 m (the truck)
-        assert s_min - 3.1 < o.s_near < s_min
-        assert o.s_far - o.s_near >= 4.5
-    # a car held at the ego lane's centre (2.64-4.44 m) overlaps both estimates (the car's d_right 2.98, the truck's
-    # d_left 4.28) and meets the truck first (its shadow's near end, 12.49 m, is nearer); the truck's true left side
-    # (4.48 m) clears it by 4 cm: the shadow makes the model conservative
+        origin, axes = traffic._frame(ctx, part)
+        corners = np.concatenate([traffic._world_vertices(q, origin, axes) for q in part.prims])
+        s, d = scene.road_coords(corners[:, 0], corners[:, 2])
+        truth.append([s.min(), s.max(), d.min(), d.max()])
+    assert np.round(sorted(truth), 2).tolist() == [[14.75, 19.19, 0.72, 2.82], [15.55, 23.1, 4.48, 7.25]]
+    found = obstacles(scene, "vehicle", 3, seed)
+    assert np.allclose([[o.s_near, o.s_far, o.d_left, o.d_right] for o in found], sorted(truth), atol=1e-9)
+    # the illusion drawn with this seed is the one that changed the image there: its pixels lie over the boxes
+    perturbed = get_illusion("vehicle")(clean, ctx, 3, seed)
+    assert abs(found[0].s_near - illusion_region(seed, "vehicle", size)[0]) < 2.5  # the region starts at shadows
+    assert not np.array_equal(perturbed, clean)
+    # a car held at the ego lane's centre (3.542: its sides 2.642-4.442) meets the car (d_right 2.82) when its
+    # front reaches it; the truck's left side (4.48) clears it by 4 cm
     centre = ego_lane(scene)[0]
     assert centre == pytest.approx(3.542, abs=1e-3)
     out = collision(_straight(20, d=centre, s0=5.0), found)
-    truck = found[1]
-    assert out["collision"] and out["obstacle"] == truck.as_dict()
-    assert out["collision_t"] == pytest.approx((truck.s_near - FRONT - 5.0) / 20.0, abs=1e-4)
-    assert collision(_straight(20, d=centre, s0=5.0), found[0])["collision"]
+    assert out["collision"] and out["obstacle"] == found[0].as_dict()
+    assert out["collision_t"] == pytest.approx((found[0].s_near - FRONT - 5.0) / 20.0, abs=1e-4)
+    assert not collision(_straight(20, d=centre, s0=5.0), found[1])["collision"]
+
+
+def test_a_guard_rail_stands_beyond_the_roads_outer_line_from_where_it_starts():
+    seed = 1000000
+    scene, _ = case_scene(seed, (360, 640))
+    rails = obstacles(scene, "guard_rail", 3, seed)  # one rail, 0.9 m outside an edge line, from 6 m
+    edges = [b.d for b in scene.road.boundaries]
+    assert len(rails) == 1
+    rail = rails[0]
+    outside = rail.d_left - max(edges) if rail.d_left > max(edges) else min(edges) - rail.d_right
+    assert outside == pytest.approx(0.9 - 0.15, abs=1e-6)  # the beam's face, 0.15 m on the road side of the posts
+    assert rail.d_right - rail.d_left == pytest.approx(0.15 + 0.08)
+    assert rail.s_near == pytest.approx(float(scene.road.arc_length(np.array(6.0))), abs=1e-6)
