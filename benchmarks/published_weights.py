@@ -5,7 +5,7 @@ table of those runs beside the paper's numbers.
 Usage (a GPU machine with the datasets and the downloaded files):
 
     python benchmarks/published_weights.py --weights /weights --tusimple /data/tusimple --culane /data/culane \
-        --laneatt-data /src/LaneATT/data --out /runs/published
+        --llamas /data/llamas --laneatt-data /src/LaneATT/data --out /runs/published
 
 Each file in --weights (``*.pth``, ``*.pt``, searched recursively) is recognised from its keys and shapes (as
 ``task=evaluate`` does it); the dataset of a file whose shapes cannot tell it (LaneATT, BezierLaneNet, GANet, a
@@ -19,7 +19,9 @@ project's own commands:
 
 (``--dry-run`` prints them), ``task=report`` over the suites and benchmarks/paper_main_table.py on that report.
 A run already finished is skipped (evaluation resumes from its per_image.jsonl). The acceptance check is the clean
-column: each file's score on its own test split must equal the "published" one within 0.1 point.
+column: each file's score on its own test split must equal the "published" one within 0.1 point. LLAMAS is scored
+on its valid split (its test labels are not public): CLRNet publishes valid figures; LaneATT's README gives its
+test server's, so its LLAMAS rows have no published column.
 """
 
 from __future__ import annotations
@@ -62,8 +64,13 @@ PUBLISHED = {
     ("ganet", "culane", "resnet18"): ("CULane_F1", 78.79),
     ("ganet", "culane", "resnet34"): ("CULane_F1", 79.39),
     ("ganet", "culane", "resnet101"): ("CULane_F1", 79.63),
+    # Turoad/CLRNet README "LLAMAS", valid F1@50 (the split scored here; LaneATT's README LLAMAS figures are its
+    # test server's, lib/datasets/llamas.py l. 11: no labels to compare with here)
+    ("clrnet", "llamas", "resnet18"): ("CULane_F1", 96.93),
+    ("clrnet", "llamas", "dla34"): ("CULane_F1", 97.06),
 }
-DATASETS = ("tusimple", "culane")
+DATASETS = ("tusimple", "culane", "llamas")
+CONF = Path(__file__).resolve().parents[1] / "lanevil_train" / "conf" / "experiment"
 
 
 def describe_file(path: Path) -> dict | None:
@@ -88,16 +95,20 @@ def describe_file(path: Path) -> dict | None:
         return {"skip": f"an official {release.name} file ({recognised.what}) of no published release (its "
                         f"settings: {recognised.config})"}
     dataset = experiment.rsplit("_", 1)[-1]
-    if dataset not in DATASETS:  # a LaneATT or GANet file (official_<...>_<tusimple|culane>): its path names it
-        dataset = next((d for d in DATASETS if d in str(path).lower()), None)
-        if dataset is None and "llamas" in str(path).lower():
-            return {"skip": f"an official {release.name} file ({recognised.what}) of LLAMAS (its path says so), a "
-                            f"dataset this benchmark does not score"}
+    named = next((d for d in DATASETS if d in str(path).lower()), None)  # the repositories name it in the path
+    if dataset not in DATASETS or named == "llamas":  # LaneATT, GANet: one layout for all; CLRNet: LLAMAS = CULane's
+        dataset = named
         if dataset is None:
-            raise SystemExit(f"{path}: an official {release.name} file; name its dataset in its path (tusimple or "
-                             f"culane), as the repository's experiment folders and file names do")
+            raise SystemExit(f"{path}: an official {release.name} file; name its dataset in its path (tusimple, "
+                             f"culane or llamas), as the repository's experiment folders and file names do")
+    experiment = experiment.replace("<tusimple|culane>", dataset)
+    if dataset == "llamas":
+        experiment = experiment.rsplit("_", 1)[0] + "_llamas"
+        if not (CONF / f"{experiment}.yaml").is_file():
+            return {"skip": f"an official {release.name} file of LLAMAS (its path says so), a release this project "
+                            f"has no experiment= for"}
     return {"family": release.family, "dataset": dataset, "backbone": words.get("backbone", "resnet18"),
-            "experiment": experiment.replace("<tusimple|culane>", dataset)}
+            "experiment": experiment}
 
 
 def commands(path: Path, info: dict, roots: dict, laneatt_data: Path | None, out: Path) -> dict[str, list[str]]:
@@ -111,6 +122,8 @@ def commands(path: Path, info: dict, roots: dict, laneatt_data: Path | None, out
             raise SystemExit(f"{path}: a LaneATT file needs --laneatt-data (the repository's data/ folder, with the "
                              f"anchor frequency files)")
         base.append(f"model.head.anchor_frequency_file={laneatt_data / (info['dataset'] + '_anchors_freq.pt')}")
+    if (info["family"], info["dataset"], info["backbone"]) == ("clrnet", "llamas", "dla34"):
+        base.append("model.decode.nms_threshold=50.0")  # configs/clrnet/clr_dla34_llamas.py (ResNet-18's: 60)
     return {"clean": [*base, "task.predictions=true", f"hydra.run.dir={out / label / 'clean'}"],
             "suite": [*base, "task.suite=synthetic", f"hydra.run.dir={out / label / 'suite'}"]}
 
@@ -125,12 +138,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--weights", type=Path, required=True, help="folder of downloaded official checkpoints")
     parser.add_argument("--tusimple", type=Path, help="TuSimple root (test_label.json, clips/)")
     parser.add_argument("--culane", type=Path, help="CULane root (list/test.txt, the driver_* folders)")
+    parser.add_argument("--llamas", type=Path, help="LLAMAS root (color_images/, labels/; scored on valid)")
     parser.add_argument("--laneatt-data", type=Path, help="LaneATT's data/ folder (its *_anchors_freq.pt files)")
     parser.add_argument("--out", type=Path, default=Path("published_runs"))
     parser.add_argument("--dry-run", action="store_true", help="print the commands, run nothing")
     args = parser.parse_args(argv)
 
-    roots = {"tusimple": args.tusimple, "culane": args.culane}
+    roots = {"tusimple": args.tusimple, "culane": args.culane, "llamas": args.llamas}
     files = sorted(p for p in args.weights.rglob("*") if p.suffix in (".pth", ".pt") and p.is_file())
     plan = []
     for path in files:

@@ -29,15 +29,21 @@ def test_each_file_gets_its_releases_clean_and_suite_commands(tmp_path, capsys):
                "attention_layer.weight": torch.zeros(999, 64 * 11), "cls_layer.weight": torch.zeros(1),
                **_resnet18_keys("feature_extractor.", ["4", "5", "6", "7"])}
     torch.save({"epoch": 100, "model": laneatt}, weights / "laneatt_r18_culane" / "models" / "model_0100.pt")
+    (weights / "laneatt_r18_llamas" / "models").mkdir(parents=True)
+    torch.save({"epoch": 100, "model": laneatt}, weights / "laneatt_r18_llamas" / "models" / "model_0100.pt")
     torch.save({"net": {"x": torch.zeros(1)}}, weights / "other.pth")
 
     script.main(["--weights", str(weights), "--tusimple", "/data/tusimple", "--culane", "/data/culane",
-                 "--laneatt-data", "/src/LaneATT/data", "--out", str(tmp_path / "runs"), "--dry-run"])
+                 "--llamas", "/data/llamas", "--laneatt-data", "/src/LaneATT/data", "--out", str(tmp_path / "runs"),
+                 "--dry-run"])
     lines = capsys.readouterr().out.splitlines()
     assert any(line.startswith("skipped") and "other.pth" in line for line in lines)
     runs = [line for line in lines if "-m lanevil_train" in line]
-    assert len(runs) == 4  # clean and suite of each file
-    laneatt_clean, laneatt_suite, ufld_clean, ufld_suite = runs
+    assert len(runs) == 6  # clean and suite of each file
+    laneatt_clean, laneatt_suite, llamas_clean, llamas_suite, ufld_clean, ufld_suite = runs
+    assert "experiment=official_laneatt_llamas backbone=resnet18" in llamas_clean
+    assert "data.root=/data/llamas" in llamas_clean
+    assert "model.head.anchor_frequency_file=/src/LaneATT/data/llamas_anchors_freq.pt" in llamas_suite
     assert "experiment=official_ufld_tusimple backbone=resnet18" in ufld_clean
     assert "data.root=/data/tusimple" in ufld_clean and "task.predictions=true" in ufld_clean
     assert "task.suite=synthetic" in ufld_suite
