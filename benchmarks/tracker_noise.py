@@ -3,14 +3,16 @@ the true ones on the ground, by distance ahead, and how fast the simulator's roa
 
 Usage: python benchmarks/tracker_noise.py CKPT [--scenes 200] [--first-seed 900000] [--size 360 640]
 
-* point_sigma_m, point_sigma_per_m: the detector (CKPT) sees the synthetic validation scenes (seeds from
-  --first-seed: the validation split, never the closed loop's cases, which are test seeds); its lanes and the true
-  lane lines (the scene's own) are back-projected onto the ground as the lane keeper does (closed_loop/ground.py).
+* offset_sigma_m, slope_sigma, curvature_sigma, point_sigma_m: the detector (CKPT) sees the synthetic validation
+  scenes (seeds from --first-seed: the validation split, never the closed loop's cases, which are test seeds);
+  its lanes and the true lane lines (the scene's own) are back-projected onto the ground as the lane keeper does
+  (closed_loop/ground.py).
   Each true ego boundary is paired with the detected lane nearest to it 6 m ahead (within 1 m; else it counts as
-  missed); the lateral error is read every 5 m where both are seen. Its robust spread per distance (1.4826 times
-  the median absolute deviation from the median: the tracker's gate, not its noise model, deals with the tails,
-  so the tails should not widen the gate) is fitted with sigma(z) = a + b z (least squares); a and b are the two
-  settings. The bias and the RMS are printed beside it.
+  missed); the lateral error is read every 5 m where both are seen. A detected lane's errors along it are not
+  independent (a lane seen 20 cm off is 20 cm off all along), so each boundary's errors are fitted with
+  a + b z + c z^2 / 2: the spreads of a, b and c are offset_sigma_m, slope_sigma and curvature_sigma, the spread
+  of the residuals point_sigma_m. Spreads are robust (1.4826 times the median absolute deviation): the tracker's
+  gate, not its noise model, deals with the tails.
 * curvature_rate_sigma: the roads' curvature rates j (1/m^2; sim/scene.py: S-curves reverse their curvature over
   s_curve_flip metres, the other roads keep theirs) over as many scenes of the training split; the setting is
   the white-noise density whose drift over the 50 m the car sees equals their spread: std(j) / sqrt(50 m).
@@ -33,10 +35,11 @@ from lanevil_train.tasks.builders import checkpoint_model
 DISTANCES = np.arange(5.0, 45.0, 5.0)
 PAIR_M = 1.0
 SEEN_M = 50.0
+POINT_FLOOR_M = 0.005  # both lanes are parabolas (ground_lanes' fits), so the residual is nil: a floor
 
 
 def boundary_errors(policy: DetectorPolicy, seed: int, size: tuple[int, int]) -> tuple[list, int, int]:
-    """[(distance, detected - true x), ...] for the ego boundaries of one scene, and (boundaries, missed)."""
+    """[[(distance, detected - true x), ...] per paired ego boundary] of one scene, and (boundaries, missed)."""
     scene = build_scene(seed, sample_scene_params(seed), size[1], size[0])
     image = shade_scene(scene)
     detected = ground_lanes(policy.lanes(image), scene.camera, SEEN_M)
@@ -55,9 +58,8 @@ def boundary_errors(policy: DetectorPolicy, seed: int, size: tuple[int, int]) ->
             missed += 1
             continue
         lane = best[1]
-        for z in DISTANCES:
-            if max(lane.z_near, true_lane.z_near) <= z <= min(lane.z_far, true_lane.z_far):
-                errors.append((float(z), float(lane.x(z) - true_lane.x(z))))
+        errors.append([(float(z), float(lane.x(z) - true_lane.x(z))) for z in DISTANCES
+                       if max(lane.z_near, true_lane.z_near) <= z <= min(lane.z_far, true_lane.z_far)])
     return errors, total, missed
 
 
@@ -83,28 +85,45 @@ def main() -> None:
         found, n, m = boundary_errors(policy, seed, tuple(args.size))
         errors += found
         total, missed = total + n, missed + m
-    z, e = (np.array(v) for v in zip(*errors))
-    print(f"{args.scenes} validation scenes, {total} ego boundaries, {missed} missed ({100 * missed / total:.1f} %)\n")
-    print("| distance (m) | points | bias (m) | RMS (m) | robust sigma (m) |\n|---:|---:|---:|---:|---:|")
-    spread = []
-    for distance in DISTANCES:
-        sel = e[z == distance]
-        if len(sel):
-            robust = 1.4826 * float(np.median(np.abs(sel - np.median(sel))))
-            spread.append((distance, robust))
-            print(f"| {distance:.0f} | {len(sel)} | {np.mean(sel):+.3f} | {math.sqrt(float(np.mean(sel ** 2))):.3f} "
-                  f"| {robust:.3f} |")
-    d, r = (np.array(v) for v in zip(*spread))
-    b, a = np.polyfit(d, r, 1)
-    a, b = max(float(a), 0.01), max(float(b), 0.0)
+    lanes = [lane for lane in errors if len(lane) >= 3]
+    print(f"{args.scenes} validation scenes, {total} ego boundaries, {missed} missed ({100 * missed / total:.1f} %), "
+          f"{len(lanes)} seen at 3 distances or more\n")
+    # each boundary's error as a parabola a + b z + c z^2 / 2 (its offset, slope and curvature errors: a lane seen
+    # 20 cm off is off all along) and the residual around it
+    fits, residuals = [], []
+    for lane in lanes:
+        z, e = (np.array(v) for v in zip(*lane))
+        c2, b, a = np.polyfit(z, e, 2)
+        fits.append((a, b, 2 * c2))
+        if len(z) >= 5:  # three or four points: a parabola through them leaves no residual to speak of
+            residuals += list(e - (a + b * z + c2 * z * z))
+    a, b, c = (np.array(v) for v in zip(*fits))
+    sigmas = [robust_sigma(v) for v in (a, b, c)]
+    inliers = (np.abs(a - np.median(a)) < 3 * sigmas[0]) & (np.abs(b - np.median(b)) < 3 * sigmas[1]) & \
+        (np.abs(c - np.median(c)) < 3 * sigmas[2])
+    correlation = np.corrcoef(np.stack([a[inliers], b[inliers], c[inliers]]))
+    residual = robust_sigma(np.array(residuals))
     rates = curvature_rates(2000)
     density = float(np.std(rates)) / math.sqrt(SEEN_M)
-    print(f"\nsigma(z) = {a:.4f} + {b:.5f} z;  curvature rate over 2000 training roads: std {np.std(rates):.2e} / m^2, "
+    print("| error of a boundary | median | robust sigma |\n|---|---:|---:|")
+    for name, values, sigma in zip(("offset (m)", "slope", "curvature (1/m)"), (a, b, c), sigmas):
+        print(f"| {name} | {np.median(values):+.2e} | {sigma:.2e} |")
+    print(f"| residual at each distance (m) | | {residual:.3f} |")
+    print(f"\ncorrelations of offset, slope, curvature over the {inliers.sum()} boundaries within 3 sigma: "
+          f"{np.round(correlation[np.triu_indices(3, 1)], 2).tolist()} (the tracker takes them as independent)")
+    print(f"curvature rate over 2000 training roads: std {np.std(rates):.2e} / m^2, "
           f"largest {np.abs(rates).max():.2e}\n")
     print("kalman:")
-    print(f"  point_sigma_m: {a:.3g}")
-    print(f"  point_sigma_per_m: {b:.3g}")
+    print(f"  offset_sigma_m: {sigmas[0]:.3g}")
+    print(f"  slope_sigma: {sigmas[1]:.3g}")
+    print(f"  curvature_sigma: {sigmas[2]:.3g}")
+    print(f"  point_sigma_m: {max(residual, POINT_FLOOR_M):.3g}")
     print(f"  curvature_rate_sigma: {density:.3g}")
+
+
+def robust_sigma(values: np.ndarray) -> float:
+    """1.4826 x the median absolute deviation from the median: a standard deviation the tails do not widen."""
+    return 1.4826 * float(np.median(np.abs(values - np.median(values))))
 
 
 if __name__ == "__main__":

@@ -17,21 +17,25 @@ lane width and how far ahead it is known (`CentreLine`). Two ship (`task.tracker
       rate' = rate,   width' = width,
   with process noise: the curvature rate drifts as white noise (spectral density `curvature_rate_sigma`^2 per
   metre, integrated into the lower terms), the width as a random walk (`width_sigma`^2 per metre), the yaw as the
-  gyro's error (`yaw_rate_sigma` rad/s). *Update* with each boundary seen: its x at up to SAMPLES distances
-  over its seen span is x(z) -/+ width / 2 (left / right), measured with standard deviation `point_sigma_m` +
-  `point_sigma_per_m` z (back-projection error grows with distance). *Association and gating*: each side takes
-  the detected lane nearest its predicted boundary in Mahalanobis distance; a lane beyond the chi-square gate
-  (`gate_probability`, as many degrees of freedom as points) is rejected, and counted when it lies within half
-  a lane of a boundary, so a line that appears suddenly beside the boundary (a shadow, a repair seam) does not
-  move the lane. *Confidence*: 1 after an accepted update, decaying as exp(-dt / `confidence_time_s`) while
-  nothing is accepted (the prediction alone carries the lane); under `min_confidence` the lane is lost: no
-  centre line (the controller holds its last plan) and the next frame starts the track afresh from the prior
-  (offset 0 +- 2 m, slope 0 +- 0.2, curvature 0 +- 0.01 / m, curvature rate 0 +- 1e-4 / m^2, width
-  `lane_width_m` +- 0.5 m) with the nearest-lanes rule.
+  gyro's error (`yaw_rate_sigma` rad/s). *Update* with each boundary seen: its x at up to SAMPLES distances over its
+  seen span is x(z) -/+ width / 2 (left / right). Its errors are those of a detected lane: mostly the whole lane
+  off, turned or bent (a lane seen 20 cm off is off all along), so their covariance is that of an error a + b z + c
+  z^2 / 2 with independent a, b, c of standard deviations `offset_sigma_m`, `slope_sigma`, `curvature_sigma`, plus
+  `point_sigma_m` independent at each point: one frame is one look at the lane, not six, and the filter does not
+  grow overconfident and start rejecting good detections. *Association and gating*: each side takes the detected
+  lane nearest its predicted boundary in Mahalanobis distance; a lane beyond the chi-square gate
+  (`gate_probability`, as many degrees of freedom as points) is rejected, and counted when it lies within half a
+  lane of a boundary, so a line that appears suddenly beside the boundary (a shadow, a repair seam) does not move
+  the lane. *Confidence*: 1 after an accepted update, decaying as exp(-dt / `confidence_time_s`) while nothing is
+  accepted (the prediction alone carries the lane); under `min_confidence` the lane is lost: no centre line (the
+  controller holds its last plan) and the next frame starts the track afresh from the prior (offset 0 +- 2 m, slope
+  0 +- 0.2, curvature 0 +- 0.01 / m, curvature rate 0 +- 1e-4 / m^2, width `lane_width_m` +- 0.5 m) with the
+  nearest-lanes rule.
 
 The noise settings (conf/task/closed_loop.yaml) are measured, not tuned on the test cases:
-benchmarks/tracker_noise.py measures the detector's boundary error against the true lanes on the synthetic
-validation scenes (point_sigma_*) and the simulator's roads' curvature rates (curvature_rate_sigma).
+benchmarks/tracker_noise.py measures the detector's boundary errors against the true lanes on the synthetic
+validation scenes (offset, slope, curvature and point sigmas) and the simulator's roads' curvature rates
+(curvature_rate_sigma).
 """
 
 from __future__ import annotations
@@ -40,6 +44,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.linalg import block_diag
 from scipy.stats import chi2
 
 from lanevil_train.closed_loop.ground import NEAR_M, GroundLane, nearest_bounds
@@ -120,8 +125,10 @@ class KalmanLaneTracker:
     """task.tracker=kalman: the ego lane as a Kalman-filtered state (see the module docstring)."""
 
     SETTINGS = {
+        "offset_sigma_m": number(0),
+        "slope_sigma": number(0),
+        "curvature_sigma": number(0),
         "point_sigma_m": number(0, low_open=True),
-        "point_sigma_per_m": number(0),
         "curvature_rate_sigma": number(0),
         "width_sigma": number(0),
         "yaw_rate_sigma": number(0),
@@ -130,8 +137,10 @@ class KalmanLaneTracker:
         "min_confidence": number(0, 1, high_open=True),
     }
 
-    point_sigma_m: float = 0.01
-    point_sigma_per_m: float = 0.025
+    offset_sigma_m: float = 0.108
+    slope_sigma: float = 0.0252
+    curvature_sigma: float = 0.00114
+    point_sigma_m: float = 0.005
     curvature_rate_sigma: float = 3.4e-6
     width_sigma: float = 0.005
     yaw_rate_sigma: float = 0.005
@@ -189,19 +198,19 @@ class KalmanLaneTracker:
 
     # --------------------------------------------------------------------------------------------- update
     def _measurement(self, lane: GroundLane, side: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(H, measured x, their variances) of a boundary on side -1 (left) / +1 (right)."""
+        """(H, measured x, their covariance) of a boundary on side -1 (left) / +1 (right)."""
         span = lane.z_far - lane.z_near
         count = int(min(SAMPLES, max(2, span // SAMPLE_SPACING_M + 1)))
         z = np.linspace(lane.z_near, lane.z_far, count)
         h = np.stack([np.ones_like(z), z, z * z / 2, z ** 3 / 6, np.full_like(z, side / 2)], 1)
-        sigma = self.point_sigma_m + self.point_sigma_per_m * z
-        return h, lane.x(z), sigma ** 2
+        shape = h[:, :3] * np.array([self.offset_sigma_m, self.slope_sigma, self.curvature_sigma])
+        return h, lane.x(z), shape @ shape.T + self.point_sigma_m ** 2 * np.eye(count)
 
     def _distance(self, measurement) -> float:
         """The squared Mahalanobis distance of a measurement from the prediction, over its gate (<= 1: inside)."""
-        h, x, variance = measurement
+        h, x, noise = measurement
         innovation = x - h @ self.state
-        s = h @ self.covariance @ h.T + np.diag(variance)
+        s = h @ self.covariance @ h.T + noise
         return float(innovation @ np.linalg.solve(s, innovation)) / chi2.ppf(self.gate_probability, len(x))
 
     def _associate(self, lanes: list[GroundLane]) -> tuple[list, int]:
@@ -226,7 +235,7 @@ class KalmanLaneTracker:
     def _correct(self, measurements: list) -> None:
         h = np.concatenate([m[0] for m in measurements])
         x = np.concatenate([m[1] for m in measurements])
-        r = np.diag(np.concatenate([m[2] for m in measurements]))
+        r = block_diag(*[m[2] for m in measurements])
         s = h @ self.covariance @ h.T + r
         gain = np.linalg.solve(s, h @ self.covariance).T
         self.state = self.state + gain @ (x - h @ self.state)
