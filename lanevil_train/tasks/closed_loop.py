@@ -15,10 +15,10 @@ from __future__ import annotations
 import json
 import math
 import multiprocessing
-import os
 from pathlib import Path
 
 import numpy as np
+import torch
 from omegaconf import DictConfig, OmegaConf
 
 from lanevil_train.closed_loop.collisions import collision
@@ -46,6 +46,10 @@ from lanevil_train.tasks.vlm.builders import build_vlm, check_prompt_defense, is
 from lanevil_train.taxonomy import ILLUSION_NAMES
 
 RUNS = "runs.jsonl"
+# every driving process runs the detector's batch of one on one thread: a thread count changes the order of a
+# convolution's sums (results differ in the last bits, and a lane a little), so the runs are the same whatever
+# task.workers; one thread is also the fastest beside the rendering on a busy machine (benchmarks/RESULTS.md)
+DRIVING_THREADS = 1
 
 
 def loop_settings(task: DictConfig) -> LoopSettings:
@@ -198,11 +202,11 @@ def drive_group(policy, group: list[Run], settings: LoopSettings, task: DictConf
 _WORKER: dict = {}
 
 
-def _start_worker(cfg: dict, threads: int) -> None:
+def _start_worker(cfg: dict) -> None:
     """A worker process: its own models (each process loads them), so the runs it drives are as in one process."""
     import torch
 
-    torch.set_num_threads(threads)
+    torch.set_num_threads(DRIVING_THREADS)
     config = OmegaConf.create(cfg)
     _WORKER.update(cfg=config, policies=[policy for policy, _ in build_policies(config)],
                    settings=loop_settings(config.task))
@@ -238,11 +242,11 @@ def closed_loop(cfg: DictConfig) -> float:
     total = len(runs) * len(policies)
     bar = progress_counter(total, len(done), "closed loop", "run", cfg.get("progress", "auto"))
     workers = min(max(int(cfg.task.workers or 1), 1), max(len(items), 1))
-    pool = None
+    pool, threads = None, torch.get_num_threads()
+    torch.set_num_threads(DRIVING_THREADS)
     if workers > 1:
         context = multiprocessing.get_context("spawn")  # no forked copy of a model's threads
-        threads = max(1, (os.cpu_count() or 1) // workers)
-        pool = context.Pool(workers, _start_worker, (OmegaConf.to_container(cfg, resolve=True), threads))
+        pool = context.Pool(workers, _start_worker, (OmegaConf.to_container(cfg, resolve=True),))
         results = pool.imap(_drive_in_worker, items)  # in the planned order, whichever process finishes first
     else:
         results = (drive_group(policies[index][0], group, settings, cfg.task, out, skip)
@@ -254,6 +258,7 @@ def closed_loop(cfg: DictConfig) -> float:
     finally:
         if pool is not None:
             pool.terminate()
+        torch.set_num_threads(threads)
     bar.close()
     return write_report(cfg, out, settings)
 
