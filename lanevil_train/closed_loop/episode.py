@@ -24,9 +24,10 @@ from lanevil_train.closed_loop.policies import Observation, Policy
 from lanevil_train.illusions.context import context_for_frame, context_from_scene
 from lanevil_train.illusions.footprint import STANDING, footprint
 from lanevil_train.illusions.registry import get_illusion
+from lanevil_train.rules import check_settings, int_pair, number
 from lanevil_train.sim import Scene, build_scene, sample_scene_params, shade_scene
 from lanevil_train.sim.sequence import scene_at
-from lanevil_train.sim.vehicle import VehicleParams, VehicleState, check_positive, step
+from lanevil_train.sim.vehicle import VehicleParams, VehicleState, step
 from lanevil_train.taxonomy import ILLUSION_CATEGORY
 
 REGION_SEVERITY = 3
@@ -67,6 +68,9 @@ class Run:
 class LoopSettings:
     """Image size (H, W), control rate (Hz), attack window and what is driven after it (s), the vehicle."""
 
+    SETTINGS = {"size": int_pair(32), "control_hz": number(0, 100, low_open=True),
+                "window_s": number(0, low_open=True), "after_s": number(0)}  # task.<name> of task=closed_loop
+
     size: tuple[int, int] = (360, 640)
     control_hz: float = 10.0
     window_s: float = 2.5
@@ -74,12 +78,7 @@ class LoopSettings:
     vehicle: VehicleParams = field(default_factory=VehicleParams)
 
     def __post_init__(self) -> None:
-        if len(self.size) != 2 or any(isinstance(v, bool) or not isinstance(v, int) or v < 32 for v in self.size):
-            raise ValueError(f"size: expected [height, width], integers of at least 32, got {list(self.size)}")
-        for name in ("control_hz", "window_s"):
-            check_positive(name, getattr(self, name))
-        if isinstance(self.after_s, bool) or not isinstance(self.after_s, (int, float)) or self.after_s < 0:
-            raise ValueError(f"after_s: expected a number of seconds >= 0, got {self.after_s!r}")
+        check_settings(self.SETTINGS, {name: getattr(self, name) for name in self.SETTINGS}, "task")
 
 
 @lru_cache(maxsize=8)

@@ -201,3 +201,10 @@ def test_a_vlm_policy_steers_as_it_answers_and_sees_its_last_frames():
 def test_a_run_is_deterministic():
     run = _run(ROADS["s_curve"], "fence_shadow", severity=4)
     assert drive(run, TruthPolicy(shift_m=0.4), SETTINGS) == drive(run, TruthPolicy(shift_m=0.4), SETTINGS)
+
+
+def test_loop_settings_refuse_bad_values_by_their_task_keys():
+    with pytest.raises(ValueError, match=r"task.size: expected \[height, width\], two integers >= 32"):
+        LoopSettings(size=(16, 640))
+    with pytest.raises(ValueError, match="task.control_hz: expected a number in \\(0, 100\\]"):
+        LoopSettings(control_hz=0)

@@ -90,6 +90,7 @@ def test_an_interrupted_closed_loop_resumes_driving_only_the_unfinished_runs(tmp
     (["task.policy=truth", "task.tracker=particle"], "task.tracker: expected one of kalman, none"),
     (["task.policy=truth", "task.kalman.gate_probability=1.5"], "task.kalman.gate_probability"),
     (["task.policy=truth", "task.mpc.horizon_s=0"], "task.mpc.horizon_s"),
+    (["task.policy=truth", "task.control_hz=0"], "task.control_hz"),
 ])
 def test_bad_closed_loop_settings_fail_naming_the_key(override, message):
     cfg = composed(["task=closed_loop", *override])

@@ -10,6 +10,7 @@ from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
 
 from lanevil_train.closed_loop.controller import KEEPER_SETTINGS
 from lanevil_train.closed_loop.controllers import CONTROLLERS
+from lanevil_train.closed_loop.episode import LoopSettings
 from lanevil_train.closed_loop.tracker import TRACKERS
 from lanevil_train.data.normalization import NORMALIZATIONS
 from lanevil_train.data.resize import RESIZE_FILTERS
@@ -215,10 +216,7 @@ RULES: dict[str, Rule] = {
     "task.models": null_or(checkpoint_mapping()),
     "task.first_seed": integer(0),
     "task.start_before_m": number_range(0.0),
-    "task.size": int_pair(32),
-    "task.control_hz": number(0, 100, low_open=True),
-    "task.window_s": number(0, low_open=True),
-    "task.after_s": number(0),
+    **{f"task.{key}": rule for key, rule in LoopSettings.SETTINGS.items()},  # the loop's own rules
     "task.threshold_m": number(0, low_open=True),
     "task.animate": boolean(),
     "task.vehicle.wheelbase_m": number(0.5, 10),
