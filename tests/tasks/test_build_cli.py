@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from lanevil_train.data.formats.manifest import read_manifest
-from tests.tasks.cli_helpers import run_cli
+from tests.tasks.cli_helpers import run_cli, run_in_process
 
 
 def test_build_task_writes_and_then_skips(tmp_path):
@@ -26,8 +26,8 @@ def test_build_from_tusimple_and_culane_folders(tmp_path):
     tusimple = tmp_path / "tusimple"
     write_tusimple(write_photo_dataset(tusimple, [f"clips/a/{i}/20.jpg" for i in range(2)]), tusimple / "test.json")
     out = tmp_path / "tusimple_set"
-    run_cli([*common, "data=tusimple", f"data.root={tusimple}", "data.test.label_files=[test.json]",
-             f"task.out_dir={out}"], tmp_path / "run1")
+    run_in_process([*common, "data=tusimple", f"data.root={tusimple}", "data.test.label_files=[test.json]",
+                    f"task.out_dir={out}"], tmp_path / "run1")
     labels = read_tusimple(out / "labels.json", out)
     assert len(labels) == 2 * 3 and all(len(r["lanes"]) >= 2 for r in labels)
     manifest = read_manifest(out / "manifest.jsonl")
@@ -37,6 +37,6 @@ def test_build_from_tusimple_and_culane_folders(tmp_path):
     write_culane(write_photo_dataset(culane, [f"driver_1/v.MP4/{i:05d}.jpg" for i in range(2)]), culane,
                  culane / "list" / "test.txt")
     out = tmp_path / "culane_set"
-    run_cli([*common, "data=culane", f"data.root={culane}", f"task.out_dir={out}"], tmp_path / "run2")
+    run_in_process([*common, "data=culane", f"data.root={culane}", f"task.out_dir={out}"], tmp_path / "run2")
     records = read_culane(out / "list" / "test.txt", out)
     assert len(records) == 6 and all(len(r["lanes"]) >= 2 for r in records)

@@ -7,7 +7,7 @@ import json
 import pytest
 
 from lanevil_train.evaluation.scoring import read_records
-from tests.tasks.cli_helpers import TINY, run_cli
+from tests.tasks.cli_helpers import TINY, run_cli, run_in_process
 
 
 def _fake_run(path, model: str, original: float, perturbed: float):
@@ -27,7 +27,7 @@ def test_report_combines_run_directories(tmp_path):
     _fake_run(tmp_path / "runs" / "0", "laneatt", original=0.9, perturbed=0.6)
     _fake_run(tmp_path / "runs" / "1", "ufld", original=0.8, perturbed=0.7)
     out = tmp_path / "report"
-    run_cli(["task=report", f"task.runs=[{tmp_path / 'runs'}]", "task.baseline=laneatt", "progress=none"], out)
+    run_in_process(["task=report", f"task.runs=[{tmp_path / 'runs'}]", "task.baseline=laneatt", "progress=none"], out)
     scores = json.loads((out / "test_scores.json").read_text())
     assert [(r["model"], r["images_kind"], round(r["Accuracy"], 6)) for r in scores] == [
         ("laneatt", "original", 90.0), ("laneatt", "perturbed", 60.0),
@@ -49,7 +49,7 @@ def test_evaluate_on_the_synthetic_illusion_suite_resumes_in_place(tmp_path):
     records = read_records(out / "per_image.jsonl")
     assert len(records) == 2 * (1 + 2 * 2)
     assert (out / "report.md").is_file()
-    run_cli(args, tmp_path / "run2")  # everything is already there: nothing is added
+    run_in_process(args, tmp_path / "run2")  # everything is already there: nothing is added
     assert len(read_records(out / "per_image.jsonl")) == 10
 
 
@@ -62,10 +62,10 @@ def test_cross_domain_scores_a_real_folder_beside_the_suite(tmp_path):
     train_dir = tmp_path / "train"
     run_cli([*TINY, "trainer.max_steps=1", "trainer.limit_val_batches=0", "task.test_after_fit=false"], train_dir)
     out = tmp_path / "xd"
-    run_cli(["task=cross_domain", f"ckpt_path={train_dir / 'checkpoints' / 'last.ckpt'}", "data=tusimple",
-             f"data.root={root}", "data.test.label_files=[test.json]", "data.batch_size=2", "data.num_workers=0",
-             "task.cases=1", "task.illusions=[vehicle]", "task.severities=[3]", "progress=none",
-             f"task.out_dir={out}"], tmp_path / "run")
+    run_in_process(["task=cross_domain", f"ckpt_path={train_dir / 'checkpoints' / 'last.ckpt'}", "data=tusimple",
+                    f"data.root={root}", "data.test.label_files=[test.json]", "data.batch_size=2",
+                    "data.num_workers=0", "task.cases=1", "task.illusions=[vehicle]", "task.severities=[3]",
+                    "progress=none", f"task.out_dir={out}"], tmp_path / "run")
     rows = json.loads((out / "test_scores.json").read_text())
     assert [(r["dataset"], r["images_kind"], r["images"]) for r in rows] == [
         ("tusimple", "original", 2), ("synthetic-illusions", "original", 1), ("synthetic-illusions", "perturbed", 1)]
@@ -89,8 +89,8 @@ def test_evaluate_a_built_set_draws_the_worst_cases(tmp_path):
     train_dir = tmp_path / "train"
     run_cli([*TINY, "trainer.max_steps=1", "trainer.limit_val_batches=0", "task.test_after_fit=false"], train_dir)
     out = tmp_path / "eval"
-    run_cli(["task=evaluate", f"ckpt_path={train_dir / 'checkpoints' / 'last.ckpt'}", *TINY, f"task.suite={suite}",
-             f"task.out_dir={out}"], tmp_path / "run")
+    run_in_process(["task=evaluate", f"ckpt_path={train_dir / 'checkpoints' / 'last.ckpt'}", *TINY,
+                    f"task.suite={suite}", f"task.out_dir={out}"], tmp_path / "run")
     records = read_records(out / "per_image.jsonl")
     assert len(records) == 4 and all(r["image"].startswith(str(suite)) for r in records)
     assert {r["category"] for r in records} == {None, "shadow"}
