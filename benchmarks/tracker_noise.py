@@ -36,6 +36,7 @@ from lanevil_train.closed_loop import DetectorPolicy, LoopSettings, Run, drive, 
 from lanevil_train.closed_loop.episode import illusion_region
 from lanevil_train.closed_loop.ground import NEAR_M, ground_lanes
 from lanevil_train.sim import build_scene, sample_scene_params, shade_scene
+from lanevil_train.sim.scene import road_geometry
 from lanevil_train.tasks.builders import checkpoint_model
 
 DISTANCES = np.arange(5.0, 45.0, 5.0)
@@ -73,8 +74,7 @@ def boundary_errors(policy: DetectorPolicy, seed: int, size: tuple[int, int]) ->
 def curvature_rates(scenes: int) -> np.ndarray:
     out = []
     for seed in range(scenes):
-        params = sample_scene_params(seed)
-        out.append(-params.curvature / params.s_curve_flip if params.road == "s_curve" else 0.0)
+        out.append(road_geometry(sample_scene_params(seed)).j)
     return np.asarray(out)
 
 

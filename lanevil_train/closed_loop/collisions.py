@@ -45,8 +45,9 @@ from lanevil_train.illusions.footprint import STANDING
 from lanevil_train.illusions.road_damage import LEVELS, RAIL_Z_FAR, rail_offsets
 from lanevil_train.illusions.traffic import layout, participant_points
 from lanevil_train.sim import Scene
+from lanevil_train.sim.vehicle import VehicleParams
 
-WHEELBASE_M = 2.7  # sim.vehicle.VehicleParams' default
+WHEELBASE_M = VehicleParams.wheelbase_m  # the simulated car's default
 REAR_OVERHANG_M = 1.0  # rear axle to rear bumper (a 4.6 m mid-size car with a 2.7 m wheelbase)
 FRONT_OVERHANG_M = 0.9  # front axle to front bumper
 SUBSTEP_M = 0.25  # most distance the car moves between two tested poses

@@ -72,7 +72,7 @@ def lane_keeper(tracker: str = "kalman", controller: str = "pure_pursuit", limit
     its keyword arguments (e.g. {"kalman": {...}, "mpc": {...}}: task.kalman, task.mpc); `period_s`: the control
     period."""
     settings = settings or {}
-    check_settings(KEEPER_SETTINGS, {"max_range_m": max_range_m, "lane_width_m": lane_width_m}, "task")
+    check_settings({"lane_width_m": KEEPER_SETTINGS["lane_width_m"]}, {"lane_width_m": lane_width_m}, "task")
     for kind, names, name in (("task.tracker", TRACKERS, tracker), ("task.controller", CONTROLLERS, controller)):
         if name not in names:
             raise ValueError(f"{kind}: expected one of {', '.join(names)}, got {name!r}")

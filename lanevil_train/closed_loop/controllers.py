@@ -31,15 +31,22 @@ from scipy.optimize import minimize
 
 from lanevil_train.closed_loop.tracker import CentreLine
 from lanevil_train.rules import check_settings, number
+from lanevil_train.sim.vehicle import VehicleParams
 
 
 @dataclass(frozen=True)
 class Limits:
-    """The car's wheelbase (m) and steering limits (front-wheel angle in rad, rad per second)."""
+    """The car's wheelbase (m) and steering limits (front-wheel angle in rad, rad per second); by default those of
+    sim.vehicle.VehicleParams."""
 
-    wheelbase_m: float = 2.7
-    max_steer_rad: float = math.radians(30.0)
-    max_steer_rate_rps: float = math.radians(30.0)
+    wheelbase_m: float = VehicleParams.wheelbase_m
+    max_steer_rad: float = math.radians(VehicleParams.max_steer_deg)
+    max_steer_rate_rps: float = math.radians(VehicleParams.max_steer_rate_dps)
+
+    @classmethod
+    def of(cls, vehicle: VehicleParams) -> Limits:
+        """The limits of a simulated car."""
+        return cls(vehicle.wheelbase_m, math.radians(vehicle.max_steer_deg), math.radians(vehicle.max_steer_rate_dps))
 
 
 @dataclass

@@ -1,8 +1,8 @@
 """The ego lane over time: a centre line in the car's frame, from each frame's detected lanes and the car's motion.
 
 A tracker turns the ground lanes of one frame (closed_loop/ground.py) into the ego lane's centre line
-x(z) = offset + slope z + curvature / 2 z^2 (car frame: x right, z forward, metres from the rear axle), with the
-lane width and how far ahead it is known (`CentreLine`). Two ship (`task.tracker`):
+x(z) = offset + slope z + curvature / 2 z^2 + curvature rate / 6 z^3 (car frame: x right, z forward, metres from
+the rear axle), with the lane width and how far ahead it is known (`CentreLine`). Two ship (`task.tracker`):
 
 * `none` (`FrameTracker`): each frame alone, as a driver assist without memory would: the centre between the
   nearest left and right lanes where both are seen a lane width apart; one boundary shifted by half the last
@@ -168,10 +168,6 @@ class KalmanLaneTracker:
         self.state = self.covariance = None
         self.confidence, self.range_m, self.rejected = 0.0, 0.0, 0
 
-    @property
-    def tracking(self) -> bool:
-        return self.state is not None
-
     def centre_line(self) -> CentreLine | None:
         if self.state is None:
             return None
@@ -224,15 +220,15 @@ class KalmanLaneTracker:
         """The measurements accepted (one lane per side at most, each the nearest to its predicted boundary, inside
         the gate) and how many lanes were rejected: outside every gate, though within half a lane width of a
         predicted boundary NEAR_M ahead (a lane further out is the next lane's boundary, not a bad detection)."""
-        scores = sorted((self._distance(self._measurement(lane, side)), side, i)
-                        for i, lane in enumerate(lanes) for side in (-1.0, 1.0))
+        measured = {(i, side): self._measurement(lane, side) for i, lane in enumerate(lanes) for side in (-1.0, 1.0)}
+        scores = sorted((self._distance(measurement), side, i) for (i, side), measurement in measured.items())
         chosen, used_sides, used_lanes = [], set(), set()
         for distance, side, i in scores:
             if side in used_sides or i in used_lanes or distance > 1.0:
                 continue
             used_sides.add(side)
             used_lanes.add(i)
-            chosen.append(self._measurement(lanes[i], side) + (lanes[i],))
+            chosen.append(measured[i, side] + (lanes[i],))
         line = self.centre_line()
         bounds = [float(line.x(NEAR_M)) + side * line.width_m / 2 for side in (-1.0, 1.0)]
         rejected = sum(1 for i, lane in enumerate(lanes) if i not in used_lanes
@@ -241,7 +237,7 @@ class KalmanLaneTracker:
 
     def _correct(self, measurements: list) -> float:
         """Update with the stacked measurements; their normalised innovation squared over its degrees of freedom
-        (about 1 on average for a filter whose noise settings fit its detector: benchmarks/tracker_noise.py)."""
+        (about 1 on average for a filter whose noise settings fit what it sees; kept in the trace as `nis`)."""
         h = np.concatenate([m[0] for m in measurements])
         x = np.concatenate([m[1] for m in measurements])
         r = block_diag(*[m[2] for m in measurements])

@@ -13,7 +13,6 @@ the traces alone.
 from __future__ import annotations
 
 import json
-import math
 import multiprocessing
 from pathlib import Path
 
@@ -63,8 +62,7 @@ def loop_settings(task: DictConfig) -> LoopSettings:
 
 def controller(task: DictConfig) -> LaneKeeper:
     """The lane keeper of task.tracker and task.controller with their settings (task.kalman, task.mpc, ...)."""
-    vehicle = task.vehicle
-    limits = Limits(vehicle.wheelbase_m, math.radians(vehicle.max_steer_deg), math.radians(vehicle.max_steer_rate_dps))
+    limits = Limits.of(loop_settings(task).vehicle)
     settings = {name: OmegaConf.to_container(task[name], resolve=True) for name in (task.tracker, task.controller)
                 if name in task and task[name] is not None}
     return lane_keeper(task.tracker, task.controller, limits, task.max_range_m, task.lane_width_m,
@@ -133,8 +131,8 @@ def trace_path(out: Path, model: str, run_key: str) -> Path:
     return out / "traces" / model / (run_key.replace("/", "_") + ".jsonl")
 
 
-def read_trace(out: Path, record: dict) -> list[dict]:
-    path = out / record["trace"]
+def read_trace(path: Path) -> list[dict]:
+    """A trace file's steps (a record's is at out / record["trace"])."""
     with open(path, encoding="utf-8") as handle:
         return [json.loads(line) for line in handle]
 
@@ -186,7 +184,7 @@ def drive_group(policy, group: list[Run], settings: LoopSettings, task: DictConf
         path = trace_path(out, policy.name, run.key)
         if key in done:
             if run.severity == 0:
-                twin_trace = read_trace(out, {"trace": str(path.relative_to(out))})
+                twin_trace = read_trace(path)
             continue
         trace = drive(run, policy, settings)
         write_trace(path, trace)
@@ -271,7 +269,7 @@ def write_report(cfg: DictConfig, out: Path, settings: LoopSettings) -> float:
     records = ResultsLog(out / RUNS).records()
     shown = {key: cfg.task[key] for key in ("cases", "repeats", "severities", "control_hz", "window_s", "threshold_m")}
     shown["speed_mph"] = cfg.task.vehicle.speed_mph
-    path = write_closed_loop_report(records, lambda record: read_trace(out, record), out, shown)
+    path = write_closed_loop_report(records, lambda record: read_trace(out / record["trace"]), out, shown)
     rows = asr_rows(records, "category")
     print_table(rows, f"Closed loop: ASR (%) per illusion category ({path})", digits=1)
     pairs = worst_pairs(records)
@@ -279,8 +277,8 @@ def write_report(cfg: DictConfig, out: Path, settings: LoopSettings) -> float:
         from lanevil_train.closed_loop.animation import write_animation
 
         worst, twin = max(pairs, key=lambda pair: pair[0]["max_deviation_m"])
-        write_animation([(_run_of(r), read_trace(out, r), r["entry_s"]) for r in (worst, twin)], settings.size,
-                        out / "worst_run.gif", fps=cfg.task.control_hz)
+        write_animation([(_run_of(r), read_trace(out / r["trace"]), r["entry_s"]) for r in (worst, twin)],
+                        settings.size, out / "worst_run.gif", fps=cfg.task.control_hz)
     first = next(row for row in rows if row["category"] == "all")
     return float(first["ASR (%)"])
 
