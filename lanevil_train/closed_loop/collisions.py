@@ -83,15 +83,14 @@ def obstacles(scene: Scene, illusion: str, severity: int, seed: int) -> list[Obs
         return []
     ctx = context_from_scene(scene)
     rng = np.random.default_rng(seed)  # as the illusion's registry entry seeds its renderer
+    out = []
     if illusion == "guard_rail":
-        out = []
+        z_start = LEVELS["guard_rail"][severity - 1]["z_start_m"]
+        near, far = (float(v) for v in scene.road.arc_length(np.array([z_start, RAIL_Z_FAR])))
         for d_rail, sign in rail_offsets(ctx, severity, rng):
             inner, outer = d_rail - sign * RAIL_BEAM_OFFSET_M, d_rail + sign * RAIL_POST_HALF_M
-            z_start = LEVELS["guard_rail"][severity - 1]["z_start_m"]
-            near, far = (float(v) for v in scene.road.arc_length(np.array([z_start, RAIL_Z_FAR])))
             out.append(Obstacle(illusion, near, far, min(inner, outer), max(inner, outer)))
     else:
-        out = []
         for participant in layout(illusion, ctx, severity, rng):
             points = participant_points(ctx, participant)
             s, d = scene.road_coords(points[:, 0], points[:, 2])
@@ -142,12 +141,23 @@ def collision(trace: Sequence[dict], obstacle: Obstacle | Sequence[Obstacle] | N
         return next((o for o, box in boxes if rectangles_overlap(car, box)), None)
 
     poses = [(float(p["t"]), float(p["s"]), float(p["d"]), float(p.get("heading", 0.0))) for p in trace]
-    found = None
-    if boxes and hit(poses[0]) is not None:
-        found = (poses[0][0], hit(poses[0]))
+    found = _first_contact(poses, hit, substep_m) if boxes else None
+    if found is None:
+        return {"collision": False, "collision_t": None, "time_to_collision_s": None,
+                "collision_after_entry_s": None, "obstacle": None}
+    t, what = found
+    return {"collision": True, "collision_t": round(t, 4), "time_to_collision_s": round(t - poses[0][0], 4),
+            "collision_after_entry_s": None if entry_s is None else round(t - entry_s, 4),
+            "obstacle": what.as_dict()}
+
+
+def _first_contact(poses: list[tuple], hit, substep_m: float) -> tuple[float, Obstacle] | None:
+    """(time, obstacle) of the first pose (t, s, d, heading) that `hit` finds touching one: each step, and poses
+    between steps at most substep_m apart, the contact bisected between the last pose apart and the first not."""
+    touched = hit(poses[0])
+    if touched is not None:
+        return poses[0][0], touched
     for before, after in zip(poses, poses[1:]):
-        if found is not None or not boxes:
-            break
         n = max(1, math.ceil(math.hypot(after[1] - before[1], after[2] - before[2]) / substep_m))
         lo = 0.0
         for k in range(1, n + 1):
@@ -157,16 +167,9 @@ def collision(trace: Sequence[dict], obstacle: Obstacle | Sequence[Obstacle] | N
                     mid = (lo + hi) / 2.0
                     lo, hi = (lo, mid) if hit(_lerp(before, after, mid)) is not None else (mid, hi)
                 pose = _lerp(before, after, hi)
-                found = (pose[0], hit(pose))
-                break
+                return pose[0], hit(pose)
             lo = hi
-    if found is None:
-        return {"collision": False, "collision_t": None, "time_to_collision_s": None,
-                "collision_after_entry_s": None, "obstacle": None}
-    t, what = found
-    return {"collision": True, "collision_t": round(t, 4), "time_to_collision_s": round(t - poses[0][0], 4),
-            "collision_after_entry_s": None if entry_s is None else round(t - entry_s, 4),
-            "obstacle": what.as_dict()}
+    return None
 
 
 def _lerp(a: tuple, b: tuple, f: float) -> tuple:
