@@ -47,14 +47,20 @@ _TIGHT_EPS = 1e-2  # hungarianGraph.hpp equality tolerance
 _INT_MIN = np.iinfo(np.int32).min
 
 
-def _as_f32_lane(lane: object, name: str) -> np.ndarray:
-    """Lane as an (N, 2) float32 array (the official ``Point2f``); raises naming ``name`` otherwise."""
+def lane_points(lane: object, name: str) -> np.ndarray:
+    """Lane as an (N, 2) float64 array of (x, y) points (an empty lane as (0, 2)); raises naming ``name``
+    otherwise. Shared with metrics/llamas.py."""
     arr = np.asarray(lane, dtype=np.float64)
     if arr.size == 0:
-        return np.zeros((0, 2), np.float32)
+        return np.zeros((0, 2))
     if arr.ndim != 2 or arr.shape[1] != 2:
         raise ValueError(f"{name}: expected an (N, 2) array of (x, y) points, got shape {arr.shape}")
-    return arr.astype(np.float32)
+    return arr
+
+
+def _as_f32_lane(lane: object, name: str) -> np.ndarray:
+    """Lane as an (N, 2) float32 array (the official ``Point2f``); raises naming ``name`` otherwise."""
+    return lane_points(lane, name).astype(np.float32)
 
 
 def spline_interp_times(lane: np.ndarray, times: int = SAMPLES_PER_SEGMENT) -> np.ndarray:

@@ -32,7 +32,7 @@ from typing import Sequence
 
 import numpy as np
 
-from lanevil_train.metrics.culane import _canvases, _Mask
+from lanevil_train.metrics.culane import _canvases, _Mask, lane_points
 
 LLAMAS_HEIGHT, LLAMAS_WIDTH = 717, 1276
 LLAMAS_LANE_WIDTH = 30
@@ -40,18 +40,9 @@ LLAMAS_FIRST_ROW = 300  # add_ys: the ground truth is scored on rows 300..716
 PRED_SAMPLES = 50
 
 
-def _points(lane: object, name: str) -> np.ndarray:
-    arr = np.asarray(lane, dtype=np.float64)
-    if arr.size == 0:
-        return np.zeros((0, 2))
-    if arr.ndim != 2 or arr.shape[1] != 2:
-        raise ValueError(f"{name}: expected an (N, 2) array of (x, y) points, got shape {arr.shape}")
-    return arr
-
-
 def llamas_gt_lane(lane: np.ndarray) -> np.ndarray | None:
     """The scored part of a ground-truth lane: points with x >= 0 on rows >= 300, by row; None below 2 points."""
-    lane = _points(lane, "gt lane")
+    lane = lane_points(lane, "gt lane")
     if (lane[:, 0] >= 0).sum() <= 1:
         return None
     keep = (lane[:, 1] >= LLAMAS_FIRST_ROW) & (lane[:, 0] >= 0)
@@ -64,7 +55,7 @@ def interpolate_prediction(lane: np.ndarray, samples: int = PRED_SAMPLES) -> np.
     """interpolate_lane: FITPACK's interpolating spline through the points, sampled at ``samples`` parameters."""
     from scipy.interpolate import splev, splprep
 
-    lane = _points(lane, "pred lane")
+    lane = lane_points(lane, "pred lane")
     step = np.any(np.diff(lane, axis=0) != 0, axis=1)
     lane = lane[np.concatenate([[True], step])]
     if len(lane) < 2:
@@ -89,7 +80,7 @@ def llamas_image_counts(
     """(TP, FP, FN) of one image as the official LLAMAS evaluation counts them (lanes in 1276 x 717 pixels)."""
     from scipy.optimize import linear_sum_assignment
 
-    preds = [p for p in (_points(lane, f"pred lane {k}") for k, lane in enumerate(pred_lanes)) if len(p) >= 2]
+    preds = [p for p in (lane_points(lane, f"pred lane {k}") for k, lane in enumerate(pred_lanes)) if len(p) >= 2]
     gts = [g for g in (llamas_gt_lane(lane) for lane in gt_lanes) if g is not None]
     if not preds:
         return 0, 0, len(gts)
