@@ -74,24 +74,24 @@ def image_path_for(label_path: Path | str, root: Path | str) -> Path:
     return Path(root, "color_images", *parts[:-1], parts[-1][: -len(".json")] + "_color_rect.png")
 
 
-def _pixel(value, where: str) -> int:
-    """int(v) of a pixel coordinate, as the official read_json (a number, or a string int() reads)."""
+def _number(value, where: str, convert):
+    """convert(value) (int or float) of a number, or of a string it reads, as the official read_json does."""
     if isinstance(value, bool) or not isinstance(value, (int, float, str)):
         raise ValueError(f"{where}: expected a number, got {json.dumps(value)[:60]}")
     try:
-        out = int(value)
+        return convert(value)
     except (ValueError, OverflowError):
         raise ValueError(f"{where}: expected a number, got {json.dumps(value)[:60]}") from None
-    return out
+
+
+def _pixel(value, where: str) -> int:
+    """int(v) of a pixel coordinate."""
+    return _number(value, where, int)
 
 
 def _world(value, where: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float, str)):
-        raise ValueError(f"{where}: expected a number, got {json.dumps(value)[:60]}")
-    try:
-        out = float(value)
-    except ValueError:
-        raise ValueError(f"{where}: expected a number, got {json.dumps(value)[:60]}") from None
+    """A world coordinate (m), finite."""
+    out = _number(value, where, float)
     if not np.isfinite(out):
         raise ValueError(f"{where}: expected a finite number, got {value!r}")
     return out
