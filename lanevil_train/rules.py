@@ -5,6 +5,7 @@ uses to report a bad config value by its key before any work. Plain Python: impo
 
 from __future__ import annotations
 
+import math
 import numbers
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -62,14 +63,14 @@ def integer(low: int | None = None, high: int | None = None) -> Rule:
 
 def number(low: float | None = None, high: float | None = None, low_open: bool = False,
            high_open: bool = False) -> Rule:
-    """A real number within the bounds (closed unless *_open), e.g. number(0, 1, high_open=True) for [0, 1)."""
+    """A finite real number within the bounds (closed unless *_open), e.g. number(0, 1, high_open=True) for [0, 1)."""
     if high is None:
         expected = f"a number {'>' if low_open else '>='} {low}"
     else:
         expected = f"a number in {'(' if low_open else '['}{low}, {high}{')' if high_open else ']'}"
 
     def test(v):
-        if not is_number(v):
+        if not is_number(v) or not math.isfinite(v):
             return ""
         above = v > low if low_open else v >= low
         below = high is None or (v < high if high_open else v <= high)
@@ -113,6 +114,12 @@ def int_list(low: int | None = None, high: int | None = None) -> Rule:
     item = integer(low, high)
     return Rule(f"a non-empty list of {item.expected.replace('an integer', 'integers')}",
                 lambda v: ok(is_list(v) and len(v) > 0 and all(item.test(x) is None for x in v)))
+
+
+def number_range(low: float) -> Rule:
+    """[a, b] with low <= a <= b (a range of numbers)."""
+    return Rule(f"[low, high], two numbers with {low} <= low <= high",
+                lambda v: ok(is_list(v) and len(v) == 2 and all(is_number(x) for x in v) and low <= v[0] <= v[1]))
 
 
 def string_list() -> Rule:

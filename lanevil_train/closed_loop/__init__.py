@@ -2,9 +2,9 @@
 
 sim.vehicle moves the car (kinematic bicycle); episode.drive renders each step from the car's pose and runs the
 policy (policies: a lane detector or the ground truth through a lane keeper: ground lanes, a tracker, a controller;
-a VLM); scoring gives the paper's attack
-success rule and the deviation and departure scores; tasks/closed_loop.py runs the grid of cases, illusions,
-severities and repeats, resumable, and report/closed_loop.py writes its tables and plots.
+a VLM); scoring gives the paper's attack success rule and the deviation and departure scores; protocol.Protocol
+plans the grid of cases, illusions, severities and repeats, which tasks/closed_loop.py drives, resumable, and
+report/closed_loop.py writes its tables and plots.
 """
 
 from lanevil_train.closed_loop.controller import LaneKeeper, lane_keeper
@@ -18,8 +18,10 @@ from lanevil_train.closed_loop.policies import (
                                                 VLMPolicy,
                                                 parse_direction,
 )
+from lanevil_train.closed_loop.protocol import Protocol
 from lanevil_train.closed_loop.scoring import ASR_THRESHOLD_M, ASR_WINDOW_S, run_scores, wilson_interval
 
 __all__ = ["LaneKeeper", "lane_keeper", "LinearMPC", "PurePursuit", "Stanley", "LoopSettings", "Run", "drive",
-           "DRIVING_QUESTION", "DetectorPolicy", "Observation", "TruthPolicy", "VLMPolicy", "parse_direction",
+           "Protocol", "DRIVING_QUESTION", "DetectorPolicy", "Observation", "TruthPolicy", "VLMPolicy",
+           "parse_direction",
            "ASR_THRESHOLD_M", "ASR_WINDOW_S", "run_scores", "wilson_interval"]

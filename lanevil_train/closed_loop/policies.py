@@ -22,6 +22,7 @@ from typing import Protocol
 import numpy as np
 
 from lanevil_train.closed_loop.controller import LaneKeeper
+from lanevil_train.rules import check_settings, integer, number, text
 from lanevil_train.sim import Camera, Scene
 
 DRIVING_QUESTION = "Should the ego vehicle steer left, keep straight or steer right?"
@@ -135,14 +136,13 @@ class VLMPolicy:
     """A VLM asked `question` about its last `frames` camera images each step; left / straight / right become
     -steer_deg / 0 / +steer_deg of front-wheel angle; an answer naming no direction keeps straight and is counted."""
 
+    # task.vlm.* of task=closed_loop: checked by the constructor and, by key, by the config check before any work
+    SETTINGS = {"question": text(), "steer_deg": number(0, 30, low_open=True, high_open=True), "frames": integer(1)}
+
     def __init__(self, vlm, question: str = DRIVING_QUESTION, steer_deg: float = 0.5, frames: int = 6,
                  name: str | None = None):
-        if not isinstance(question, str) or not question.strip():
-            raise ValueError(f"question: expected a non-empty question, got {question!r}")
-        if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
-            raise ValueError(f"frames: expected a positive number of frames, got {frames!r}")
-        if not isinstance(steer_deg, (int, float)) or not 0 < steer_deg < 30:
-            raise ValueError(f"steer_deg: expected a front-wheel angle in (0, 30) degrees, got {steer_deg!r}")
+        check_settings(self.SETTINGS, {"question": question.strip() if isinstance(question, str) else question,
+                                       "steer_deg": steer_deg, "frames": frames}, "task.vlm")
         self.vlm, self.question, self.steer_deg = vlm, question, float(steer_deg)
         self.history: deque[np.ndarray] = deque(maxlen=frames)
         self.name = name or getattr(vlm, "name", "vlm")

@@ -39,7 +39,9 @@ from lanevil_train.lanes import default_h_samples, lanes_to_rows
 from lanevil_train.perturbations import case_perturbations, get_perturbation, suite_names
 from lanevil_train.progress import progress_counter
 from lanevil_train.results_log import ResultsLog
+from lanevil_train.rules import check_settings, int_list, integer, number
 from lanevil_train.sim import build_scene, render_scene, sample_scene_params
+from lanevil_train.taxonomy import SEVERITIES
 
 
 @dataclass(frozen=True)
@@ -58,6 +60,11 @@ class Case:
 class Plan:
     """What to write for every case."""
 
+    # The ranges of its numbers, by the names the tasks' configs give them (task.severities, task.repeats,
+    # task.frame_step_m): checked by the constructor and, by key, by the config check before any work.
+    SETTINGS = {"severities": int_list(SEVERITIES[0], SEVERITIES[-1]), "repeats": integer(1),
+                "frame_step_m": number(0, low_open=True)}
+
     illusions: tuple[str, ...]
     severities: tuple[int, ...] = (1, 2, 3, 4, 5)
     repeats: int = 1               # perturbed variants per (illusion, severity), each with its own seed
@@ -68,6 +75,9 @@ class Plan:
     image_ext: str = ".png"
     kind: str = "illusions"        # perturbations.SUITE_KINDS: illusions | corruptions | combined (`illusions` are
                                    # then corruption names, or the illusions a combined case draws its pairs from)
+
+    def __post_init__(self) -> None:
+        check_settings(self.SETTINGS, {name: getattr(self, name) for name in self.SETTINGS}, "task")
 
 
 def synthetic_cases(num_cases: int, first_seed: int, frames: int = 1) -> list[Case]:

@@ -17,7 +17,6 @@ from lanevil_train.data.formats.builds import BUILD_FILE
 from lanevil_train.data.formats.manifest import read_manifest
 from lanevil_train.data.illusion_set import Plan, case_source, read_build_record, synthetic_cases, variants
 from lanevil_train.errors import prefixed
-from lanevil_train.illusions.registry import check_severity
 from lanevil_train.lanes import default_h_samples
 from lanevil_train.perturbations import get_perturbation, suite_names
 
@@ -80,19 +79,10 @@ class IllusionSetDataset(Dataset):
         return {"image": image, "lanes": label["lanes"], "meta": meta}
 
 
-def _check_suite_arguments(num_cases: int, severities, repeats: int) -> None:
-    """A clear error naming the argument for a suite that would be empty or name what does not exist."""
+def _check_num_cases(num_cases: int) -> None:
+    """A clear error naming the argument for a suite without scenes (the severities and repeats: Plan's check)."""
     if not isinstance(num_cases, int) or num_cases < 1:
         raise EmptySplitError(f"num_cases (scenes) must be an integer >= 1, got {num_cases!r}", "num_cases")
-    if not severities:
-        raise ValueError("severities: expected a non-empty list of integers 1..5, got an empty list")
-    for value in severities:
-        try:
-            check_severity(value)
-        except ValueError as error:
-            raise prefixed(error, "severities") from None
-    if not isinstance(repeats, int) or repeats < 1:
-        raise ValueError(f"repeats: expected an integer >= 1, got {repeats!r}")
 
 
 class SyntheticIllusionSuite(Dataset):
@@ -108,7 +98,7 @@ class SyntheticIllusionSuite(Dataset):
                  illusions: str | list[str] = "all", severities: tuple[int, ...] = (1, 2, 3, 4, 5), repeats: int = 1,
                  kind: str = "illusions"):
         names = suite_names(kind, illusions if isinstance(illusions, str) else list(illusions))
-        _check_suite_arguments(num_cases, severities, repeats)
+        _check_num_cases(num_cases)
         self.plan = Plan(illusions=names, severities=tuple(severities), repeats=repeats, size=tuple(size), kind=kind)
         self.items = [(case, record) for case in synthetic_cases(num_cases, first_seed)
                       for record in variants(case, self.plan)]

@@ -16,20 +16,15 @@ towards the command (clipped to max_steer, at most max_steer_rate per second), t
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
+from typing import Any
 
+from lanevil_train.rules import check_settings, number
 from lanevil_train.sim.road import RoadGeometry
 
 MPH = 0.44704  # metres per second in one mile per hour
 INTEGRATION_STEP_S = 0.01  # RK4 sub-step
-
-
-def check_positive(label: str, value) -> float:
-    """`value` as a float if it is a finite number > 0, else a ValueError naming `label`
-    (e.g. VehicleParams.speed_mps)."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
-        raise ValueError(f"{label}: expected a positive number, got {value!r}")
-    return float(value)
 
 
 @dataclass(frozen=True)
@@ -37,16 +32,32 @@ class VehicleParams:
     """Wheelbase (m), constant speed (m/s; 45 mph, the paper's OpenPilot runs, by default), steering limits
     (front-wheel angle in degrees and degrees per second)."""
 
+    # The ranges, by the names task=closed_loop's config gives them (task.vehicle.*: the speed in mph, as the
+    # paper's runs): checked by the constructor and, by key, by the config check before any work.
+    SETTINGS = {"wheelbase_m": number(0.5, 10), "speed_mph": number(0, 100, low_open=True),
+                "max_steer_deg": number(0, 80, low_open=True, high_open=True),
+                "max_steer_rate_dps": number(0, low_open=True)}
+
     wheelbase_m: float = 2.7
     speed_mps: float = 45 * MPH
     max_steer_deg: float = 30.0
     max_steer_rate_dps: float = 30.0
 
     def __post_init__(self) -> None:
-        for name in ("wheelbase_m", "speed_mps", "max_steer_deg", "max_steer_rate_dps"):
-            check_positive(f"VehicleParams.{name}", getattr(self, name))
-        if self.max_steer_deg >= 80.0:
-            raise ValueError(f"VehicleParams.max_steer_deg: expected under 80 degrees, got {self.max_steer_deg}")
+        check_settings(self.SETTINGS, self.settings(), "VehicleParams")
+
+    def settings(self) -> dict[str, float]:
+        """The parameters by their SETTINGS names (the speed in mph)."""
+        return {"wheelbase_m": self.wheelbase_m, "speed_mph": self.speed_mps / MPH,
+                "max_steer_deg": self.max_steer_deg, "max_steer_rate_dps": self.max_steer_rate_dps}
+
+    @classmethod
+    def from_settings(cls, values: Mapping[str, Any], prefix: str = "task.vehicle") -> VehicleParams:
+        """The vehicle of a mapping with the SETTINGS names (task.vehicle's); bad values named `prefix.<name>`."""
+        check_settings(cls.SETTINGS, values, prefix)
+        return cls(wheelbase_m=float(values["wheelbase_m"]), speed_mps=float(values["speed_mph"]) * MPH,
+                   max_steer_deg=float(values["max_steer_deg"]),
+                   max_steer_rate_dps=float(values["max_steer_rate_dps"]))
 
 
 @dataclass(frozen=True)

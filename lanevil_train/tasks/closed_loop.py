@@ -14,9 +14,11 @@ from __future__ import annotations
 
 import json
 import multiprocessing
+from collections.abc import Callable
+from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
-import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
@@ -29,16 +31,16 @@ from lanevil_train.closed_loop.episode import (
     case_scene,
     drive,
     ego_lane,
-    illusion_region,
     run_obstacles,
 )
 from lanevil_train.closed_loop.policies import DetectorPolicy, TruthPolicy, VLMPolicy
+from lanevil_train.closed_loop.protocol import Protocol
 from lanevil_train.closed_loop.scoring import run_scores, twin_scores
 from lanevil_train.evaluation.streaming import claim_results
 from lanevil_train.files.atomic import atomic_write_text
 from lanevil_train.progress import progress_counter
 from lanevil_train.results_log import ResultsLog
-from lanevil_train.sim.vehicle import MPH, VehicleParams
+from lanevil_train.sim.vehicle import VehicleParams
 from lanevil_train.tasks.builders import checkpoint_model, output_dir
 from lanevil_train.tasks.kinds import is_vlm
 from lanevil_train.tasks.vlm.builders import build_vlm, check_prompt_defense, is_prompt_defense, with_prompt_defense
@@ -51,22 +53,32 @@ RUNS = "runs.jsonl"
 DRIVING_THREADS = 1
 
 
-def loop_settings(task: DictConfig) -> LoopSettings:
-    """The loop's settings from task.* (size, control_hz, window_s, after_s, vehicle.*)."""
-    vehicle = task.vehicle
-    params = VehicleParams(wheelbase_m=vehicle.wheelbase_m, speed_mps=vehicle.speed_mph * MPH,
-                           max_steer_deg=vehicle.max_steer_deg, max_steer_rate_dps=vehicle.max_steer_rate_dps)
-    return LoopSettings(size=tuple(task.size), control_hz=task.control_hz, window_s=task.window_s,
-                        after_s=task.after_s, vehicle=params)
+@dataclass(frozen=True)
+class ClosedLoopSettings:
+    """task=closed_loop's settings, typed and checked once (``from_config``) and passed down: the loop (image
+    size, control rate, windows, vehicle), the protocol (which runs, the threshold) and the lane keeper every
+    detector or ground-truth policy steers with (``keeper()``: a new one per policy). Each part owns its ranges."""
 
+    loop: LoopSettings
+    protocol: Protocol
+    keeper: Callable[[], LaneKeeper]
+    workers: int = 1
+    animate: bool = True
 
-def controller(task: DictConfig) -> LaneKeeper:
-    """The lane keeper of task.tracker and task.controller with their settings (task.kalman, task.mpc, ...)."""
-    limits = Limits.of(loop_settings(task).vehicle)
-    settings = {name: OmegaConf.to_container(task[name], resolve=True) for name in (task.tracker, task.controller)
-                if name in task and task[name] is not None}
-    return lane_keeper(task.tracker, task.controller, limits, task.max_range_m, task.lane_width_m,
-                       1.0 / task.control_hz, settings)
+    @classmethod
+    def from_config(cls, task: DictConfig) -> ClosedLoopSettings:
+        loop = LoopSettings(size=tuple(task.size), control_hz=task.control_hz, window_s=task.window_s,
+                            after_s=task.after_s, vehicle=VehicleParams.from_settings(task.vehicle))
+        illusions = ILLUSION_NAMES if task.illusions == "all" else tuple(task.illusions)
+        protocol = Protocol(cases=task.cases, first_seed=task.first_seed, illusions=illusions,
+                            severities=tuple(task.severities), repeats=task.repeats,
+                            start_before_m=tuple(task.start_before_m), threshold_m=task.threshold_m)
+        named = {name: OmegaConf.to_container(task[name], resolve=True) for name in (task.tracker, task.controller)
+                 if name in task and task[name] is not None}
+        keeper = partial(lane_keeper, task.tracker, task.controller, Limits.of(loop.vehicle), task.max_range_m,
+                         task.lane_width_m, 1.0 / loop.control_hz, named)
+        keeper()  # its settings checked here, before any model loads
+        return cls(loop, protocol, keeper, workers=max(int(task.workers or 1), 1), animate=bool(task.animate))
 
 
 def policy_kind(cfg: DictConfig) -> str:
@@ -74,13 +86,13 @@ def policy_kind(cfg: DictConfig) -> str:
     return cfg.task.policy or ("vlm" if is_vlm(cfg) else "detector")
 
 
-def build_policies(cfg: DictConfig) -> list[tuple[object, dict]]:
+def build_policies(cfg: DictConfig, settings: ClosedLoopSettings) -> list[tuple[object, dict]]:
     """[(policy, identity), ...]: one per model of task.models (label: checkpoint), or the one of ckpt_path, the
     ground truth (task.policy=truth) or the VLM model=vlm/<backend> configures (with its textual defense, e.g.
     defense=pat++ defense.prefix_path=RUN/prefix.json, as task=evaluate applies it)."""
     kind = policy_kind(cfg)
     if kind == "truth":
-        return [(TruthPolicy(controller(cfg.task), name=cfg.task.label or "ground-truth"), {"policy": "truth"})]
+        return [(TruthPolicy(settings.keeper(), name=cfg.task.label or "ground-truth"), {"policy": "truth"})]
     if kind == "vlm":
         if is_prompt_defense(cfg):
             check_prompt_defense(cfg)  # before the model loads
@@ -103,27 +115,9 @@ def build_policies(cfg: DictConfig) -> list[tuple[object, dict]]:
         model = checkpoint_model(OmegaConf.merge(cfg, {"ckpt_path": path}))
         spec = model.build_config or {}
         label = label or f"{spec['model']['name']}-{spec['backbone']['name']}"
-        policy = DetectorPolicy(model, controller(cfg.task), name=label)
+        policy = DetectorPolicy(model, settings.keeper(), name=label)
         out.append((policy, {"policy": "detector", **run_identity(model, {"model": label})}))
     return out
-
-
-def plan_runs(cfg: DictConfig, settings: LoopSettings) -> list[Run]:
-    """Every run: case x illusion x repeat, the clean twin (severity 0) and each severity, with its start."""
-    task = cfg.task
-    names = list(ILLUSION_NAMES) if task.illusions == "all" else list(task.illusions)
-    low, high = task.start_before_m
-    runs = []
-    for i in range(task.cases):
-        seed = task.first_seed + i
-        for j, name in enumerate(names):
-            region = illusion_region(seed, name, settings.size)
-            for repeat in range(task.repeats):
-                rng = np.random.default_rng([cfg.seed, seed, j, repeat])
-                start = round(region[0] - float(rng.uniform(low, high)), 4)  # as recorded
-                for severity in [0, *task.severities]:
-                    runs.append(Run(f"case{i:03d}", seed, name, int(severity), repeat, start, region))
-    return runs
 
 
 def trace_path(out: Path, model: str, run_key: str) -> Path:
@@ -162,21 +156,20 @@ def plan_groups(runs: list[Run]) -> list[list[Run]]:
     return [sorted(group, key=lambda run: run.severity) for group in groups.values()]
 
 
-def score_run(run: Run, trace: list[dict], twin_trace: list[dict] | None, settings: LoopSettings,
-              task: DictConfig) -> dict:
+def score_run(run: Run, trace: list[dict], twin_trace: list[dict] | None, settings: ClosedLoopSettings) -> dict:
     """A run's scores: the paper's rule from the lane centre, the same rule from the clean twin's path (a perturbed
     run), a collision with a standing illusion."""
-    _, lane_width = ego_lane(case_scene(run.seed, settings.size)[0])
-    scores = run_scores(trace, run.region[0], lane_width, task.threshold_m, task.window_s)
+    loop, threshold = settings.loop, settings.protocol.threshold_m
+    _, lane_width = ego_lane(case_scene(run.seed, loop.size)[0])
+    scores = run_scores(trace, run.region[0], lane_width, threshold, loop.window_s)
     if twin_trace is not None and run.severity:
-        scores.update(twin_scores(trace, twin_trace, run.region[0], task.threshold_m, task.window_s))
-    blockers = run_obstacles(run.seed, run.illusion, run.severity, settings.size)
-    scores.update(collision(trace, list(blockers), settings.vehicle.wheelbase_m, scores["entry_s"]))
+        scores.update(twin_scores(trace, twin_trace, run.region[0], threshold, loop.window_s))
+    blockers = run_obstacles(run.seed, run.illusion, run.severity, loop.size)
+    scores.update(collision(trace, list(blockers), loop.vehicle.wheelbase_m, scores["entry_s"]))
     return {**scores, "lane_width_m": lane_width}
 
 
-def drive_group(policy, group: list[Run], settings: LoopSettings, task: DictConfig, out: Path,
-                done: frozenset) -> list[dict]:
+def drive_group(policy, group: list[Run], settings: ClosedLoopSettings, out: Path, done: frozenset) -> list[dict]:
     """Drive the runs of one group that are not `done` (keys), each trace written whole; their records."""
     records, twin_trace = [], None
     for run in group:
@@ -186,11 +179,11 @@ def drive_group(policy, group: list[Run], settings: LoopSettings, task: DictConf
             if run.severity == 0:
                 twin_trace = read_trace(path)
             continue
-        trace = drive(run, policy, settings)
+        trace = drive(run, policy, settings.loop)
         write_trace(path, trace)
         if run.severity == 0:
             twin_trace = trace
-        scores = score_run(run, trace, twin_trace, settings, task)
+        scores = score_run(run, trace, twin_trace, settings)
         records.append({"key": key, "model": policy.name, **run.as_dict(), **scores,
                         "off_road": bool(trace[-1].get("off_road", False)), "steps": len(trace),
                         "trace": str(path.relative_to(out))})
@@ -206,22 +199,22 @@ def _start_worker(cfg: dict) -> None:
 
     torch.set_num_threads(DRIVING_THREADS)
     config = OmegaConf.create(cfg)
-    _WORKER.update(cfg=config, policies=[policy for policy, _ in build_policies(config)],
-                   settings=loop_settings(config.task))
+    settings = ClosedLoopSettings.from_config(config.task)
+    _WORKER.update(policies=[policy for policy, _ in build_policies(config, settings)], settings=settings)
 
 
 def _drive_in_worker(item: tuple[int, list[Run], Path, frozenset]) -> list[dict]:
     index, group, out, done = item
-    return drive_group(_WORKER["policies"][index], group, _WORKER["settings"], _WORKER["cfg"].task, out, done)
+    return drive_group(_WORKER["policies"][index], group, _WORKER["settings"], out, done)
 
 
 def closed_loop(cfg: DictConfig) -> float:
     """Drive every run with every model, resumably (in task.workers processes); write the report; return the first
     model's ASR (%) under illusions."""
-    settings = loop_settings(cfg.task)
-    policies = build_policies(cfg)
+    settings = ClosedLoopSettings.from_config(cfg.task)
+    policies = build_policies(cfg, settings)
     out = Path(cfg.task.out_dir) if cfg.task.out_dir else output_dir(cfg)
-    runs = plan_runs(cfg, settings)
+    runs = settings.protocol.runs(cfg.seed, settings.loop.size)
     log = ResultsLog(out / RUNS)
     done = log.resume()
     settings_identity = OmegaConf.to_container(cfg.task, resolve=True)
@@ -239,7 +232,7 @@ def closed_loop(cfg: DictConfig) -> float:
                 items.append((index, group, out, frozenset(keys & done)))
     total = len(runs) * len(policies)
     bar = progress_counter(total, len(done), "closed loop", "run", cfg.get("progress", "auto"))
-    workers = min(max(int(cfg.task.workers or 1), 1), max(len(items), 1))
+    workers = min(settings.workers, max(len(items), 1))
     pool, threads = None, torch.get_num_threads()
     torch.set_num_threads(DRIVING_THREADS)
     if workers > 1:
@@ -247,7 +240,7 @@ def closed_loop(cfg: DictConfig) -> float:
         pool = context.Pool(workers, _start_worker, (OmegaConf.to_container(cfg, resolve=True),))
         results = pool.imap(_drive_in_worker, items)  # in the planned order, whichever process finishes first
     else:
-        results = (drive_group(policies[index][0], group, settings, cfg.task, out, skip)
+        results = (drive_group(policies[index][0], group, settings, out, skip)
                    for index, group, out, skip in items)
     try:
         for records in results:
@@ -261,24 +254,26 @@ def closed_loop(cfg: DictConfig) -> float:
     return write_report(cfg, out, settings)
 
 
-def write_report(cfg: DictConfig, out: Path, settings: LoopSettings) -> float:
+def write_report(cfg: DictConfig, out: Path, settings: ClosedLoopSettings) -> float:
     """closed_loop.md with its tables and plots, and worst_run.gif (task.animate); the first model's ASR (%)."""
     from lanevil_train.report.closed_loop import asr_rows, worst_pairs, write_closed_loop_report
     from lanevil_train.report.tables import print_table
 
     records = ResultsLog(out / RUNS).records()
-    shown = {key: cfg.task[key] for key in ("cases", "repeats", "severities", "control_hz", "window_s", "threshold_m")}
-    shown["speed_mph"] = cfg.task.vehicle.speed_mph
+    protocol, loop = settings.protocol, settings.loop
+    shown = {"cases": protocol.cases, "repeats": protocol.repeats, "severities": list(protocol.severities),
+             "control_hz": loop.control_hz, "window_s": loop.window_s, "threshold_m": protocol.threshold_m,
+             "speed_mph": loop.vehicle.settings()["speed_mph"]}
     path = write_closed_loop_report(records, lambda record: read_trace(out / record["trace"]), out, shown)
     rows = asr_rows(records, "category")
     print_table(rows, f"Closed loop: ASR (%) per illusion category ({path})", digits=1)
     pairs = worst_pairs(records)
-    if cfg.task.animate and pairs:
+    if settings.animate and pairs:
         from lanevil_train.closed_loop.animation import write_animation
 
         worst, twin = max(pairs, key=lambda pair: pair[0]["max_deviation_m"])
         write_animation([(_run_of(r), read_trace(out / r["trace"]), r["entry_s"]) for r in (worst, twin)],
-                        settings.size, out / "worst_run.gif", fps=cfg.task.control_hz)
+                        loop.size, out / "worst_run.gif", fps=loop.control_hz)
     first = next(row for row in rows if row["category"] == "all")
     return float(first["ASR (%)"])
 

@@ -208,3 +208,29 @@ def test_loop_settings_refuse_bad_values_by_their_task_keys():
         LoopSettings(size=(16, 640))
     with pytest.raises(ValueError, match="task.control_hz: expected a number in \\(0, 100\\]"):
         LoopSettings(control_hz=0)
+
+
+def test_the_protocol_vehicle_and_vlm_policy_refuse_bad_values_by_their_task_keys():
+    from lanevil_train.closed_loop.protocol import Protocol
+    from lanevil_train.sim.vehicle import MPH, VehicleParams
+
+    with pytest.raises(ValueError, match=r"task.start_before_m: expected \[low, high\]"):
+        Protocol(start_before_m=(10.0, 5.0))
+    with pytest.raises(ValueError, match=r"task.severities: expected a non-empty list of integers from 1 to 5"):
+        Protocol(severities=(0, 3))
+    with pytest.raises(ValueError, match="task.illusions: expected 'all' or illusion names"):
+        Protocol(illusions=("fog",))
+    with pytest.raises(ValueError, match=r"task.vehicle.speed_mph: expected a number in \(0, 100\], got 120"):
+        VehicleParams.from_settings({"wheelbase_m": 2.7, "speed_mph": 120, "max_steer_deg": 30,
+                                     "max_steer_rate_dps": 30})
+    with pytest.raises(ValueError, match=r"VehicleParams.max_steer_deg: expected a number in \(0, 80\), got 80"):
+        VehicleParams(max_steer_deg=80.0)
+    with pytest.raises(ValueError, match="VehicleParams.max_steer_rate_dps"):
+        VehicleParams(max_steer_rate_dps=float("inf"))  # a rate limit is a finite number
+    params = VehicleParams.from_settings({"wheelbase_m": 3, "speed_mph": 30, "max_steer_deg": 25,
+                                          "max_steer_rate_dps": 40})
+    assert params.speed_mps == pytest.approx(30 * MPH) and params.settings()["speed_mph"] == pytest.approx(30)
+    with pytest.raises(ValueError, match=r"task.vlm.steer_deg: expected a number in \(0, 30\)"):
+        VLMPolicy(_ScriptedVLM("x"), steer_deg=30)
+    with pytest.raises(ValueError, match="task.vlm.question: expected a non-empty string"):
+        VLMPolicy(_ScriptedVLM("x"), question="  ")

@@ -124,12 +124,13 @@ def test_a_local_vlm_with_a_textual_defense_drives_the_loop_from_its_answers(tmp
 
 
 def test_starts_are_random_per_repeat_fixed_by_the_seed_and_shared_by_a_runs_twin():
-    from lanevil_train.tasks.closed_loop import loop_settings, plan_runs
+    from lanevil_train.tasks.closed_loop import ClosedLoopSettings
 
     def starts(seed):
         cfg = composed(["task=closed_loop", "task.policy=truth", "task.cases=2", "task.repeats=3",
                          "task.illusions=[tire_marks]", "task.severities=[1,4]", "task.size=[90,160]", f"seed={seed}"])
-        runs = plan_runs(cfg, loop_settings(cfg.task))
+        settings = ClosedLoopSettings.from_config(cfg.task)
+        runs = settings.protocol.runs(cfg.seed, settings.loop.size)
         assert len(runs) == 2 * 3 * 3
         by_repeat = {}
         for run in runs:

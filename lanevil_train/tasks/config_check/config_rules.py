@@ -10,7 +10,6 @@ from lanevil_train.illusions import ILLUSIONS
 from lanevil_train.rules import (
     Rule,
     is_int,
-    is_number,
     ok,
 )
 from lanevil_train.tasks.config_check.keys import DEFENSE_KEYS, PROMPT_DEFENSE_KEYS, SPLITS
@@ -129,13 +128,6 @@ def checkpoint_mapping() -> Rule:
                    if not isinstance(path, str) or not Path(path).is_file()]
         return f"no such checkpoint file for {', '.join(missing)}" if missing else None
     return Rule("a mapping {label: checkpoint file}", test)
-
-
-def number_range(low: float) -> Rule:
-    """[a, b] with low <= a <= b (a range of numbers)."""
-    return Rule(f"[low, high], two numbers with {low} <= low <= high",
-                lambda v: ok(isinstance(v, list) and len(v) == 2 and all(is_number(x) for x in v)
-                              and low <= v[0] <= v[1]))
 
 
 def http_url() -> Rule:

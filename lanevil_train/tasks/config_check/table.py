@@ -11,7 +11,10 @@ from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
 from lanevil_train.closed_loop.controller import KEEPER_SETTINGS
 from lanevil_train.closed_loop.controllers import CONTROLLERS
 from lanevil_train.closed_loop.episode import LoopSettings
+from lanevil_train.closed_loop.policies import VLMPolicy
+from lanevil_train.closed_loop.protocol import Protocol
 from lanevil_train.closed_loop.tracker import TRACKERS
+from lanevil_train.data.illusion_set import Plan
 from lanevil_train.data.normalization import NORMALIZATIONS
 from lanevil_train.data.resize import RESIZE_FILTERS
 from lanevil_train.illusions import SEVERITIES
@@ -36,6 +39,7 @@ from lanevil_train.rules import (
     string_list,
     text,
 )
+from lanevil_train.sim.vehicle import VehicleParams
 from lanevil_train.tasks.config_check.config_rules import (
     _for_splits,
     api_key_variable,
@@ -47,7 +51,6 @@ from lanevil_train.tasks.config_check.config_rules import (
     illusion_suite,
     integer_in,
     mapping_of,
-    number_range,
     output_folder,
     rate_factors,
     seed_list,
@@ -184,10 +187,8 @@ RULES: dict[str, Rule] = {
     "task.out_dir": null_or(output_folder()),
     "task.cases": integer(0),
     "task.frames": integer(1),
-    "task.frame_step_m": number(0, low_open=True),
     "task.illusions": illusion_names(),
-    "task.severities": int_list(SEVERITIES[0], SEVERITIES[-1]),
-    "task.repeats": integer(1),
+    **{f"task.{key}": rule for key, rule in Plan.SETTINGS.items()},  # the suites' own rules
     "task.workers": integer(0),
     "task.fallback": boolean(),
     "task.test_after_fit": boolean(),
@@ -214,23 +215,16 @@ RULES: dict[str, Rule] = {
     # task=closed_loop
     "task.policy": null_or(one_of("detector", "truth", "vlm")),
     "task.models": null_or(checkpoint_mapping()),
-    "task.first_seed": integer(0),
-    "task.start_before_m": number_range(0.0),
+    **{f"task.{key}": rule for key, rule in Protocol.SETTINGS.items()},  # the closed-loop protocol's own rules
     **{f"task.{key}": rule for key, rule in LoopSettings.SETTINGS.items()},  # the loop's own rules
-    "task.threshold_m": number(0, low_open=True),
     "task.animate": boolean(),
-    "task.vehicle.wheelbase_m": number(0.5, 10),
-    "task.vehicle.speed_mph": number(0, 100, low_open=True),
-    "task.vehicle.max_steer_deg": number(0, 80, low_open=True, high_open=True),
-    "task.vehicle.max_steer_rate_dps": number(0, low_open=True),
+    **{f"task.vehicle.{key}": rule for key, rule in VehicleParams.SETTINGS.items()},  # the vehicle's own rules
     "task.tracker": one_of(*TRACKERS),
     "task.controller": one_of(*CONTROLLERS),
     **{f"task.{key}": rule for key, rule in KEEPER_SETTINGS.items()},  # the lane keeper's own rules
     **{f"task.{name}.{key}": rule for name, owner in {**TRACKERS, **CONTROLLERS}.items()
        for key, rule in getattr(owner, "SETTINGS", {}).items()},
-    "task.vlm.question": text(),
-    "task.vlm.steer_deg": number(0, 30, low_open=True, high_open=True),
-    "task.vlm.frames": integer(1),
+    **{f"task.vlm.{key}": rule for key, rule in VLMPolicy.SETTINGS.items()},  # the VLM policy's own rules
     # trainer (Lightning's Trainer arguments)
     "trainer.max_steps": any_of(exactly(-1), integer(1)),
     "trainer.max_epochs": null_or(any_of(exactly(-1), integer(1))),
