@@ -43,7 +43,7 @@ from lanevil_train.results_log import ResultsLog
 from lanevil_train.sim.vehicle import VehicleParams
 from lanevil_train.tasks.builders import checkpoint_model, output_dir
 from lanevil_train.tasks.kinds import is_vlm
-from lanevil_train.tasks.vlm.builders import build_vlm, check_prompt_defense, is_prompt_defense, with_prompt_defense
+from lanevil_train.tasks.vlm.builders import build_defended_vlm
 from lanevil_train.taxonomy import ILLUSION_NAMES
 
 RUNS = "runs.jsonl"
@@ -94,11 +94,7 @@ def build_policies(cfg: DictConfig, settings: ClosedLoopSettings) -> list[tuple[
     if kind == "truth":
         return [(TruthPolicy(settings.keeper(), name=cfg.task.label or "ground-truth"), {"policy": "truth"})]
     if kind == "vlm":
-        if is_prompt_defense(cfg):
-            check_prompt_defense(cfg)  # before the model loads
-        vlm = build_vlm(cfg)
-        if is_prompt_defense(cfg):  # defense=pat++ defense.prefix_path=... (or self_reminder): as task=evaluate
-            vlm = with_prompt_defense(cfg, vlm)
+        vlm = build_defended_vlm(cfg)  # defense=pat++ defense.prefix_path=... (or self_reminder): as task=evaluate
         policy = VLMPolicy(vlm, cfg.task.vlm.question, cfg.task.vlm.steer_deg, cfg.task.vlm.frames,
                            name=cfg.task.label or vlm.name)
         return [(policy, {"policy": "vlm", **vlm.identity(), **OmegaConf.to_container(cfg.task.vlm)})]

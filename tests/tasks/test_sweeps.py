@@ -205,7 +205,7 @@ def test_a_bad_value_in_a_later_job_stops_the_sweep_before_the_first_job(tmp_pat
 
 
 def test_the_pat_alpha_sweep_is_the_papers_grid_and_every_point_a_valid_pat_plus_plus():
-    from lanevil_train.tasks.vlm.builders import prompt_settings
+    from lanevil_train.tasks.vlm.builders import prompt_defense
 
     cfg = compose_root(["hparams_search=pat_alpha", "model=vlm/hf", "model.path=/models/some-vlm", "data=clips"])
     assert cfg.hydra.mode == RunMode.MULTIRUN
@@ -217,11 +217,11 @@ def test_the_pat_alpha_sweep_is_the_papers_grid_and_every_point_a_valid_pat_plus
     for value in grid:
         point = compose_root(["hparams_search=pat_alpha", "model=vlm/hf", "model.path=/models/some-vlm",
                               "data=clips", f"defense.alpha={value}"])
-        assert prompt_settings(point.defense)["alpha"] == value
+        assert prompt_defense(point).alpha == value
 
 
 def test_the_pat_prefix_length_sweep_gives_valid_pat_plus_plus_points():
-    from lanevil_train.tasks.vlm.builders import prompt_settings
+    from lanevil_train.tasks.vlm.builders import prompt_defense
 
     cfg = compose_root(["hparams_search=pat_prefix_length", "model=vlm/hf", "model.path=/models/some-vlm",
                         "data=clips"])
@@ -231,4 +231,4 @@ def test_the_pat_prefix_length_sweep_gives_valid_pat_plus_plus_points():
     for value in grid:
         point = compose_root(["hparams_search=pat_prefix_length", "model=vlm/hf", "model.path=/models/some-vlm",
                               "data=clips", f"defense.prefix_length={value}"])
-        assert prompt_settings(point.defense)["prefix_length"] == value
+        assert prompt_defense(point).prefix_length == value

@@ -22,7 +22,7 @@ from lanevil_train.vlm.base import VLM
 from lanevil_train.vlm.clips.clip_set import ClipSetDataset, SyntheticClipSuite
 from lanevil_train.vlm.defenses.pat import PrefixedVLM, load_prefix
 from lanevil_train.vlm.defenses.reminder import RemindedVLM
-from lanevil_train.vlm.defenses.settings import TUNED, prompt_problems
+from lanevil_train.vlm.defenses.settings import PromptDefense
 from lanevil_train.vlm.training.finetune import load_finetuned
 from lanevil_train.vlm.training.vision_maps import vision_layer
 
@@ -122,7 +122,7 @@ def check_vlm_run(cfg: DictConfig) -> None:
     """A VLM training run's data and defense, before anything loads (task=compare checks every run so): a textual
     part's settings, and for a run that fine-tunes the clip suite's data and a visual part it can apply."""
     if is_prompt_defense(cfg):
-        prompt_settings(cfg.defense)
+        prompt_defense(cfg)
     if not fine_tunes(cfg.defense):
         return
     if cfg.data.name != "clips":
@@ -175,14 +175,10 @@ def fine_tunes(defense: DictConfig) -> bool:
     return defense.get("prompt") is None or defense.get("callback") is not None or defense.get("mixer") is not None
 
 
-def prompt_settings(defense: DictConfig) -> dict:
-    """defense.* of a prompt defense as plain values, each key its method needs present and good by the defenses'
-    own rules (vlm/defenses/settings.py); a ValueError names the first bad key."""
-    settings = OmegaConf.to_container(defense, resolve=True)
-    problems = prompt_problems(settings)
-    if problems:
-        raise ValueError(problems[0])
-    return settings
+def prompt_defense(cfg: DictConfig) -> PromptDefense:
+    """cfg.defense of a textual defense, typed and checked once (vlm/defenses/settings.PromptDefense): a ValueError
+    names every bad key."""
+    return PromptDefense.from_settings(OmegaConf.to_container(cfg.defense, resolve=True), str(cfg.defense.name))
 
 
 def check_prompt_model(cfg: DictConfig) -> None:
@@ -196,28 +192,35 @@ def check_prompt_model(cfg: DictConfig) -> None:
                          f"model.path=RUN/model (task=train model=vlm/embedded writes one) or ckpt_path=...")
 
 
-def check_prompt_defense(cfg: DictConfig) -> None:
-    """task=evaluate, before the model loads: the defense's settings, and for pat++ the prefix to apply and a backend
-    it can be spliced into."""
-    settings = prompt_settings(cfg.defense)
-    if settings["prompt"] in TUNED:
-        if cfg.defense.get("prefix_path") is None:
-            raise ValueError(f"defense.prefix_path: task=evaluate defense={cfg.defense.name} applies a tuned prefix; "
-                             f"give defense.prefix_path=RUN/prefix.json (task=train defense={cfg.defense.name} writes "
-                             f"it)")
+def _prefix_path(defense: PromptDefense) -> str:
+    """The tuned prefix a pat++ / pat defense applies (defense.prefix_path), or a ValueError saying how to get one."""
+    if defense.prefix_path is None:
+        raise ValueError(f"defense.prefix_path: defense={defense.name} applies a tuned prefix; give "
+                         f"defense.prefix_path=RUN/prefix.json (task=train defense={defense.name} writes it)")
+    return defense.prefix_path
+
+
+def build_defended_vlm(cfg: DictConfig):
+    """The VLM of model=vlm/<backend>, and when defense= is a textual one (self_reminder, or pat++ / pat with
+    defense.prefix_path) the VLM answering through it; the defense's settings, its prefix file and a backend it can
+    be spliced into are checked before the model loads (task=evaluate and task=closed_loop)."""
+    if not is_prompt_defense(cfg):
+        return build_vlm(cfg)
+    defense = prompt_defense(cfg)
+    if defense.tuned:
+        _prefix_path(defense)
         check_prompt_model(cfg)
+    return with_prompt_defense(build_vlm(cfg), defense)
 
 
-def with_prompt_defense(cfg: DictConfig, vlm):
-    """task=evaluate: the VLM with its questions wrapped in the reminders (self_reminder), or with the tuned prefix
-    of defense.prefix_path before every question (pat++)."""
-    settings = prompt_settings(cfg.defense)
-    name = f"{vlm.name}+{cfg.defense.name}"
-    if settings["prompt"] == "self_reminder":
-        return RemindedVLM(vlm, settings["before"], settings["after"], name=name)
-    check_prompt_defense(cfg)
-    return prefixed(vlm, load_prefix(cfg.defense.prefix_path, getattr(getattr(vlm, "processor", None), "tokenizer",
-                                                                       None)), name)
+def with_prompt_defense(vlm, defense: PromptDefense):
+    """The VLM with its questions wrapped in the reminders (self_reminder), or with the tuned prefix of
+    defense.prefix_path before every question (pat++, pat)."""
+    name = f"{vlm.name}+{defense.name}"
+    if not defense.tuned:
+        return RemindedVLM(vlm, defense.before, defense.after, name=name)
+    tokenizer = getattr(getattr(vlm, "processor", None), "tokenizer", None)
+    return prefixed(vlm, load_prefix(_prefix_path(defense), tokenizer), name)
 
 
 def prefixed(vlm, record: dict, name: str):

@@ -39,11 +39,12 @@ from lanevil_train.tasks.vlm.builders import (
     build_vlm,
     check_prompt_model,
     prefixed,
-    prompt_settings,
+    prompt_defense,
     spread,
     with_prompt_defense,
 )
 from lanevil_train.tasks.vlm.evaluate import test_vlm
+from lanevil_train.vlm.defenses.settings import PromptDefense
 
 EXAMPLES_FILE = "examples.json"
 
@@ -51,25 +52,25 @@ EXAMPLES_FILE = "examples.json"
 def tune_prompt_defense(cfg: DictConfig) -> float | None:
     """task=train with a textual defense: for pat++ and pat the prefix tuned into the run's prefix.json, for
     self_reminder nothing; then the defended model tested. Returns the test score when tested."""
-    settings = prompt_settings(cfg.defense)
-    if settings["prompt"] == "self_reminder":  # nothing to tune: the reminded model tested, as task=evaluate would
-        defended = with_prompt_defense(cfg, build_vlm(cfg))
+    defense = prompt_defense(cfg)
+    if not defense.tuned:  # self_reminder, nothing to tune: the reminded model tested, as task=evaluate would
+        defended = with_prompt_defense(build_vlm(cfg), defense)
         print(f"defense={cfg.defense.name}: nothing to train; the reminders wrap every question")
         if not cfg.task.get("test_after_fit"):
             return None
         return _test(cfg, defended, output_dir(cfg) / "test")
     if cfg.data.name != "clips":
-        raise ValueError(f"data: {settings['prompt'].upper()} tunes its prefix on the clip suite's train split: use "
+        raise ValueError(f"data: {defense.prompt.upper()} tunes its prefix on the clip suite's train split: use "
                          f"data=clips (got data={cfg.data.name})")
     check_prompt_model(cfg)
-    if settings.get("hardness") == "judge" and (cfg.get("judge") is None or cfg.judge.get("_target_") is None):
+    if defense.hardness == "judge" and (cfg.get("judge") is None or cfg.judge.get("_target_") is None):
         raise ValueError("defense.hardness: judge needs a judge (judge=minilm or judge=openai); got judge=none")
     out = output_dir(cfg)
     train_set = build_split(cfg, "train")
     vlm = build_vlm(cfg)
     vlm.model.requires_grad_(False)  # frozen: only the prefix (its one-hot matrix, or its vectors) takes gradients
-    tune = _tune_pat if settings["prompt"] == "pat" else _tune_pat_plus_plus
-    record = tune(cfg, settings, vlm, train_set, out)
+    tune = _tune_pat if defense.prompt == "pat" else _tune_pat_plus_plus
+    record = tune(cfg, defense, vlm, train_set, out)
     shown = f"{len(record['ids'])} soft vectors" if record.get("soft") else repr(record["text"])
     print(f"defense prefix: {shown} (loss {record['history'][0]:.4f} -> {record['history'][-1]:.4f}); "
           f"{out / 'prefix.json'} (evaluate with defense={cfg.defense.name} "
@@ -79,42 +80,42 @@ def tune_prompt_defense(cfg: DictConfig) -> float | None:
     return _test(cfg, prefixed(vlm, record, f"{vlm.name}+{cfg.defense.name}"), out / "test")
 
 
-def _tune_pat_plus_plus(cfg: DictConfig, settings: dict, vlm, train_set, out: Path) -> dict:
+def _tune_pat_plus_plus(cfg: DictConfig, defense: PromptDefense, vlm, train_set, out: Path) -> dict:
     """PAT++: hard examples found by asking the model, then the prefix tuned by GCG (or, soft, by Adam)."""
     from lanevil_train.vlm.defenses.pat import GCGSettings, PrefixObjective, SoftSettings, tune_prefix, tune_soft_prefix
 
-    judge = build_judge(cfg, out) if settings["hardness"] == "judge" else None
+    judge = build_judge(cfg, out) if defense.hardness == "judge" else None
     choosing = {"model": vlm.identity(), "seed": int(cfg.seed),
-                **{key: settings[key] for key in ("hardness", "hard_target", "examples", "pool_clips")}}
-    chosen = choose_examples(vlm, train_set, settings, judge, out / EXAMPLES_FILE, choosing, cfg.progress)
+                **{key: getattr(defense, key) for key in ("hardness", "hard_target", "examples", "pool_clips")}}
+    chosen = choose_examples(vlm, train_set, defense, judge, out / EXAMPLES_FILE, choosing, cfg.progress)
     benign, hard = (examples_of(train_set, [e for e in chosen if e["hard"] == kind]) for kind in (False, True))
-    objective = PrefixObjective(vlm, benign, hard, alpha=settings["alpha"], chunk=settings["chunk"])
+    objective = PrefixObjective(vlm, benign, hard, alpha=defense.alpha, chunk=defense.chunk)
     facts = {**choosing, "examples": [[e["index"], e["qa_id"], e["hard"], e["target"]] for e in chosen]}
-    if settings["soft"]:
-        soft = SoftSettings(steps=settings["steps"], prefix_length=settings["prefix_length"], lr=settings["soft_lr"],
+    if defense.soft:
+        soft = SoftSettings(steps=defense.steps, prefix_length=defense.prefix_length, lr=defense.soft_lr,
                             seed=int(cfg.seed))
         return tune_soft_prefix(objective, soft, out, progress=cfg.progress, facts=facts)
-    gcg = GCGSettings(steps=settings["steps"], prefix_length=settings["prefix_length"], top_k=settings["top_k"],
-                      num_candidates=settings["num_candidates"], seed=int(cfg.seed))
+    gcg = GCGSettings(steps=defense.steps, prefix_length=defense.prefix_length, top_k=defense.top_k,
+                      num_candidates=defense.num_candidates, seed=int(cfg.seed))
     return tune_prefix(objective, gcg, out, progress=cfg.progress, facts=facts)
 
 
-def _tune_pat(cfg: DictConfig, settings: dict, vlm, train_set, out: Path) -> dict:
+def _tune_pat(cfg: DictConfig, defense: PromptDefense, vlm, train_set, out: Path) -> dict:
     """PAT: attacked and benign examples drawn from the train split, then prefix and attack suffix in turn."""
     from lanevil_train.vlm.defenses.pat_baseline import PATSettings, tune_pat
 
-    choosing = {"method": "pat", "seed": int(cfg.seed), "examples": settings["examples"],
-                "pool_clips": settings["pool_clips"]}
-    chosen = choose_pat_examples(train_set, settings, out / EXAMPLES_FILE, choosing)
+    choosing = {"method": "pat", "seed": int(cfg.seed), "examples": defense.examples,
+                "pool_clips": defense.pool_clips}
+    chosen = choose_pat_examples(train_set, defense, out / EXAMPLES_FILE, choosing)
     attacked = examples_of(train_set, [e for e in chosen if e["attacked"]])
     benign = examples_of(train_set, [e for e in chosen if not e["attacked"]])
-    gcg = PATSettings(steps=settings["steps"], prefix_length=settings["prefix_length"], top_k=settings["top_k"],
-                      num_candidates=settings["num_candidates"], seed=int(cfg.seed),
-                      suffix_length=settings["suffix_length"])
+    gcg = PATSettings(steps=defense.steps, prefix_length=defense.prefix_length, top_k=defense.top_k,
+                      num_candidates=defense.num_candidates, seed=int(cfg.seed),
+                      suffix_length=defense.suffix_length)
     facts = {"model": vlm.identity(), **choosing,
              "examples": [[e["index"], e["qa_id"], e["attacked"], e["wrong"]] for e in chosen]}
-    return tune_pat(vlm, attacked, [e["wrong"] for e in chosen if e["attacked"]], benign, gcg, settings["alpha"],
-                    out, chunk=settings["chunk"], progress=cfg.progress, facts=facts)
+    return tune_pat(vlm, attacked, [e["wrong"] for e in chosen if e["attacked"]], benign, gcg, defense.alpha,
+                    out, chunk=defense.chunk, progress=cfg.progress, facts=facts)
 
 
 def _stored_examples(path: Path, choosing: dict) -> list[dict] | None:
@@ -131,7 +132,7 @@ def _stored_examples(path: Path, choosing: dict) -> list[dict] | None:
     return stored["examples"]
 
 
-def choose_pat_examples(train_set, settings: dict, path: Path, choosing: dict) -> list[dict]:
+def choose_pat_examples(train_set, defense: PromptDefense, path: Path, choosing: dict) -> list[dict]:
     """PAT's examples, drawn without asking the model: `examples` closed questions of perturbed clip variants to
     attack (each with the wrong answer the attack pushes toward) and `examples` questions of clean variants as
     benign ones, from `pool_clips` variants spread over the train split (seed choosing["seed"]); kept in `path`."""
@@ -147,7 +148,7 @@ def choose_pat_examples(train_set, settings: dict, path: Path, choosing: dict) -
     clean = [i for i in range(len(train_set)) if train_set.clip_meta(i)["severity"] == 0]
     attackable, benign = [], []
     for attacked, variants in ((True, perturbed), (False, clean)):
-        for index in spread(variants, settings["pool_clips"])[:settings["pool_clips"]]:
+        for index in spread(variants, defense.pool_clips)[:defense.pool_clips]:
             for qa in train_set.qa_for(train_set.clip_meta(index)["base_clip_id"]):
                 if attacked and qa["type"] != "open":
                     attackable.append({"index": index, "qa_id": qa["qa_id"], "attacked": True,
@@ -156,11 +157,11 @@ def choose_pat_examples(train_set, settings: dict, path: Path, choosing: dict) -
                     benign.append({"index": index, "qa_id": qa["qa_id"], "attacked": False, "target": qa["answer"],
                                    "wrong": None})
     if not attackable or not benign:
-        raise ValueError(f"defense.pool_clips: {settings['pool_clips']} clean and perturbed train clips hold "
+        raise ValueError(f"defense.pool_clips: {defense.pool_clips} clean and perturbed train clips hold "
                          f"{len(benign)} questions and {len(attackable)} closed questions; PAT needs both (raise "
                          f"defense.pool_clips, or train on a split with perturbed clips)")
     chosen = [group[i] for group in (benign, attackable)
-              for i in sorted(rng.permutation(len(group))[:settings["examples"]].tolist())]
+              for i in sorted(rng.permutation(len(group))[:defense.examples].tolist())]
     atomic_write_text(path, json.dumps({"choosing": choosing, "examples": chosen}, indent=1))
     return chosen
 
@@ -172,7 +173,8 @@ def _test(cfg: DictConfig, defended, out: Path) -> float:
     return score
 
 
-def choose_examples(vlm, train_set, settings: dict, judge, path: Path, choosing: dict, progress: str) -> list[dict]:
+def choose_examples(vlm, train_set, defense: PromptDefense, judge, path: Path, choosing: dict,
+                    progress: str) -> list[dict]:
     """Benign and hard examples of the train split: the answers to the pool's questions scored, those below the
     mean hard; `examples` of each drawn at random (choosing["seed"]). Kept in `path` with `choosing` (what they
     were chosen by), and read back from it when a rerun chooses by the same; a rerun that would choose otherwise
@@ -186,8 +188,8 @@ def choose_examples(vlm, train_set, settings: dict, judge, path: Path, choosing:
     stored = _stored_examples(path, choosing)
     if stored is not None:
         return stored
-    closed = settings["hardness"] == "accuracy"
-    indices = spread(list(range(len(train_set))), settings["pool_clips"])[:settings["pool_clips"]]
+    closed = defense.hardness == "accuracy"
+    indices = spread(list(range(len(train_set))), defense.pool_clips)[:defense.pool_clips]
     pool, answers = [], []
     bar = progress_counter(len(indices), desc="PAT++ hard examples", unit="clip", mode=progress)
     for index in indices:
@@ -201,10 +203,10 @@ def choose_examples(vlm, train_set, settings: dict, judge, path: Path, choosing:
     bar.close()
     if not pool:
         raise ValueError(f"defense.pool_clips: the {len(indices)} train clips asked have no questions to score "
-                         f"by defense.hardness={settings['hardness']}")
+                         f"by defense.hardness={defense.hardness}")
     if closed:
         scores = [float(bool(answer_is_correct(qa, text))) for (_, qa), text in zip(pool, answers)]
-    elif settings["hardness"] == "language":  # each answer's own Language score against its reference
+    elif defense.hardness == "language":  # each answer's own Language score against its reference
         from lanevil_train.metrics.vqa import language_per_answer
 
         per_answer = language_per_answer({str(i): text for i, text in enumerate(answers)},
@@ -220,16 +222,16 @@ def choose_examples(vlm, train_set, settings: dict, judge, path: Path, choosing:
         pool, answers, scores = [pool[i] for i in kept], [answers[i] for i in kept], [float(judged[i]) for i in kept]
     hard = hard_mask(scores)
     if not any(hard):
-        print(f"PAT++: all {len(scores)} answers of the pool score {scores[0]:g} by {settings['hardness']}: no hard "
+        print(f"PAT++: all {len(scores)} answers of the pool score {scores[0]:g} by {defense.hardness}: no hard "
               f"examples, so the prefix is tuned on benign ones only")
     rng = np.random.default_rng(choosing["seed"])
     chosen = []
     for kind in (False, True):
         members = [i for i, h in enumerate(hard) if h == kind]
-        for i in sorted(rng.permutation(members)[:settings["examples"]].tolist()):
+        for i in sorted(rng.permutation(members)[:defense.examples].tolist()):
             index, qa = pool[i]
             chosen.append({"index": index, "qa_id": qa["qa_id"], "hard": kind, "score": scores[i],
-                           "answer": answers[i], "target": _target(qa, kind, settings["hard_target"])})
+                           "answer": answers[i], "target": _target(qa, kind, defense.hard_target)})
     atomic_write_text(path, json.dumps({"choosing": choosing, "mean_score": float(np.mean(scores)), "pool": len(pool),
                                         "examples": chosen}, indent=1))
     return chosen

@@ -21,12 +21,9 @@ from lanevil_train.files.atomic import atomic_write_text
 from lanevil_train.tasks.builders import build_logger, output_dir
 from lanevil_train.tasks.vlm.builders import (
     add_defense_to_report,
+    build_defended_vlm,
     build_judge,
-    build_vlm,
-    check_prompt_defense,
     clip_suite,
-    is_prompt_defense,
-    with_prompt_defense,
 )
 from lanevil_train.vlm.base import VLM, BlindVLM
 from lanevil_train.vlm.scoring.evaluation import ANSWERS, PER_ANSWER, evaluate_clips
@@ -43,11 +40,7 @@ def evaluate_vlm(cfg: DictConfig) -> float:
     pl.seed_everything(cfg.seed, workers=True)
     dataset, dataset_name = clip_suite(cfg)  # read and checked before the model is loaded
     out = Path(cfg.task.out_dir) if cfg.task.out_dir else output_dir(cfg)
-    if is_prompt_defense(cfg):
-        check_prompt_defense(cfg)
-    vlm = build_vlm(cfg)
-    if is_prompt_defense(cfg):  # defense=pat++ defense.prefix_path=...: the tuned prefix before every question
-        vlm = with_prompt_defense(cfg, vlm)
+    vlm = build_defended_vlm(cfg)  # defense=pat++ defense.prefix_path=...: the tuned prefix before every question
     judge = build_judge(cfg, out)
     name = cfg.task.label or vlm.name
     results = evaluate_into(vlm, dataset, judge, out, {"model": name, "dataset": dataset_name}, cfg.progress)

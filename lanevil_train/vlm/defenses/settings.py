@@ -1,10 +1,11 @@
 """The settings of the textual defenses (defense=pat++, pat, self_reminder; `defense.*` in a config): which keys each
-method reads and what a good value of each is. Owned here, beside the defenses: the VLM tasks check a defense's
-settings with them before any model loads, and the config check reports a bad one by its key."""
+method reads and what a good value of each is. Owned here, beside the defenses: the VLM tasks build one typed
+PromptDefense from them before any model loads and pass it down, and the config check reports a bad one by its key."""
 
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any
 
 from lanevil_train.rules import Rule, boolean, existing_file, integer, null_or, number, one_of, settings_problems, text
@@ -40,3 +41,43 @@ def prompt_problems(settings: Mapping[str, Any]) -> list[str]:
     method = settings.get("prompt")
     keys = ("prompt",) + METHOD_KEYS.get(method, ())
     return settings_problems({k: SETTINGS[k] for k in keys}, {k: settings.get(k) for k in keys}, "defense")
+
+
+@dataclass(frozen=True)
+class PromptDefense:
+    """A textual defense's settings (defense.* with a `prompt`), typed and checked once by ``from_settings`` and
+    passed to what uses them. The keys its method does not read stay None."""
+
+    name: str
+    prompt: str
+    before: str | None = None
+    after: str | None = None
+    alpha: float | None = None
+    hard_target: str | None = None
+    hardness: str | None = None
+    pool_clips: int | None = None
+    examples: int | None = None
+    steps: int | None = None
+    prefix_length: int | None = None
+    suffix_length: int | None = None
+    top_k: int | None = None
+    num_candidates: int | None = None
+    chunk: int | None = None
+    soft: bool = False
+    soft_lr: float | None = None
+    prefix_path: str | None = None
+
+    @classmethod
+    def from_settings(cls, values: Mapping[str, Any], name: str) -> PromptDefense:
+        """The defense of plain defense.* values (a config's `defense` node; `name` its config name); a ValueError
+        lists every bad key, each named `defense.<key>`."""
+        problems = prompt_problems(values)
+        if problems:
+            raise ValueError("; ".join(problems))
+        method_keys = ("prompt",) + METHOD_KEYS[values["prompt"]] + ("prefix_path",)
+        return cls(name=name, **{key: values[key] for key in method_keys if values.get(key) is not None})
+
+    @property
+    def tuned(self) -> bool:
+        """Whether the method tunes a prefix (pat++, pat) rather than wrapping questions (self_reminder)."""
+        return self.prompt in TUNED
