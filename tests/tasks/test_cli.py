@@ -1,4 +1,5 @@
-"""The command line end to end: help, a fast dev run, train -> checkpoint -> evaluate, resume."""
+"""The command line end to end: help, a fast dev run, train -> checkpoint -> evaluate, resume. A test's first run
+goes through `python -m lanevil_train`; its later runs, and the callbacks' runs, compose and run in this process."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import pytest
 import torch
 
 from lanevil_train.evaluation.scoring import read_records
-from tests.tasks.cli_helpers import TINY, run_cli
+from tests.tasks.cli_helpers import TINY, run_cli, run_in_process
 
 
 def test_help_lists_config_groups(tmp_path):
@@ -37,7 +38,7 @@ def test_fast_dev_run_trains_and_tests_one_batch(tmp_path):
 
     # task=report reads a training run like any evaluation: the same scores come back
     report_dir = tmp_path / "report"
-    run_cli(["task=report", f"task.runs=[{run_dir}]", "progress=none"], report_dir)
+    run_in_process(["task=report", f"task.runs=[{run_dir}]", "progress=none"], report_dir)
     reported = json.loads((report_dir / "test_scores.json").read_text())
     assert reported == scores
 
@@ -55,7 +56,7 @@ def test_train_checkpoint_evaluate_and_resume(tmp_path):
 
     # evaluate rebuilds the network from the checkpoint, whatever the command line's model size says
     eval_dir = tmp_path / "eval"
-    run_cli(["task=evaluate", f"ckpt_path={last}", *TINY, "data.input_size=[96,192]"], eval_dir)
+    run_in_process(["task=evaluate", f"ckpt_path={last}", *TINY, "data.input_size=[96,192]"], eval_dir)
     evaluated = json.loads((eval_dir / "test_scores.json").read_text())[0]
     trained = json.loads((train_dir / "test_scores.json").read_text())[0]
     assert evaluated["images"] == 4
@@ -65,13 +66,13 @@ def test_train_checkpoint_evaluate_and_resume(tmp_path):
     # decoding is overridable at evaluation: a threshold no score exceeds (scores are probabilities, kept when
     # above it) leaves every lane missed
     strict_dir = tmp_path / "strict"
-    run_cli(["task=evaluate", f"ckpt_path={last}", *TINY, "task.decode.conf_threshold=1.0"], strict_dir)
+    run_in_process(["task=evaluate", f"ckpt_path={last}", *TINY, "task.decode.conf_threshold=1.0"], strict_dir)
     assert json.loads((strict_dir / "test_scores.json").read_text())[0]["FN"] == 100.0
 
     # resume: continues from step 3 to step 5, not from scratch
     resume_dir = tmp_path / "resume"
-    run_cli([*TINY, "trainer.max_steps=5", "trainer.limit_val_batches=1", "trainer.max_epochs=10",
-             f"ckpt_path={last}", "task.test_after_fit=false"], resume_dir)
+    run_in_process([*TINY, "trainer.max_steps=5", "trainer.limit_val_batches=1", "trainer.max_epochs=10",
+                    f"ckpt_path={last}", "task.test_after_fit=false"], resume_dir)
     resumed = torch.load(resume_dir / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
     assert resumed["global_step"] == 5
 
@@ -102,14 +103,14 @@ def test_progress_auto_prints_plain_lines_without_a_terminal(tmp_path):
 
 def test_callbacks_come_from_config(tmp_path):
     without = tmp_path / "without"
-    run_cli([*TINY, "~callbacks.model_checkpoint", "trainer.max_steps=1", "trainer.limit_val_batches=0",
-             "task.test_after_fit=false"], without)
+    run_in_process([*TINY, "~callbacks.model_checkpoint", "trainer.max_steps=1", "trainer.limit_val_batches=0",
+                    "task.test_after_fit=false"], without)
     assert not (without / "checkpoints").exists()
     # early stopping on a validation score that no check can improve by 101 points: stops at the first chance
     stopped = tmp_path / "stopped"
-    run_cli([*TINY, "callbacks=[model_checkpoint,early_stopping]", "callbacks.early_stopping.patience=0",
-             "callbacks.early_stopping.min_delta=101", "trainer.max_epochs=5", "trainer.limit_val_batches=1",
-             "task.test_after_fit=false"], stopped)
+    run_in_process([*TINY, "callbacks=[model_checkpoint,early_stopping]", "callbacks.early_stopping.patience=0",
+                    "callbacks.early_stopping.min_delta=101", "trainer.max_epochs=5", "trainer.limit_val_batches=1",
+                    "task.test_after_fit=false"], stopped)
     ckpt = torch.load(stopped / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
     assert ckpt["epoch"] == 1  # the second validation could not improve: stopped there, not after 5 epochs
 

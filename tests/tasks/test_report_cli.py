@@ -40,7 +40,8 @@ def test_report_combines_run_directories(tmp_path):
 
 def test_evaluate_on_the_synthetic_illusion_suite_resumes_in_place(tmp_path):
     train_dir = tmp_path / "train"
-    run_cli([*TINY, "trainer.max_steps=1", "trainer.limit_val_batches=0", "task.test_after_fit=false"], train_dir)
+    run_in_process([*TINY, "trainer.max_steps=1", "trainer.limit_val_batches=0", "task.test_after_fit=false"],
+                   train_dir)
     ckpt = train_dir / "checkpoints" / "last.ckpt"
     out = tmp_path / "eval"
     args = ["task=evaluate", f"ckpt_path={ckpt}", *TINY, "task.suite=synthetic", "task.cases=2",
@@ -60,7 +61,8 @@ def test_cross_domain_scores_a_real_folder_beside_the_suite(tmp_path):
     root = tmp_path / "tusimple"
     write_tusimple(write_photo_dataset(root, [f"clips/x/{i}/20.jpg" for i in range(2)]), root / "test.json")
     train_dir = tmp_path / "train"
-    run_cli([*TINY, "trainer.max_steps=1", "trainer.limit_val_batches=0", "task.test_after_fit=false"], train_dir)
+    run_in_process([*TINY, "trainer.max_steps=1", "trainer.limit_val_batches=0", "task.test_after_fit=false"],
+                   train_dir)
     out = tmp_path / "xd"
     run_in_process(["task=cross_domain", f"ckpt_path={train_dir / 'checkpoints' / 'last.ckpt'}", "data=tusimple",
                     f"data.root={root}", "data.test.label_files=[test.json]", "data.batch_size=2",
@@ -87,7 +89,8 @@ def test_evaluate_a_built_set_draws_the_worst_cases(tmp_path):
     build_illusion_set(synthetic_cases(2, 1000000), Plan(illusions=("rail_shadow",), severities=(5,), size=(90, 160)),
                        suite, progress="none")
     train_dir = tmp_path / "train"
-    run_cli([*TINY, "trainer.max_steps=1", "trainer.limit_val_batches=0", "task.test_after_fit=false"], train_dir)
+    run_in_process([*TINY, "trainer.max_steps=1", "trainer.limit_val_batches=0", "task.test_after_fit=false"],
+                   train_dir)
     out = tmp_path / "eval"
     run_in_process(["task=evaluate", f"ckpt_path={train_dir / 'checkpoints' / 'last.ckpt'}", *TINY,
                     f"task.suite={suite}", f"task.out_dir={out}"], tmp_path / "run")

@@ -61,9 +61,10 @@ def test_a_server_model_is_evaluated_on_a_built_suite_judged_and_reported_with_t
         ResultsLog(suite / "qa.jsonl", "qa_id").records(), key=lambda q: q["qa_id"])
     out = tmp_path / "server"
     with FakeServer() as vlm_server, FakeServer("--mode", "judge") as judge_server:
-        run_cli(["task=evaluate", "model=vlm/openai", f"model.base_url={vlm_server.url}", "model.name=fake-vlm",
-                 f"task.suite={suite}", "judge=openai", f"judge.base_url={judge_server.url}",
-                 "judge.model=fake-judge", "judge.api_key_env=null", f"task.out_dir={out}", *CLIPS], tmp_path / "eval")
+        run_in_process(["task=evaluate", "model=vlm/openai", f"model.base_url={vlm_server.url}",
+                        "model.name=fake-vlm", f"task.suite={suite}", "judge=openai",
+                        f"judge.base_url={judge_server.url}", "judge.model=fake-judge", "judge.api_key_env=null",
+                        f"task.out_dir={out}", *CLIPS], tmp_path / "eval")
         assert vlm_server.stats()["chat_requests"] == ANSWERS
         judged = judge_server.stats()["chat_requests"]
         # a QA line whose base clip is a typo: the suite is refused before any question is asked
@@ -100,10 +101,10 @@ def test_a_server_model_is_evaluated_on_a_built_suite_judged_and_reported_with_t
     assert not (tmp_path / "truncated-eval" / "answers.jsonl").exists()
 
     hf = tmp_path / "hf"
-    run_cli(["task=evaluate", "model=vlm/hf", f"model.path={tiny_model}", "model.max_new_tokens=4",
-             f"task.suite={suite}", "judge=none", f"task.out_dir={hf}", *CLIPS], tmp_path / "eval-hf")
+    run_in_process(["task=evaluate", "model=vlm/hf", f"model.path={tiny_model}", "model.max_new_tokens=4",
+                    f"task.suite={suite}", "judge=none", f"task.out_dir={hf}", *CLIPS], tmp_path / "eval-hf")
     report = tmp_path / "report"
-    run_cli(["task=report", f"task.runs=[{out},{hf}]", "progress=plain"], report)
+    run_in_process(["task=report", f"task.runs=[{out},{hf}]", "progress=plain"], report)
     main = json.loads((report / "main.json").read_text())
     assert [row["model"] for row in main] == ["fake-vlm", "tiny-qwen2-vl"]
     # the judge scored one run only: the common scores are Language and Accuracy

@@ -57,8 +57,8 @@ def test_pat_plus_plus_tunes_a_prefix_tests_it_resumes_and_evaluates_with_it(tin
     # task=evaluate with the prefix answers as the tuning run's test did (with its 2-step prefix)
     out = tmp_path / "eval"
     (tmp_path / "two_steps.json").write_text(json.dumps(record))
-    run_cli(["task=evaluate", *common, "defense=pat++", f"defense.prefix_path={tmp_path / 'two_steps.json'}",
-             "task.suite=synthetic", f"task.out_dir={out}"], tmp_path / "eval-run")
+    run_in_process(["task=evaluate", *common, "defense=pat++", f"defense.prefix_path={tmp_path / 'two_steps.json'}",
+                    "task.suite=synthetic", f"task.out_dir={out}"], tmp_path / "eval-run")
     answers = {r["key"]: r["answer"] for r in ResultsLog(out / "per_answer.jsonl").records()}
     assert answers == {r["key"]: r["answer"] for r in tested}
     assert str(record["ids"]) in (out / "report.md").read_text()
@@ -69,7 +69,7 @@ def test_defense_misuse_is_refused_naming_the_key_before_any_work(tiny_model, tm
     from lanevil_train.tasks.vlm.train import check_lanes_for_defense, train_vlm
 
     common = ["model=vlm/hf", f"model.path={tiny_model}", *TINY_CLIPS, f"output_dir={tmp_path / 'run'}"]
-    with pytest.raises(ValueError, match="defense.prefix_path: task=evaluate defense=pat\\+\\+ applies a tuned prefix"):
+    with pytest.raises(ValueError, match="defense.prefix_path: defense=pat\\+\\+ applies a tuned prefix"):
         evaluate_vlm(composed(["task=evaluate", *common, "defense=pat++", "task.suite=synthetic",
                               f"task.out_dir={tmp_path / 'eval'}"]))
     with pytest.raises(ValueError, match="model.path: defense=pat\\+\\+ tunes a prefix for a trained model"):
