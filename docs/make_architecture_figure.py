@@ -1,6 +1,7 @@
 """The house drawn from its imports: docs/architecture.png and the import cycles, read from the source with `ast`.
 
     python docs/make_architecture_figure.py   # writes docs/architecture.png; prints the cycles and deferred imports
+    python docs/make_architecture_figure.py --walk lanevil_train.tasks.detector.evaluate   # one module's walk
 
 Every `import lanevil_train...` / `from lanevil_train... import` counts, at module level or inside a function (a
 deferred import is still a dependency; the script lists them). Modules are grouped by folder (lanevil_train/models/
@@ -148,8 +149,33 @@ def draw(edges: dict[str, set[str]], out: Path) -> None:
     fig.savefig(out, dpi=110)
 
 
+def walk(edges: dict[str, set[str]], start: str) -> tuple[set[str], int]:
+    """The modules reached by following the imports from `start` (the rooms) and how many imports lead back to a
+    module still being walked (climbs back: each closes a circle)."""
+    reached, stack, climbs = set(), [], 0
+
+    def visit(module: str) -> None:
+        nonlocal climbs
+        reached.add(module)
+        stack.append(module)
+        for target in sorted(edges.get(module, ())):
+            if target in stack:
+                climbs += 1
+            elif target not in reached:
+                visit(target)
+        stack.pop()
+
+    visit(start)
+    return reached, climbs
+
+
 def main() -> int:
     edges, deferred = graph()
+    if sys.argv[1:2] == ["--walk"]:
+        reached, climbs = walk(edges, sys.argv[2])
+        tasks = sorted(m.removeprefix("lanevil_train.tasks.") for m in reached if m.startswith("lanevil_train.tasks."))
+        print(f"{sys.argv[2]}: {len(reached)} modules reached, {climbs} climbs back, task modules: {', '.join(tasks)}")
+        return 0
     found = cycles(edges)
     draw(edges, Path(__file__).with_name("architecture.png"))
     late = sorted((a, b) for a, targets in deferred.items() for b in targets)
