@@ -7,9 +7,11 @@ out_dir continues where it stopped); the tables and plots are then built from th
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytorch_lightning as pl
+import torch
 from omegaconf import DictConfig, OmegaConf
 
 from lanevil_train.data.suites import IllusionSetDataset, SyntheticIllusionSuite
@@ -47,6 +49,26 @@ def load_checkpoint(cfg: DictConfig) -> LaneDetector:
 ON_THE_FLY = {"synthetic": "illusions", "corruptions": "corruptions", "combined": "combined"}  # task.suite -> kind
 
 
+@dataclass(frozen=True)
+class Scoring:
+    """How a detector is streamed over a test set, read once from the config: the loader's batch and workers, the
+    device, the progress display, whether the official prediction files are written (task.predictions) and the
+    baseline model of the tables (task.baseline)."""
+
+    batch_size: int
+    num_workers: int
+    device: torch.device
+    progress: str = "auto"
+    predictions: bool = False
+    baseline: str | None = None
+
+    @classmethod
+    def from_config(cls, cfg: DictConfig) -> Scoring:
+        return cls(batch_size=cfg.data.batch_size, num_workers=cfg.data.num_workers, device=inference_device(cfg),
+                   progress=cfg.progress, predictions=bool(cfg.task.get("predictions", False)),
+                   baseline=cfg.task.get("baseline"))
+
+
 def test_dataset(cfg: DictConfig):
     """data.test as is (task.suite=null), the suite generated from it (task.suite=synthetic: the illusions;
     corruptions: the non-illusion corruptions; combined: illusion pairs), or a set written by task=build
@@ -79,9 +101,10 @@ def evaluate(cfg: DictConfig) -> float:
     pl.seed_everything(cfg.seed, workers=True)
     model = load_checkpoint(cfg)
     dataset, dataset_name = test_dataset(cfg)
+    scoring = Scoring.from_config(cfg)
     out = Path(cfg.task.out_dir) if cfg.task.out_dir else output_dir(cfg)
-    results = _stream(cfg, model, dataset, dataset_name, out)
-    value = write_results([results], out, baseline=cfg.task.baseline)
+    results = stream_dataset(model, dataset, dataset_name, out, model_label(cfg, model), scoring)
+    value = write_results([results], out, baseline=scoring.baseline)
     log_results(build_logger(cfg), out)
     return value
 
@@ -91,30 +114,32 @@ def cross_domain(cfg: DictConfig) -> float:
     illusion suite, scored side by side in one table; returns the real data's Accuracy (%)."""
     pl.seed_everything(cfg.seed, workers=True)
     model = load_checkpoint(cfg)
+    real_set, suite = build_split(cfg, "test"), synthetic_suite(cfg)
+    scoring, label = Scoring.from_config(cfg), model_label(cfg, model)
     out = Path(cfg.task.out_dir) if cfg.task.out_dir else output_dir(cfg)
-    real = _stream(cfg, model, build_split(cfg, "test"), cfg.data.name, out / cfg.data.name)
-    suite = _stream(cfg, model, synthetic_suite(cfg), "synthetic-illusions", out / "synthetic-illusions")
-    write_results([real, suite], out, baseline=cfg.task.baseline)
+    real = stream_dataset(model, real_set, cfg.data.name, out / cfg.data.name, label, scoring)
+    perturbed = stream_dataset(model, suite, "synthetic-illusions", out / "synthetic-illusions", label, scoring)
+    write_results([real, perturbed], out, baseline=scoring.baseline)
     log_results(build_logger(cfg), out)
     return LANE_SPEC.headline.aggregate(read_records(real, keep_lanes=False))
 
 
-def _stream(cfg: DictConfig, model: LaneDetector, dataset, dataset_name: str, out: Path) -> Path:
+def model_label(cfg: DictConfig, model: LaneDetector) -> str:
+    """The model's name in the tables: task.label, else <model>-<backbone> of the checkpoint's network."""
     spec = model.build_config
-    return stream_dataset(cfg, model, dataset, dataset_name, out,
-                          cfg.task.label or f"{spec['model']['name']}-{spec['backbone']['name']}")
+    return cfg.task.label or f"{spec['model']['name']}-{spec['backbone']['name']}"
 
 
-def stream_dataset(cfg: DictConfig, model: LaneDetector, dataset, dataset_name: str, out: Path,
-                   model_label: str) -> Path:
-    """Score `model` on `dataset` into out/per_image.jsonl (resumes a partial file), and with task.predictions
+def stream_dataset(model: LaneDetector, dataset, dataset_name: str, out: Path, model_label: str,
+                   scoring: Scoring) -> Path:
+    """Score `model` on `dataset` into out/per_image.jsonl (resumes a partial file), and with scoring.predictions
     write the official prediction files beside it; returns the per_image.jsonl path."""
     label = {"model": model_label, "dataset": dataset_name}
-    predictions = bool(cfg.task.get("predictions", False))
-    model.to(inference_device(cfg))
-    results = stream_evaluate(model, dataset, out / RESULTS, label, batch_size=cfg.data.batch_size,
-                              num_workers=cfg.data.num_workers, progress=cfg.progress, predictions=predictions)
-    if predictions:
+    model.to(scoring.device)
+    results = stream_evaluate(model, dataset, out / RESULTS, label, batch_size=scoring.batch_size,
+                              num_workers=scoring.num_workers, progress=scoring.progress,
+                              predictions=scoring.predictions)
+    if scoring.predictions:
         files = write_prediction_files(results, out)
         log.info("prediction files: %s (TuSimple JSON lines), %s/ (CULane .lines.txt)", files["tusimple"],
                  files["culane"])

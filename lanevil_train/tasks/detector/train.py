@@ -29,7 +29,7 @@ from lanevil_train.tasks.builders import (
     model_config,
     output_dir,
 )
-from lanevil_train.tasks.detector.evaluate import stream_dataset, test_dataset
+from lanevil_train.tasks.detector.evaluate import Scoring, stream_dataset, test_dataset
 
 log = logging.getLogger(__name__)
 
@@ -124,5 +124,6 @@ def run_label(cfg: DictConfig) -> str:
 def score_robustness(cfg: DictConfig, model, suite, out: Path) -> float:
     """Stream the trained model over the task.suite dataset into `out` (resumable); the perturbed Accuracy (%)."""
     dataset, dataset_name = suite
-    results = stream_dataset(cfg, model, dataset, dataset_name, out, run_label(cfg))
-    return write_results([results], out, baseline=cfg.task.get("baseline"))
+    scoring = Scoring.from_config(cfg)
+    results = stream_dataset(model, dataset, dataset_name, out, run_label(cfg), scoring)
+    return write_results([results], out, baseline=scoring.baseline)
