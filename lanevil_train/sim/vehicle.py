@@ -20,7 +20,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from typing import Any
 
-from lanevil_train.rules import check_settings, number
+from lanevil_train.rules import check_settings, is_number, number
 from lanevil_train.sim.road import RoadGeometry
 
 MPH = 0.44704  # metres per second in one mile per hour
@@ -47,8 +47,10 @@ class VehicleParams:
         check_settings(self.SETTINGS, self.settings(), "VehicleParams")
 
     def settings(self) -> dict[str, float]:
-        """The parameters by their SETTINGS names (the speed in mph)."""
-        return {"wheelbase_m": self.wheelbase_m, "speed_mph": self.speed_mps / MPH,
+        """The parameters by their SETTINGS names (the speed in mph; a speed that is not a number as it is, for its
+        rule to name)."""
+        speed = self.speed_mps / MPH if is_number(self.speed_mps) else self.speed_mps
+        return {"wheelbase_m": self.wheelbase_m, "speed_mph": speed,
                 "max_steer_deg": self.max_steer_deg, "max_steer_rate_dps": self.max_steer_rate_dps}
 
     @classmethod

@@ -227,6 +227,8 @@ def test_the_protocol_vehicle_and_vlm_policy_refuse_bad_values_by_their_task_key
         VehicleParams(max_steer_deg=80.0)
     with pytest.raises(ValueError, match="VehicleParams.max_steer_rate_dps"):
         VehicleParams(max_steer_rate_dps=float("inf"))  # a rate limit is a finite number
+    with pytest.raises(ValueError, match="VehicleParams.speed_mph: expected a number in"):
+        VehicleParams(speed_mps="fast")  # named, not a TypeError from the conversion to mph
     params = VehicleParams.from_settings({"wheelbase_m": 3, "speed_mph": 30, "max_steer_deg": 25,
                                           "max_steer_rate_dps": 40})
     assert params.speed_mps == pytest.approx(30 * MPH) and params.settings()["speed_mph"] == pytest.approx(30)
