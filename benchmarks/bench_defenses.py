@@ -22,6 +22,7 @@ import torch
 from hydra import compose, initialize_config_module
 from torch.utils.data import DataLoader, Dataset
 
+from lanevil_train.checkpoints import load_weights
 from lanevil_train.data.datamodule import ProcessedDataset
 from lanevil_train.tasks.builders import build_datamodule, build_defense, build_model, model_config
 
@@ -90,7 +91,7 @@ def measure(defense_name: str, steps: int, ckpt: str | None) -> dict:
     pl.seed_everything(0)
     model = build_model(model_config(cfg))
     if ckpt:
-        model.load_state_dict(torch.load(ckpt, map_location="cpu", weights_only=False)["state_dict"])
+        load_weights(model, ckpt, "--ckpt")  # weights-only, checked to be this network's
     defense = build_defense(cfg)
     batches, batch_time = prepared_batches(cfg, model, defense, 8)
     clock = StepClock()

@@ -21,7 +21,7 @@ import timm
 import torch
 from torch import nn
 
-from lanevil_train.checkpoints import load_checkpoint_file
+from lanevil_train.checkpoints import WEIGHT_KEYS, load_checkpoint_file, weights_in, what_it_holds
 
 # The backbones the tests build (any timm name with a features-only form works too).
 TESTED_BACKBONES: tuple[str, ...] = ("resnet18", "resnet34", "resnet50", "resnet101", "vgg16")
@@ -128,16 +128,13 @@ def _dilate_vgg(net: nn.Module, output_stride: int) -> None:
 
 
 def _read_state_dict(path: Path) -> dict[str, torch.Tensor]:
-    """Read a state dict file: a plain dict of tensors or one wrapped as {"state_dict": ...}."""
+    """Read a state dict file: a plain dict of tensors or one wrapped under a key of WEIGHT_KEYS."""
     obj = load_checkpoint_file(path, "backbone.checkpoint")
-    for key in ("state_dict", "model", "model_state_dict"):
-        if isinstance(obj, dict) and key in obj and isinstance(obj[key], dict):
-            obj = obj[key]
-            break
-    if not isinstance(obj, dict) or not all(isinstance(v, torch.Tensor) for v in obj.values()):
-        raise ValueError(f"backbone.checkpoint={path}: expected a dict of tensors (a state dict), or one under "
-                         f"'state_dict' / 'model' / 'model_state_dict'")
-    return dict(obj)
+    state = weights_in(obj)
+    if state is None:
+        raise ValueError(f"backbone.checkpoint={path}: {what_it_holds(obj)}; expected a dict of tensors (a state "
+                         f"dict), or one under {' / '.join(repr(k) for k in WEIGHT_KEYS)}")
+    return state
 
 
 def _normalise_keys(state: dict[str, torch.Tensor], wanted: set[str]) -> dict[str, torch.Tensor]:

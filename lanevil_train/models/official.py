@@ -21,7 +21,15 @@ from pathlib import Path
 
 import torch
 
-from lanevil_train.checkpoints import CheckpointError, fit_weights, load_checkpoint_file, load_weights
+from lanevil_train.checkpoints import (
+    DETECTOR_LAYOUTS,
+    CheckpointError,
+    fit_weights,
+    load_checkpoint_file,
+    load_weights,
+    weights_in,
+    what_it_holds,
+)
 from lanevil_train.models.bezierlanenet.official import RELEASE as BEZIERLANENET
 from lanevil_train.models.clrnet.official import RELEASE as CLRNET
 from lanevil_train.models.ganet.official import RELEASE as GANET
@@ -32,7 +40,6 @@ from lanevil_train.models.ufld.official import RELEASE as UFLD
 
 __all__ = ["Recognised", "Release", "load_detector_weights", "load_official", "official_state_dict", "recognise"]
 
-WEIGHT_KEYS = ("model", "net", "state_dict")  # where the official repositories put the weights in their files
 DDP_PREFIX = "module."
 
 
@@ -47,13 +54,15 @@ def is_ours(obj: object) -> bool:
 
 
 def official_state_dict(obj: object) -> dict[str, torch.Tensor] | None:
-    """The weights of a file in an official layout, 'module.' prefixes dropped; None when it holds none. A dict with
-    a 'state_dict' is an official file (mmcv's layout) only when a release recognises its weights: otherwise it is
-    taken for one of this project's checkpoints (whose own checks then say what does not fit)."""
+    """The weights of a file that is not one of this project's checkpoints (an official repository's layout, a plain
+    script's 'model_state_dict', a bare state dict: checkpoints.weights_in), 'module.' prefixes dropped; None when
+    it holds none. A dict with a 'state_dict' is an official file (mmcv's layout) only when a release recognises its
+    weights: otherwise it is taken for one of this project's checkpoints (whose own checks then say what does not
+    fit)."""
     if not isinstance(obj, dict) or is_ours(obj):
         return None
-    state = next((obj[key] for key in WEIGHT_KEYS if isinstance(obj.get(key), dict)), obj)
-    if not state or not all(isinstance(v, torch.Tensor) for v in state.values()):
+    state = weights_in(obj)
+    if state is None:
         return None
     state = {(k[len(DDP_PREFIX):] if k.startswith(DDP_PREFIX) else k): v for k, v in state.items()}
     if "state_dict" in obj and recognise(state) is None:
@@ -80,6 +89,9 @@ def load_official(model, state: dict, where: str) -> str:
     file of no known release, of another family than the model's, or whose shapes do not fit this network."""
     known = ", ".join(release.name for release in _releases())
     found = recognise(state)
+    if found is None and state.keys() & model.state_dict().keys():  # weights in this project's own names
+        fit_weights(model, state, where)
+        return f"{where}: a state dict of this network ({len(state)} tensors in its own names)"
     if found is None:
         raise CheckpointError(f"{where}: neither a checkpoint of this project (no 'state_dict') nor an official one "
                               f"of a release it reads ({known}); its first weight is {_first_weight(state)}")
@@ -120,7 +132,16 @@ def load_detector_weights(model, path: str | Path, option: str) -> str | None:
     and backbone) or an official one (converted); returns the log line of an official file, else None."""
     obj = load_checkpoint_file(path, option)
     state = official_state_dict(obj)
-    if state is None:
-        load_weights(model, path, option, checkpoint=obj)
-        return None
-    return load_official(model, state, f"{option}={path}")
+    if state is not None:
+        return load_official(model, state, f"{option}={path}")
+    check_layout(obj, f"{option}={path}")
+    load_weights(model, path, option, checkpoint=obj)
+    return None
+
+
+def check_layout(obj: object, where: str) -> None:
+    """A CheckpointError naming what the file holds unless it is one of this project's checkpoints (a dict with a
+    'state_dict'): called where official_state_dict found no weights in the other layouts."""
+    if not (isinstance(obj, dict) and "state_dict" in obj):
+        raise CheckpointError(f"{where}: {what_it_holds(obj)}: none of the checkpoint layouts this project reads "
+                              f"({DETECTOR_LAYOUTS})")

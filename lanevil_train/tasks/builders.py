@@ -16,7 +16,6 @@ from lanevil_train.checkpoints import (
     AtomicCheckpointIO,
     check_detector_checkpoint,
     fit_weights,
-    lightning_checkpoint,
     load_checkpoint_file,
 )
 from lanevil_train.data.datamodule import LaneDataModule
@@ -26,7 +25,7 @@ from lanevil_train.data.resize import DEFAULT_RESIZE, resize_filter, spec_resize
 from lanevil_train.errors import prefixed
 from lanevil_train.models.backbones import indices_for_strides
 from lanevil_train.models.detector import LaneDetector
-from lanevil_train.models.official import load_official, official_state_dict
+from lanevil_train.models.official import check_layout, load_official, official_state_dict
 
 log = logging.getLogger(__name__)
 
@@ -282,7 +281,7 @@ def checkpoint_model(cfg: DictConfig) -> LaneDetector:
         model = build_model(model_config(cfg))
         log.info(load_official(model, official, where))
         return model
-    checkpoint = lightning_checkpoint(checkpoint, cfg.ckpt_path, "ckpt_path")
+    check_layout(checkpoint, where)
     check_detector_checkpoint(checkpoint, where)  # a VLM's names the model= it needs
     model = build_model(checkpoint.get("lanevil_model") or model_config(cfg))
     fit_weights(model, checkpoint["state_dict"], f"ckpt_path={cfg.ckpt_path}")

@@ -32,8 +32,9 @@ def no_training(monkeypatch):
 
 
 def _config(tmp_path, *overrides):
-    """The tiny test config with `overrides`; the simulated-scene settings only when no other data= is chosen."""
-    tiny = TINY if not any(o.startswith("data=") for o in overrides) else \
+    """The tiny test config with `overrides`; the simulated-scene settings only when no other data= (or an
+    experiment's) is chosen."""
+    tiny = TINY if not any(o.startswith(("data=", "experiment=")) for o in overrides) else \
         [o for o in TINY if not o.startswith(("data.train.", "data.val.", "data.test."))]
     with initialize_config_module(config_module="lanevil_train.conf", version_base="1.3"):
         return compose(config_name="config",
@@ -118,13 +119,15 @@ def _bad_checkpoint(tmp_path, kind: str):
     return path
 
 
-REASONS = {"random": "its content is not a torch.save file", "truncated": "it is truncated",
-           "object": "it holds a pickled Python object (tests.tasks.test_bad_inputs.Unsafe)"}
+REASONS = {"random": "not a readable checkpoint: its content is not a torch.save file",
+           "truncated": "not a readable checkpoint: it is truncated",
+           "object": "not a plain weights file: it holds pickled Python objects that weights-only loading will not "
+                     "run (tests.tasks.test_bad_inputs.Unsafe)"}
 
 
 def _assert_refused(error, option: str, path, kind: str) -> None:
     message = str(error.value)
-    assert message.startswith(f"{option}={path}: not a readable checkpoint: {REASONS[kind]}"), message
+    assert message.startswith(f"{option}={path}: {REASONS[kind]}"), message
     assert "weights_only" not in message and error.value.__cause__ is None  # torch's unsafe advice is not passed on
 
 
@@ -249,3 +252,190 @@ def test_a_detector_checkpoint_of_another_family_or_given_to_a_vlm_is_named(tmp_
             cfg = composed([task, "model=vlm/hf", f"model.path={model_dir}", f"ckpt_path={path}",
                             "data.train.num_cases=1", "task.cases=1", "logger=none", f"output_dir={tmp_path / 'run'}"])
             task_function(cfg)(cfg)  # the task's function for a VLM, as run_task picks it
+
+
+# ------------------------------------------------------------------------------- a file whose pickle would run code
+
+class RunsCode:
+    """Pickled as a call of os.system (posix.system): unpickling it would touch the marker file."""
+
+    def __init__(self, marker):
+        self.marker = marker
+
+    def __reduce__(self):
+        return os.system, (f"touch {self.marker}",)
+
+
+def _tiny(overrides: list[str]) -> list[str]:
+    """TINY, without the simulated splits' sizes when an experiment chooses another dataset."""
+    if any(o.startswith("experiment=") for o in overrides):
+        return [o for o in TINY if not o.startswith(("data.train.", "data.val.", "data.test."))]
+    return TINY
+
+
+def _code_running_file(tmp_path, legacy: bool):
+    marker = tmp_path / "MARKER"
+    path = tmp_path / f"weights_{'legacy' if legacy else 'zip'}.pt"
+    torch.save({"state_dict": {"w": torch.zeros(2)}, "payload": RunsCode(marker)}, path,
+               _use_new_zipfile_serialization=not legacy)
+    return path, marker
+
+
+# every entry point that reads a torch file: (overrides with FILE for the file, the option the message names)
+TORCH_FILE_OPTIONS = {
+    "evaluate official": (["task=evaluate", "experiment=official_ufld_tusimple", "backbone=resnet18",
+                           "data.root=ROOT", "ckpt_path=FILE"], "ckpt_path"),
+    "closed_loop": (["task=closed_loop", "task.cases=1", "ckpt_path=FILE"], "ckpt_path"),
+    "closed_loop models": (["task=closed_loop", "task.cases=1", "+task.models={a: FILE}"], "ckpt_path"),
+    "export": (["task=export", "ckpt_path=FILE"], "ckpt_path"),
+    "train resume": (["ckpt_path=FILE"], "ckpt_path"),
+    "train init_from": (["task.init_from=FILE"], "task.init_from"),
+    "backbone": (["backbone.checkpoint=FILE"], "backbone.checkpoint"),
+    "anchor frequencies": (["model.head.topk_anchors=10", "+model.head.anchor_frequency_file=FILE"],
+                           "model.head.anchor_frequency_file"),
+}
+
+
+@pytest.mark.parametrize("legacy", [False, True], ids=["zip", "legacy"])
+@pytest.mark.parametrize("entry", list(TORCH_FILE_OPTIONS))
+def test_a_file_that_would_run_code_is_named_for_what_it_is(tmp_path, entry, legacy):
+    """The refusal says what the file is (pickled objects, the first named), not that it is corrupt; the code in it
+    never runs (its marker file never appears), in either torch.save format, at every option that reads a torch
+    file."""
+    from tests.tasks.cli_helpers import run_in_process
+
+    path, marker = _code_running_file(tmp_path, legacy)
+    overrides, option = TORCH_FILE_OPTIONS[entry]
+    overrides = [o.replace("FILE", str(path)).replace("ROOT", str(tmp_path)) for o in overrides]
+    with pytest.raises(CheckpointError) as caught:
+        run_in_process([*_tiny(overrides), "logger=none", *overrides], tmp_path / "run")
+    message = str(caught.value)
+    assert message.startswith(f"{option}={path}: not a plain weights file: it holds pickled Python objects that "
+                              f"weights-only loading will not run (posix.system); loading it any other way executes "
+                              f"code from whoever made the file"), message
+    assert "corrupt" not in message and "weights_only" not in message
+    assert not marker.exists()
+
+
+def test_a_vlm_checkpoint_option_names_a_file_that_would_run_code(tmp_path, vlm_checkpoints):
+    _, model_dir = vlm_checkpoints["hf"]
+    path, marker = _code_running_file(tmp_path, legacy=False)
+    with pytest.raises(CheckpointError, match=rf"^ckpt_path={path}: not a plain weights file: .*\(posix\.system\)"):
+        cfg = composed(["task=evaluate", "model=vlm/hf", f"model.path={model_dir}", f"ckpt_path={path}",
+                        "task.cases=1", "logger=none", f"output_dir={tmp_path / 'run'}"])
+        task_function(cfg)(cfg)
+    assert not marker.exists()
+
+
+def test_the_globals_are_read_from_either_format_and_any_protocol(tmp_path):
+    """What the file's pickles import, read with pickletools: GLOBAL (protocol 2, torch's default) and STACK_GLOBAL
+    (protocols 4 and 5) alike; a plain checkpoint imports only what weights-only loading rebuilds."""
+    import io
+
+    from lanevil_train.files.pickles import objects_not_loaded, pickled_globals
+
+    for protocol in (2, 4, 5):
+        for legacy in (False, True):
+            buffer = io.BytesIO()
+            torch.save({"w": torch.zeros(2), "x": RunsCode(tmp_path / "MARKER")}, buffer, pickle_protocol=protocol,
+                       _use_new_zipfile_serialization=not legacy)
+            assert objects_not_loaded(buffer.getvalue()) == ["posix.system"], (protocol, legacy)
+    model = build_model(model_config(_config(tmp_path)))
+    plain = tmp_path / "plain.ckpt"
+    torch.save({"state_dict": model.state_dict(), "lanevil_model": model.build_config, "epoch": 1}, plain)
+    assert "torch._utils._rebuild_tensor_v2" in pickled_globals(plain) and objects_not_loaded(plain) == []
+    assert not (tmp_path / "MARKER").exists()
+
+
+# ------------------------------------------------------------------------------------ release archives and layouts
+
+def _official_ufld(tmp_path):
+    """The official names of the official_ufld_tusimple network's weights (models/ufld/official.py, inverted)."""
+    cfg = composed(["experiment=official_ufld_tusimple", "backbone=resnet18"])
+    model = build_model(model_config(cfg))
+    return {("model." + k[len("backbone."):] if k.startswith("backbone.") else k[len("head."):]): v
+            for k, v in model.state_dict().items()}, model
+
+
+def _release_zip(path, experiments: dict[str, list[int]], weights) -> None:
+    """A zip as LaneATT publishes its experiments: experiments/<name>/models/model_<epoch>.pt, each a dict with the
+    weights under 'model', beside the experiment's config.yaml."""
+    import io
+    import zipfile
+
+    with zipfile.ZipFile(path, "w") as archive:
+        for name, epochs in experiments.items():
+            archive.writestr(f"experiments/{name}/config.yaml", "model: {}\n")
+            for epoch in epochs:
+                buffer = io.BytesIO()
+                torch.save({"epoch": epoch, "model": {k: v + epoch for k, v in weights.items()},
+                            "optimizer": {"state": {}, "param_groups": []}}, buffer)
+                archive.writestr(f"experiments/{name}/models/model_{epoch:04d}.pt", buffer.getvalue())
+
+
+def _loaded(tmp_path, ckpt_path: str):
+    """The network task=evaluate builds for experiment=official_ufld_tusimple from ckpt_path (its first weight)."""
+    from lanevil_train.tasks.builders import checkpoint_model
+
+    return checkpoint_model(composed(["task=evaluate", "experiment=official_ufld_tusimple", "backbone=resnet18",
+                                      f"data.root={tmp_path}", f"ckpt_path={ckpt_path}"]))
+
+
+def test_a_release_archive_is_read_at_its_last_epoch_or_the_named_member(tmp_path, caplog):
+    import logging
+
+    from lanevil_train.tasks.config_check import check_config
+
+    weights, _ = _official_ufld(tmp_path)
+    release = tmp_path / "ufld_experiments.zip"
+    _release_zip(release, {"ufld_r18_tusimple": [5, 100, 20]}, weights)
+    first = "model.conv1.weight"
+    with caplog.at_level(logging.INFO, logger="lanevil_train"):
+        model = _loaded(tmp_path, str(release))
+    assert torch.equal(model.state_dict()["backbone.conv1.weight"], weights[first] + 100)  # the last epoch
+    assert (f"ckpt_path={release}: a release archive (experiments/ufld_r18_tusimple); reading "
+            f"experiments/ufld_r18_tusimple/models/model_0100.pt, the last of its 3 checkpoints") in caplog.text
+    named = f"{release}::models/model_0020.pt"  # the end of a member's name is enough
+    check_config(composed(["task=evaluate", "experiment=official_ufld_tusimple", f"data.root={tmp_path}",
+                           f"ckpt_path={named}"]))  # the config check takes ARCHIVE::member
+    assert torch.equal(_loaded(tmp_path, named).state_dict()["backbone.conv1.weight"], weights[first] + 20)
+    with pytest.raises(CheckpointError, match=rf"^ckpt_path={release}::models/model_0007\.pt: no member of that name; "
+                                              r"its checkpoints: experiments/ufld_r18_tusimple/models/model_0005\.pt"):
+        _loaded(tmp_path, f"{release}::models/model_0007.pt")
+
+
+def test_a_release_archive_of_several_experiments_or_none_is_refused_naming_what_is_inside(tmp_path):
+    import zipfile
+
+    weights, _ = _official_ufld(tmp_path)
+    release = tmp_path / "laneatt_experiments.zip"
+    _release_zip(release, {"laneatt_r18_tusimple": [100], "laneatt_r34_culane": [15]}, weights)
+    with pytest.raises(CheckpointError, match=rf"^ckpt_path={release}: a release archive of 2 experiments "
+                                              r"\(experiments/laneatt_r18_tusimple, experiments/laneatt_r34_culane\); "
+                                              rf"name the checkpoint to read: ckpt_path={release}::experiments/"):
+        _loaded(tmp_path, str(release))
+    papers = tmp_path / "papers.zip"
+    with zipfile.ZipFile(papers, "w") as archive:
+        archive.writestr("readme.txt", "no weights here")
+    with pytest.raises(CheckpointError, match=rf"^ckpt_path={papers}: a zip archive that is neither a torch\.save "
+                                              r"file nor a release holding checkpoints .*; it holds readme\.txt"):
+        _loaded(tmp_path, str(papers))
+
+
+def test_a_plain_script_checkpoint_and_a_bare_state_dict_load_and_other_layouts_are_listed(tmp_path):
+    weights, reference = _official_ufld(tmp_path)
+    script = tmp_path / "script.pt"  # what plain PyTorch training scripts save
+    torch.save({"epoch": 7, "model_state_dict": weights, "optimizer_state_dict": {"state": {}}}, script)
+    assert torch.equal(_loaded(tmp_path, str(script)).state_dict()["head.cls.2.weight"], weights["cls.2.weight"])
+    bare = tmp_path / "ours.pt"  # this project's own names, saved with torch.save(model.state_dict(), path)
+    torch.save(reference.state_dict(), bare)
+    assert torch.equal(_loaded(tmp_path, str(bare)).state_dict()["head.cls.2.weight"], weights["cls.2.weight"])
+    other = tmp_path / "other.pt"
+    torch.save({"weights": weights, "epoch": 7}, other)
+    with pytest.raises(CheckpointError, match=rf"^ckpt_path={other}: a dict whose top-level keys are weights, epoch: "
+                                              r"none of the checkpoint layouts this project reads \(a Lightning "
+                                              r"checkpoint .*'model_state_dict'.*a bare state dict"):
+        _loaded(tmp_path, str(other))
+    with pytest.raises(CheckpointError, match=rf"^ckpt_path={script}: a file of weights alone .* holds no training "
+                                              rf"state to resume; .*task\.init_from={script}$"):
+        train(_config(tmp_path, f"ckpt_path={script}"))

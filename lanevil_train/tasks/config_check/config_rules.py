@@ -6,9 +6,11 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+from lanevil_train.checkpoints import ARCHIVE_MEMBER, archive_path
 from lanevil_train.illusions import ILLUSIONS
 from lanevil_train.rules import (
     Rule,
+    existing_file,
     is_int,
     ok,
 )
@@ -119,13 +121,20 @@ def defense_names() -> Rule:
     return Rule("a list of defense config names, each once, with none and at least one other", test)
 
 
+def checkpoint_file(what: str = "checkpoint file") -> Rule:
+    """An existing file, or a checkpoint inside one: ARCHIVE::member (a release archive's member)."""
+    rule = existing_file(what)
+    return Rule(f"{rule.expected} (or ARCHIVE{ARCHIVE_MEMBER}member of a release archive)",
+                lambda v: rule.test(str(archive_path(v)) if isinstance(v, str) and v else v))
+
+
 def checkpoint_mapping() -> Rule:
     """task.models of task=closed_loop: {label: path of an existing checkpoint file}, possibly empty."""
     def test(v):
         if not isinstance(v, dict):
             return ""
         missing = [f"{label}: {path!r}" for label, path in v.items()
-                   if not isinstance(path, str) or not Path(path).is_file()]
+                   if not isinstance(path, str) or not archive_path(path).is_file()]
         return f"no such checkpoint file for {', '.join(missing)}" if missing else None
     return Rule("a mapping {label: checkpoint file}", test)
 

@@ -43,6 +43,7 @@ from lanevil_train.sim.vehicle import VehicleParams
 from lanevil_train.tasks.config_check.config_rules import (
     _for_splits,
     api_key_variable,
+    checkpoint_file,
     checkpoint_mapping,
     defense_keys,
     defense_names,
@@ -66,7 +67,7 @@ from lanevil_train.vlm.training.finetune import FINE_TUNE_SETTINGS, LORA_SETTING
 RULES: dict[str, Rule] = {
     # root
     "seed": integer(0, 2**32 - 1),
-    "ckpt_path": null_or(existing_file("checkpoint file")),
+    "ckpt_path": null_or(checkpoint_file()),
     "progress": one_of(*MODES),
     # data
     "data.name": text(),
@@ -171,7 +172,7 @@ RULES: dict[str, Rule] = {
     "backbone": target_node(),
     "backbone.name": timm_model_name(),
     "backbone.pretrained": boolean(),
-    "backbone.checkpoint": null_or(existing_file("state dict file")),
+    "backbone.checkpoint": null_or(checkpoint_file("state dict file")),
     "backbone.out_indices": null_or(int_list()),
     "backbone.output_stride": null_or(integer_in(OUTPUT_STRIDES)),  # which stages each backbone has: check_feature_map
     # defense (its parameters: the constructors)
@@ -192,7 +193,7 @@ RULES: dict[str, Rule] = {
     "task.workers": integer(0),
     "task.fallback": boolean(),
     "task.test_after_fit": boolean(),
-    "task.init_from": null_or(existing_file("checkpoint file")),
+    "task.init_from": null_or(checkpoint_file()),
     "task.suite": illusion_suite(),
     "task.label": null_or(text()),
     "task.blind": boolean(),

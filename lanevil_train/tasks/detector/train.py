@@ -50,9 +50,9 @@ def train(cfg: DictConfig) -> float | None:
     if cfg.ckpt_path is not None:
         saved = load_checkpoint_file(cfg.ckpt_path, "ckpt_path")
         if official_state_dict(saved) is not None:
-            raise CheckpointError(f"ckpt_path={cfg.ckpt_path}: an official repository's checkpoint holds no training "
-                                  f"state to resume; start a run from its weights with task.init_from="
-                                  f"{cfg.ckpt_path}")
+            raise CheckpointError(f"ckpt_path={cfg.ckpt_path}: a file of weights alone (an official repository's "
+                                  f"checkpoint or a plain state dict) holds no training state to resume; start a run "
+                                  f"from its weights with task.init_from={cfg.ckpt_path}")
         check_same_network(load_weights(model, cfg.ckpt_path, "ckpt_path", checkpoint=saved), model.build_config,
                            cfg.ckpt_path)
     elif cfg.task.get("init_from"):
