@@ -402,9 +402,12 @@ def test_decoded_lanes_lie_inside_the_image():
 
 
 def test_head_only_overfit_keeps_the_lanes(one_thread):
-    # the head fitted alone (random frozen ResNet-18) to 8 simulated scenes of 3 to 6 lanes at 112x320 (20 queries):
-    # measured 79.8 % accuracy, FN 28.1 %; the old window of 9 without the offsets' 0.1x rate (match_window=9,
-    # local_maximum_window=9, lr_multipliers=null) decodes 2 lanes per image: 66.7 %, FN 49.0 % (61.5 / 49.0 at
-    # 100 steps, 68.3 / 49.0 at 200)
+    # the head fitted alone (random frozen ResNet-18) to 8 simulated scenes of 3 to 6 lanes at 112x320 (20 queries).
+    # Over the weights' seeds 0-4 (deterministic, one thread; another CPU's rounding may land anywhere in the
+    # spread): accuracy 79.8-91.4 %, FN 15.6-28.1 %, FP 0-2.5 %, the loss falling 7.6-8.0 times; seed 0, this test:
+    # 79.8 / FN 28.1. The old window of 9 without the offsets' 0.1x rate (match_window=9, local_maximum_window=9,
+    # lr_multipliers=null) decodes 2 lanes per image: 66.7 %, FN 49.0 % (61.5 / 49.0 at 100 steps, 68.3 / 49.0 at
+    # 200)
     out = head_only_fit("bezierlanenet", scenes=8, steps=150)
     assert out["accuracy"] >= 75.0 and out["fn"] <= 40.0, out
+    assert out["first_loss"] >= 4 * out["final_loss"], out

@@ -454,8 +454,11 @@ def test_paper_config_turns_the_auxiliary_segmentation_on_the_quickstart_off():
 @pytest.mark.usefixtures("one_thread")
 def test_head_only_overfit_reaches_its_accuracy():
     """The FPN and head alone on 4 simulated scenes (a frozen random ResNet-18), AdamW 1e-2 for 100 steps (the
-    cosine to 0), 64 priors for speed. Measured when written: 91.9 % accuracy, FP 22.5 %, FN 18.8 % (at the
-    family's own rate, 6e-4 at batch 24, 100 steps decode nothing: 0 %)."""
+    cosine to 0), 64 priors for speed. Over the weights' seeds 0-4 (deterministic, one thread; the spread another
+    CPU's rounding may land anywhere in): accuracy 81.7-91.9 %, FP 18.8-47.5 %, FN 18.8-33.3 %, the loss falling
+    8.0-11.8 times (7.5 -> 0.6-0.9); seed 0, this test: 91.9 / 22.5 / 18.8. At the family's own rate (6e-4 at batch
+    24) 100 steps decode nothing: 0 %. (Bounds of 85 / 35 / 30 from one run failed on another machine: 82.8 %.)"""
     out = head_only_fit("clrnet", ["model.head.num_priors=64"], scenes=4, steps=100, lr=1e-2)
-    assert out["accuracy"] >= 85.0 and out["fn"] <= 30.0 and out["fp"] <= 35.0, out
+    assert out["accuracy"] >= 70.0 and out["fn"] <= 45.0 and out["fp"] <= 60.0, out
+    assert out["first_loss"] >= 4 * out["final_loss"], out
 

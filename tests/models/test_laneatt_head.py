@@ -267,13 +267,16 @@ MATCHED_SEEDS = [4014, 4032, 4033, 4038]
 
 
 def test_head_only_fit_reaches_scenes_whose_lanes_have_anchors(one_thread):
-    # the head fitted alone (frozen random ResNet-18, stride 32) for 150 steps at 3e-3: accuracy 91.1 %, FP 39.6 %,
-    # FN 8.3 % when written (90.8 / 31.2 / 8.3 after 200 steps); a loss, target or decoding that disagree (an
-    # anchor order the targets do not share, offsets read at the wrong rows) falls far below
+    # the head fitted alone (frozen random ResNet-18, stride 32) for 150 steps at 3e-3. Over the weights' seeds 0-4
+    # (deterministic, one thread; another CPU's rounding may land anywhere in the spread): accuracy 89.7-94.9 %,
+    # FP 39.6-53.8 %, FN 8.3-20.8 %, the loss falling 41-52 times; seed 0, this test: 91.1 / 39.6 / 8.3. A loss,
+    # target or decoding that disagree (an anchor order the targets do not share, offsets read at the wrong rows)
+    # falls far below
     head = ["model.head.anchor_selection=all", "model.head.topk_anchors=null", "model.head.train_nms_threshold=null",
             "model.head.lateral_n=16", "model.head.bottom_n=40"]
     out = head_only_fit("laneatt", head, steps=150, lr=3e-3, scene_seeds=MATCHED_SEEDS)
-    assert out["accuracy"] >= 85.0 and out["fn"] <= 20.0, out
+    assert out["accuracy"] >= 82.0 and out["fn"] <= 30.0, out
+    assert out["first_loss"] >= 20 * out["final_loss"], out
 
 
 @pytest.mark.filterwarnings("ignore::FutureWarning")

@@ -410,10 +410,12 @@ def test_forward_traces_with_unrolled_static_loops():
 
 def test_head_only_overfit_reaches_its_accuracy():
     """The head alone on 4 simulated scenes (a frozen random ResNet-18 cut at its stride-8 layer2, as the
-    quickstart), SGD 0.02 for 150 steps, 64 / 32 wide for speed. Measured when written: 84.9 % accuracy, FP 0,
-    FN 18.8 %; over seeds 0-4 the fit lands near 85 % or near 96 % (82.8 % / FP 8.3 / FN 25 the worst), as it
-    did before issue 32 (no bias, up / left passes reaching row 0 / column 0, a C times smaller init)."""
+    quickstart), SGD 0.02 for 150 steps, 64 / 32 wide for speed. Over the weights' seeds 0-4 (deterministic, one
+    thread; another CPU's rounding may land anywhere in the spread) the fit lands near 85 % or near 96 %: accuracy
+    82.8-96.2 %, FP 0-8.3 %, FN 6.2-25 %, the loss falling 7.3-9.3 times; seed 0, this test: 84.9 / 0 / 18.8, as
+    before issue 32 (no bias, up / left passes reaching row 0 / column 0, a C times smaller init)."""
     out = head_only_fit("scnn", ["backbone.out_indices=[2]", "model.head.hidden_channels=64",
                                  "model.head.mp_channels=32"], scenes=4, steps=150, lr=0.02)
-    assert out["accuracy"] >= 80.0 and out["fn"] <= 30.0 and out["fp"] <= 20.0, out
+    assert out["accuracy"] >= 75.0 and out["fn"] <= 35.0 and out["fp"] <= 20.0, out
+    assert out["first_loss"] >= 4 * out["final_loss"], out
 
