@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import warnings
 from typing import Callable, Sequence
 
 
@@ -83,13 +84,17 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Parse ``argv``, score, print the result as JSON; exit code 1 with a message on bad input."""
+    """Parse ``argv``, score, print the result as JSON (warnings on stderr); exit code 1 with a message on bad input."""
     args = build_parser().parse_args(argv)
-    try:
-        result = args.func(args)
-    except (ValueError, FileNotFoundError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 1
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", UserWarning)
+        try:
+            result = args.func(args)
+        except (ValueError, FileNotFoundError) as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 1
+    for warning in caught:  # e.g. prediction lines the official arithmetic reads in its own way
+        print(f"warning: {warning.message}", file=sys.stderr)
     print(json.dumps(result))
     return 0
 

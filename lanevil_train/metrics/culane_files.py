@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import multiprocessing
 import os
+import warnings
 from concurrent.futures import ProcessPoolExecutor
 from functools import partial
 from typing import Sequence
@@ -13,16 +14,21 @@ import numpy as np
 
 from lanevil_train.metrics.culane import culane_image_counts, culane_summary
 
-__all__ = ["read_lines_file", "lines_file_path", "count_images", "evaluate_culane_dirs"]
+__all__ = ["OddCountWarning", "read_lines_file", "lines_file_path", "count_images", "evaluate_culane_dirs"]
 
 IMAGES_PER_WORKER = 250  # below this a worker's start-up (~0.2-0.4 s: numpy + OpenCV) outweighs its share
 CHUNKS_PER_WORKER = 4  # a few chunks per worker even out uneven images without much pickling
 
 
-def read_lines_file(path: str, side: str = "") -> list[np.ndarray]:
+class OddCountWarning(UserWarning):
+    """A .lines.txt line holds an odd count of numbers: scored as the official tool does, its last number dropped."""
+
+
+def read_lines_file(path: str, side: str = "", odd: list[str] | None = None) -> list[np.ndarray]:
     """Lanes of a CULane ``.lines.txt`` like the official reader: one lane per line of "x y x y ..." pairs.
 
-    A missing file means no lanes (as in evaluate.cpp); an odd trailing number is ignored like ``ss>>x>>y``;
+    A missing file means no lanes (as in evaluate.cpp); an odd trailing number is ignored like ``ss>>x>>y``, and
+    said: an OddCountWarning naming file and line (or the note appended to `odd`, for the caller to report);
     a non-numeric or non-finite token (``nan``, ``inf``, which Python's float() accepts) raises ValueError
     naming file, line, lane and ``side`` (what the file holds: "prediction", "ground truth"). Blank lines are
     lanes with 0 points (the C++ counts them too).
@@ -43,6 +49,13 @@ def read_lines_file(path: str, side: str = "") -> list[np.ndarray]:
                 bad = next(t for t, v in zip(tokens, vals) if not math.isfinite(v))
                 raise ValueError(f"{path}:{lineno}: {lane} {lineno - 1} has a non-finite coordinate {bad!r}; "
                                  f"expected finite pixel numbers 'x y x y ...'")
+            if len(vals) % 2:
+                note = (f"{path}:{lineno}: {lane} {lineno - 1} holds {len(vals)} numbers, an odd count; its last "
+                        f"({tokens[-1]}) is dropped, as the official tool's 'ss >> x >> y' drops it")
+                if odd is None:
+                    warnings.warn(note, OddCountWarning, stacklevel=2)
+                else:
+                    odd.append(note)
             vals = vals[: len(vals) // 2 * 2]
             lanes.append(np.asarray(vals, np.float64).reshape(-1, 2))
     return lanes
@@ -57,16 +70,18 @@ def lines_file_path(name: str) -> str:
 
 
 def count_images(pred_dir: str, gt_dir: str, names: Sequence[str], width: int = 1640, height: int = 590,
-                 lane_width: int = 30, iou_threshold: float = 0.5) -> tuple[int, int, int]:
-    """Summed (TP, FP, FN) of the list entries ``names``, scored one after another in this process."""
+                 lane_width: int = 30, iou_threshold: float = 0.5) -> tuple[int, int, int, list[str]]:
+    """Summed (TP, FP, FN) of the list entries ``names``, scored one after another in this process, and the notes
+    on lines with an odd count of numbers (read_lines_file)."""
     tp = fp = fn = 0
+    odd: list[str] = []
     for name in names:
         rel = lines_file_path(name)
-        a, b, c = culane_image_counts(read_lines_file(os.path.join(pred_dir, rel), "prediction"),
-                                      read_lines_file(os.path.join(gt_dir, rel), "ground truth"),
+        a, b, c = culane_image_counts(read_lines_file(os.path.join(pred_dir, rel), "prediction", odd),
+                                      read_lines_file(os.path.join(gt_dir, rel), "ground truth", odd),
                                       width, height, lane_width, iou_threshold)
         tp, fp, fn = tp + a, fp + b, fn + c
-    return tp, fp, fn
+    return tp, fp, fn, odd
 
 
 def available_cpus() -> int:
@@ -161,6 +176,8 @@ def evaluate_culane_dirs(
 
     Inputs are checked before any scoring (``_check_inputs``): a missing prediction file is an image with no
     lanes, as officially, but a list none of whose entries has a GT file, or none a prediction file, is refused.
+    Lines with an odd count of numbers are scored as officially (the last number dropped) and reported in one
+    OddCountWarning naming the first files and lines.
     """
     names = _check_inputs(pred_dir, gt_dir, list_file, width, height, lane_width, iou_threshold)
     n_proc = worker_count(workers, len(names))
@@ -175,4 +192,10 @@ def evaluate_culane_dirs(
         # OpenMP); it costs one numpy + OpenCV import per worker, paid in parallel.
         with ProcessPoolExecutor(n_proc, mp_context=multiprocessing.get_context("spawn")) as pool:
             counts = list(pool.map(score, chunks))
+    odd = [note for c in counts for note in c[3]]
+    if odd:
+        verb = "hold" if len(odd) > 1 else "holds"
+        warnings.warn(f"{len(odd)} line{'s' * (len(odd) > 1)} of the .lines.txt files {verb} an odd count of numbers, "
+                      f"each scored as the official tool scores it (its last number dropped): "
+                      f"{'; '.join(odd[:3])}{'; ...' if len(odd) > 3 else ''}", OddCountWarning, stacklevel=2)
     return culane_summary(*(sum(c[k] for c in counts) for k in range(3)))

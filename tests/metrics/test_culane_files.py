@@ -12,7 +12,7 @@ import pytest
 
 from lanevil_train.metrics import CULaneMetric, culane_image_counts, evaluate_culane_dirs
 from lanevil_train.metrics.__main__ import main
-from lanevil_train.metrics.culane_files import read_lines_file
+from lanevil_train.metrics.culane_files import OddCountWarning, read_lines_file
 
 GT_A = [[(100.0, 589.0), (200.0, 450.0), (260.0, 300.0)], [(900.0, 589.0), (850.0, 450.0), (800.0, 300.0)]]
 PRED_A = [[(104.0, 589.0), (204.0, 450.0), (264.0, 300.0)], [(1400.0, 589.0), (1300.0, 300.0)]]
@@ -79,7 +79,9 @@ def test_cli_subprocess_and_errors(tree: tuple[Path, Path, Path], tmp_path: Path
 def test_reader_matches_official_stream_semantics(tmp_path: Path) -> None:
     f = tmp_path / "x.lines.txt"
     f.write_text("1 2 3 4 5\n\n10.5 20.25 30 40 \n")
-    lanes = read_lines_file(str(f))
+    with pytest.warns(OddCountWarning, match=rf"^{f}:1: lane 0 holds 5 numbers, an odd count; its last \(5\) is "
+                                             r"dropped"):
+        lanes = read_lines_file(str(f))
     assert [lane.shape for lane in lanes] == [(2, 2), (0, 2), (2, 2)]  # odd tail dropped, blank line is a lane
     assert lanes[2][0].tolist() == [10.5, 20.25]
     assert read_lines_file(str(tmp_path / "missing.lines.txt")) == []
@@ -113,8 +115,29 @@ def test_reader_rejects_non_finite_even_in_the_ignored_odd_tail(tmp_path: Path) 
     f.write_text("1 2 3 4 nan\n")
     with pytest.raises(ValueError, match=rf"^{f}:1: lane 0 has a non-finite coordinate 'nan'"):
         read_lines_file(str(f))
-    f.write_text("1 2 3 4 5\n")  # a finite odd tail is still ignored, as by the official reader
-    assert read_lines_file(str(f))[0].tolist() == [[1.0, 2.0], [3.0, 4.0]]
+    f.write_text("1 2 3 4 5\n")  # a finite odd tail is still ignored, as by the official reader, and said
+    with pytest.warns(OddCountWarning):
+        assert read_lines_file(str(f))[0].tolist() == [[1.0, 2.0], [3.0, 4.0]]
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_an_odd_count_of_numbers_scores_as_officially_and_names_file_and_line(tree, capsys, workers) -> None:
+    """The official arithmetic (the last number dropped) with a warning naming each file and line, from the
+    worker processes too; the score is that of the line without its last number."""
+    pred, gt, lst = tree
+    bad = pred / "driver_1/05/a.lines.txt"
+    even = evaluate_culane_dirs(str(pred), str(gt), str(lst), workers=workers)
+    lines = bad.read_text().splitlines()
+    bad.write_text(f"{lines[0]} 777\n{lines[1]}\n")
+    with pytest.warns(OddCountWarning) as caught:
+        assert evaluate_culane_dirs(str(pred), str(gt), str(lst), workers=workers) == even
+    message = str(caught[0].message)
+    assert message.startswith("1 line of the .lines.txt files holds an odd count of numbers, each scored as the "
+                              "official tool scores it (its last number dropped): "), message
+    assert f"{bad}:1: prediction lane 0 holds 7 numbers, an odd count; its last (777) is dropped" in message
+    assert main(["culane", "--pred-dir", str(pred), "--gt-dir", str(gt), "--list", str(lst)]) == 0
+    out, err = capsys.readouterr()
+    assert json.loads(out) == even and err.startswith("warning: 1 line of the .lines.txt files") and f"{bad}:1" in err
 
 
 def _culane_error(args: list[str], capsys: pytest.CaptureFixture) -> str:
