@@ -5,9 +5,10 @@ uses to report a bad config value by its key before any work. Plain Python: impo
 
 from __future__ import annotations
 
+import difflib
 import math
 import numbers
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
@@ -169,5 +170,32 @@ def settings_problems(rules: Mapping[str, Rule], values: Mapping[str, Any], pref
 def check_settings(rules: Mapping[str, Rule], values: Mapping[str, Any], prefix: str) -> None:
     """Raise ValueError listing every value of `values` its rule refuses (settings_problems); return if all are good."""
     found = settings_problems(rules, values, prefix)
+    if found:
+        raise ValueError("; ".join(found))
+
+
+def nearest(name: str, names: Collection[str]) -> str | None:
+    """The name of `names` closest to `name` (a likely typo's intent), or None when none is close."""
+    found = difflib.get_close_matches(str(name), list(names), n=1, cutoff=0.6)
+    return found[0] if found else None
+
+
+def unknown_settings(names: Collection[str], values: Mapping[str, Any], prefix: str) -> list[str]:
+    """One message per key of `values` that is not one of `names`: its dotted path `prefix.key`, the nearest
+    setting and all of them, e.g. "task.kalman.memry_s: not a setting of task.kalman; did you mean
+    task.kalman.memory_s? its settings: ..."."""
+    found = []
+    for key in values:
+        if key not in names:
+            near = nearest(key, names)
+            hint = f"did you mean {prefix}.{near}? " if near else ""
+            found.append(f"{prefix}.{key}: not a setting of {prefix}; {hint}its settings: {', '.join(names)}")
+    return found
+
+
+def check_group(rules: Mapping[str, Rule], values: Mapping[str, Any], prefix: str) -> None:
+    """Raise ValueError listing every key of `values` that is not one of `rules` (unknown_settings) and every value
+    its rule refuses (settings_problems): a settings group one class owns whole, e.g. task.kalman."""
+    found = unknown_settings(rules, values, prefix) + settings_problems(rules, values, prefix)
     if found:
         raise ValueError("; ".join(found))

@@ -18,7 +18,7 @@ import numpy as np
 from lanevil_train.closed_loop.controllers import CONTROLLERS, Limits, PurePursuit
 from lanevil_train.closed_loop.ground import MAX_WIDTH_M, MIN_WIDTH_M, ground_lanes
 from lanevil_train.closed_loop.tracker import TRACKERS, FrameTracker, Motion
-from lanevil_train.rules import check_settings, number
+from lanevil_train.rules import check_group, check_settings, number
 from lanevil_train.sim import Camera
 
 __all__ = ["KEEPER_SETTINGS", "LaneKeeper", "PurePursuit", "lane_keeper"]
@@ -76,6 +76,8 @@ def lane_keeper(tracker: str = "kalman", controller: str = "pure_pursuit", limit
     for kind, names, name in (("task.tracker", TRACKERS, tracker), ("task.controller", CONTROLLERS, controller)):
         if name not in names:
             raise ValueError(f"{kind}: expected one of {', '.join(names)}, got {name!r}")
-    track = TRACKERS[tracker](lane_width_m=lane_width_m, **settings.get(tracker, {}))
-    control = CONTROLLERS[controller](limits=limits, **settings.get(controller, {}))
+    for name, owner in ((tracker, TRACKERS[tracker]), (controller, CONTROLLERS[controller])):
+        check_group(getattr(owner, "SETTINGS", {}), settings.get(name) or {}, f"task.{name}")  # unknown keys too
+    track = TRACKERS[tracker](lane_width_m=lane_width_m, **(settings.get(tracker) or {}))
+    control = CONTROLLERS[controller](limits=limits, **(settings.get(controller) or {}))
     return LaneKeeper(track, control, max_range_m, period_s)

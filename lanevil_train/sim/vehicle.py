@@ -20,7 +20,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from typing import Any
 
-from lanevil_train.rules import check_settings, is_number, number
+from lanevil_train.rules import check_group, check_settings, is_number, number
 from lanevil_train.sim.road import RoadGeometry
 
 MPH = 0.44704  # metres per second in one mile per hour
@@ -55,8 +55,9 @@ class VehicleParams:
 
     @classmethod
     def from_settings(cls, values: Mapping[str, Any], prefix: str = "task.vehicle") -> VehicleParams:
-        """The vehicle of a mapping with the SETTINGS names (task.vehicle's); bad values named `prefix.<name>`."""
-        check_settings(cls.SETTINGS, values, prefix)
+        """The vehicle of a mapping with the SETTINGS names (task.vehicle's); bad values and unknown keys named
+        `prefix.<name>`."""
+        check_group(cls.SETTINGS, values, prefix)
         return cls(wheelbase_m=float(values["wheelbase_m"]), speed_mps=float(values["speed_mph"]) * MPH,
                    max_steer_deg=float(values["max_steer_deg"]),
                    max_steer_rate_dps=float(values["max_steer_rate_dps"]))

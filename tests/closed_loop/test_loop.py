@@ -229,6 +229,9 @@ def test_the_protocol_vehicle_and_vlm_policy_refuse_bad_values_by_their_task_key
         VehicleParams(max_steer_rate_dps=float("inf"))  # a rate limit is a finite number
     with pytest.raises(ValueError, match="VehicleParams.speed_mph: expected a number in"):
         VehicleParams(speed_mps="fast")  # named, not a TypeError from the conversion to mph
+    with pytest.raises(ValueError, match=r"^task.vehicle.speed: not a setting of task.vehicle; did you mean "
+                                         r"task.vehicle.speed_mph\?"):
+        VehicleParams.from_settings({"wheelbase_m": 2.7, "speed": 30, "max_steer_deg": 30, "max_steer_rate_dps": 30})
     params = VehicleParams.from_settings({"wheelbase_m": 3, "speed_mph": 30, "max_steer_deg": 25,
                                           "max_steer_rate_dps": 40})
     assert params.speed_mps == pytest.approx(30 * MPH) and params.settings()["speed_mph"] == pytest.approx(30)

@@ -138,3 +138,16 @@ def test_each_controller_on_the_tracked_true_lanes_keeps_the_car_within_2cm_5cm_
     bound = 0.05 if road == "s_curve" else 0.02
     assert max(abs(step["deviation"]) for step in trace) < bound
     assert all(step["estimate"] == "both" for step in trace) and trace[-1]["rejected"] == 0
+
+
+def test_an_unknown_lane_keeper_setting_is_named_not_a_type_error():
+    """A key the tracker or controller does not have (what Hydra's `+task.kalman.memry_s=0.3` lets in) is named by its
+    dotted path with the nearest setting, before anything is built."""
+    with pytest.raises(ValueError, match=r"^task\.kalman\.memry_s: not a setting of task\.kalman; did you mean "
+                                         r"task\.kalman\.memory_s\? its settings: offset_sigma_m, "):
+        lane_keeper("kalman", "pure_pursuit", settings={"kalman": {"memry_s": 0.3}})
+    with pytest.raises(ValueError, match=r"^task\.mpc\.q_lat: not a setting of task\.mpc; did you mean "
+                                         r"task\.mpc\.q_lateral\?"):
+        lane_keeper("kalman", "mpc", settings={"mpc": {"q_lat": 2.0}})
+    keeper = lane_keeper("kalman", "stanley", settings={"kalman": {"memory_s": 0.3}, "stanley": {"gain": 2.0}})
+    assert keeper.tracker.memory_s == 0.3 and keeper.controller.gain == 2.0

@@ -160,8 +160,8 @@ BAD = [
      "data.train._target_: cannot import 'no_such_package.Dataset' (ModuleNotFoundError: No module named "
      "'no_such_package')"),
     (["+data.train.num_scene=3"],
-     "data.train.num_scene: not a parameter of lanevil_train.data.datasets.SyntheticLaneDataset; it accepts "
-     "num_scenes, first_seed, size, cache"),
+     "data.train.num_scene: not a parameter of lanevil_train.data.datasets.SyntheticLaneDataset; did you mean "
+     "data.train.num_scenes? it accepts num_scenes, first_seed, size, cache"),
     # model
     (["model.head.n_offsets=1"], "model.head.n_offsets: expected an integer >= 2, got 1"),
     (["model.head.topk_anchors=1"], "model.head.topk_anchors: expected null or an integer >= 2, got 1"),
@@ -171,7 +171,8 @@ BAD = [
     (["+model.head.in_channels=3"],
      "model.head.in_channels: is set by the code (from the backbone and data.input_size); remove it"),
     (["+model.head.n_offset=3"],
-     "model.head.n_offset: not a parameter of lanevil_train.models.laneatt.LaneATTHead; it accepts in_channels"),
+     "model.head.n_offset: not a parameter of lanevil_train.models.laneatt.LaneATTHead; did you mean "
+     "model.head.n_offsets? it accepts in_channels"),
     (["model.optimizer.lr=0"], "model.optimizer.lr: expected a number > 0, got 0"),
     (["model.optimizer.lr=1e-3x"], "model.optimizer.lr: expected a number > 0, got '1e-3x'"),
     (["model.optimizer.weight_decay=-0.1"], "model.optimizer.weight_decay: expected a number >= 0, got -0.1"),
@@ -270,15 +271,15 @@ BAD = [
     (["+defense.callbacks=[]"],
      "defense: expected a mapping with the keys name, transforms, mixer, callback (and, in a textual defense"),
     (["defense=aam++", "+defense.callback.t_hha=0.5"],
-     "defense.callback.t_hha: not a parameter of lanevil_train.callbacks.AttentionAreaMixing; it accepts layer, "
-     "mode"),
+     "defense.callback.t_hha: not a parameter of lanevil_train.callbacks.AttentionAreaMixing; did you mean "
+     "defense.callback.t_haa? it accepts layer, mode"),
     (["defense=mixup", "defense.mixer._target_=lanevil_train.data.mixers.MixDown"],
      "defense.mixer._target_: cannot import 'lanevil_train.data.mixers.MixDown' (AttributeError"),
     (["defense=cutout", "defense.transforms=[{p: 0.5}]"],
      "defense.transforms: expected null or a list of mappings, each with a _target_"),
     (["defense=cutout", "+defense.transforms.0.holes=2"],
-     "defense.transforms[0].holes: not a parameter of lanevil_train.data.defenses.LaneCutout; it accepts "
-     "num_holes, hole_height, hole_width, fill, p"),
+     "defense.transforms[0].holes: not a parameter of lanevil_train.data.defenses.LaneCutout; did you mean "
+     "defense.transforms[0].num_holes? it accepts num_holes, hole_height, hole_width, fill, p"),
     (["defense=pgd", "defense.callback=3"],
      "defense.callback: expected null or a mapping with a _target_ (the dotted name of a class or function), "
      "got 3"),
@@ -355,8 +356,32 @@ BAD = [
      "callbacks.swa._target_: cannot import 'pytorch_lightning.callbacks.NoSuchCallback'"),
     (["+callbacks.broken=3"],
      "callbacks.broken: expected null or a mapping with a _target_ (the dotted name of a class or function), got 3"),
+    # settings groups a class owns whole: an unknown key named by its dotted path, the nearest setting, all of them
+    (["task=closed_loop", "task.policy=truth", "+task.kalman.memry_s=0.3"],
+     "task.kalman.memry_s: not a setting of task.kalman; did you mean task.kalman.memory_s? its settings: "
+     "offset_sigma_m, slope_sigma, curvature_sigma, point_sigma_m, curvature_rate_sigma, memory_s"),
+    (["task=closed_loop", "task.policy=truth", "+task.pure_pursuit.lookahead=1"],
+     "task.pure_pursuit.lookahead: not a setting of task.pure_pursuit; did you mean task.pure_pursuit.lookahead_s? "
+     "its settings: lookahead_s, min_lookahead_m"),
+    (["task=closed_loop", "task.policy=truth", "+task.stanley.k=1"],
+     "task.stanley.k: not a setting of task.stanley; its settings: gain, softening_mps"),
+    (["task=closed_loop", "task.policy=truth", "+task.mpc.horizon=2"],
+     "task.mpc.horizon: not a setting of task.mpc; did you mean task.mpc.horizon_s? its settings: horizon_s, "
+     "q_lateral, q_heading, r_steer, r_rate"),
+    (["task=closed_loop", "task.policy=truth", "+task.vehicle.speed=30"],
+     "task.vehicle.speed: not a setting of task.vehicle; did you mean task.vehicle.speed_mph? its settings: "
+     "wheelbase_m, speed_mph, max_steer_deg, max_steer_rate_dps"),
+    (["task=closed_loop", "task.policy=truth", "+task.vlm.frame=2"],
+     "task.vlm.frame: not a setting of task.vlm; did you mean task.vlm.frames? its settings: question, steer_deg, "
+     "frames"),
+    (["task=train", "data=clips", "model=vlm/hf", "model.path=/tmp", "+model.lora.rank=8"],
+     "model.lora.rank: not a setting of model.lora; its settings: r, alpha, dropout, target_modules"),
+    (["task=train", "data=clips", "model=vlm/hf", "model.path=/tmp", "+model.fine_tune.warmup=3"],
+     "model.fine_tune.warmup: not a setting of model.fine_tune; did you mean model.fine_tune.warmup_steps? its "
+     "settings: lr, weight_decay, warmup_steps"),
     (["+logger.save_every=3"],
-     "logger.save_every: not a parameter of pytorch_lightning.loggers.CSVLogger; it accepts save_dir, name"),
+     "logger.save_every: not a parameter of pytorch_lightning.loggers.CSVLogger; did you mean logger.save_dir? it "
+     "accepts save_dir, name"),
 ]
 
 

@@ -13,9 +13,10 @@ from lanevil_train.perturbations import SUITE_KINDS, suite_names
 from lanevil_train.rules import (
     is_int,
     problem,
+    unknown_settings,
 )
 from lanevil_train.tasks.config_check.keys import SPLITS
-from lanevil_train.tasks.config_check.table import _ABSENT, RULES, _get, _is_vlm
+from lanevil_train.tasks.config_check.table import _ABSENT, RULES, SETTINGS_GROUPS, _get, _is_vlm
 from lanevil_train.tasks.config_check.targets import _locate
 from lanevil_train.tasks.kinds import task_target
 
@@ -188,5 +189,17 @@ def check_training_ends(cfg: DictConfig) -> list[str]:
     return []
 
 
-CROSS_CHECKS = (check_feature_map, check_decode_options, check_backbone_weights, check_cases, check_checkpoint_given,
-                check_training_ends, check_task_kind, check_vlm_task, check_split_seeds, check_suite_names)
+def check_settings_groups(cfg: DictConfig) -> list[str]:
+    """Every key of a settings group a class owns (SETTINGS_GROUPS: task.kalman, task.vehicle, model.lora, ...) is
+    one of its settings: an unknown key (a typo Hydra's `+key=` let in) is named with the nearest and the valid."""
+    problems = []
+    for group, names in SETTINGS_GROUPS.items():
+        values = _get(cfg, group)
+        if isinstance(values, dict):
+            problems += unknown_settings(names, values, group)
+    return problems
+
+
+CROSS_CHECKS = (check_settings_groups, check_feature_map, check_decode_options, check_backbone_weights, check_cases,
+                check_checkpoint_given, check_training_ends, check_task_kind, check_vlm_task, check_split_seeds,
+                check_suite_names)

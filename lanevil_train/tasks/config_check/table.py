@@ -3,6 +3,7 @@ __init__); reading a value from the composed config and applying a rule to it.""
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
@@ -51,7 +52,7 @@ from lanevil_train.tasks.config_check.config_rules import (
     illusion_names,
     illusion_suite,
     integer_in,
-    mapping_of,
+    mapping,
     output_folder,
     rate_factors,
     seed_list,
@@ -131,13 +132,12 @@ RULES: dict[str, Rule] = {
     "model.path": null_or(existing_dir("directory of a saved Hugging Face model (save_pretrained)")),
     "model.adapter": null_or(existing_dir("directory of a peft adapter (a task=train run's model/ folder)")),
     "model.merge_adapter": boolean(),
-    "model.lora": null_or(mapping_of(("r", "alpha", "dropout", "target_modules"))),
+    "model.lora": null_or(mapping()),  # its keys: SETTINGS_GROUPS (below)
     **{f"model.lora.{key}": rule for key, rule in LORA_SETTINGS.items()},  # the fine-tuner's own rules
-    "model.fine_tune": mapping_of(("lr", "weight_decay", "warmup_steps", "freeze_vision", "gradient_checkpointing",
-                                   "train_eos", "variants", "aids")),
+    "model.fine_tune": mapping(),
     **{f"model.fine_tune.{key}": rule for key, rule in {**FINE_TUNE_SETTINGS, **PAIRING_SETTINGS}.items()},
     "model.embedded.workers": any_of(one_of("auto"), integer(0)),
-    "model.embedded.vision_pretraining": null_or(mapping_of(("steps", "clips", "batch", "lr", "mirror"))),
+    "model.embedded.vision_pretraining": null_or(mapping()),
     "model.embedded.vision_pretraining.steps": integer(0),
     "model.embedded.vision_pretraining.clips": integer(1),
     "model.embedded.vision_pretraining.batch": integer(1),
@@ -243,6 +243,18 @@ RULES: dict[str, Rule] = {
     "trainer.accumulate_grad_batches": integer(1),
 }
 
+
+# Settings groups one class owns whole: every key of such a mapping must be one of its settings (an unknown key is
+# named by its dotted path with the nearest setting: cross.check_settings_groups); their values' rules are above.
+SETTINGS_GROUPS: dict[str, Collection[str]] = {
+    "task.vehicle": VehicleParams.SETTINGS,
+    "task.vlm": VLMPolicy.SETTINGS,
+    **{f"task.{name}": owner.SETTINGS for name, owner in {**TRACKERS, **CONTROLLERS}.items()
+       if getattr(owner, "SETTINGS", None)},
+    "model.lora": LORA_SETTINGS,
+    "model.fine_tune": {**FINE_TUNE_SETTINGS, **PAIRING_SETTINGS},
+    "model.embedded.vision_pretraining": ("steps", "clips", "batch", "lr", "mirror"),
+}
 
 _ABSENT = object()
 

@@ -10,6 +10,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from lanevil_train.rules import (
+    nearest,
     problem,
 )
 from lanevil_train.tasks.config_check.keys import HYDRA_KEYS, READ_BY_CODE, SPLITS, SUPPLIED
@@ -84,5 +85,7 @@ def check_target(key: str, node: Any) -> list[str]:
             problems.append(f"{key}.{name}: is set by the code (from the backbone and data.input_size); remove it "
                             f"from the config")
         elif name not in HYDRA_KEYS and name not in accepted:
-            problems.append(f"{key}.{name}: not a parameter of {target}; it accepts {', '.join(accepted)}")
+            near = nearest(name, accepted)
+            hint = f"did you mean {key}.{near}? " if near else ""
+            problems.append(f"{key}.{name}: not a parameter of {target}; {hint}it accepts {', '.join(accepted)}")
     return problems
