@@ -8,6 +8,10 @@ the later 3x3 convolutions dilated, as DeepLab-LargeFOV and SCNN's VGG-16).
 
 Only ``pretrained=True`` may touch the network (timm's hub download); the default is random
 init, and ``checkpoint=path`` loads a local state dict (timm / torchvision / our own layout).
+
+ViT-style networks are built with timm's ``dynamic_img_size=True`` where they take it, so they run at the data's
+input size rather than only at their pretraining size; ``input_size_problem`` says, before any work, when a
+backbone cannot take an input size (a forward pass on the meta device), with a size it takes.
 """
 
 from __future__ import annotations
@@ -52,10 +56,9 @@ def stage_strides(name: str, output_stride: int | None = None) -> tuple[int, ...
         if name.startswith("vgg"):
             strides = timm.create_model(name, features_only=True).feature_info.reduction()
             return tuple(min(s, output_stride or s) for s in strides)
-        kwargs = {"output_stride": output_stride} if output_stride else {}
         # every stage, indexed as timm's out_indices are (its default out_indices skip DLA's stride-1 level0)
-        return tuple(stage["reduction"] for stage in timm.create_model(name, features_only=True,
-                                                                       **kwargs).feature_info.info)
+        return tuple(stage["reduction"] for stage in timm.create_model(
+            name, features_only=True, **_timm_kwargs(name, None, output_stride)).feature_info.info)
 
 
 def indices_for_strides(name: str, strides: Sequence[int], output_stride: int | None = None) -> tuple[int, ...]:
@@ -70,6 +73,68 @@ def indices_for_strides(name: str, strides: Sequence[int], output_stride: int | 
                              f"stride {stride}; its stages have strides {list(have)}")
         out.append(found[-1])
     return tuple(out)
+
+
+@lru_cache(maxsize=None)
+def size_kwargs(name: str) -> dict:
+    """timm's ``dynamic_img_size=True`` for the models that take it (ViT-style: the patch grid follows the input and
+    the position embedding is resampled to it, so any size the patches divide works, not only the pretraining
+    size); {} for the others (convolutional networks take any size as they are)."""
+    try:
+        with torch.device("meta"):
+            timm.create_model(name, features_only=True, dynamic_img_size=True)
+    except Exception:  # noqa: BLE001 - a TypeError for the models without it; any other failure: the real build says
+        return {}
+    return {"dynamic_img_size": True}
+
+
+def _timm_kwargs(name: str, out_indices: Sequence[int] | None, output_stride: int | None) -> dict:
+    """The keyword arguments of timm.create_model for a features-only `name` (our own dilation for VGG)."""
+    kwargs = {} if out_indices is None else {"out_indices": tuple(out_indices)}
+    if output_stride and not name.startswith("vgg"):
+        kwargs["output_stride"] = output_stride
+    return {**kwargs, **size_kwargs(name)}
+
+
+def _meta_forward(name: str, size: tuple[int, int], kwargs: dict) -> tuple[list, list[int]]:
+    """The feature maps (shapes only, on the meta device) and feature_info channels of `name` for a size input."""
+    with torch.device("meta"):
+        net = timm.create_model(name, features_only=True, **kwargs)
+        return list(net(torch.empty(1, 3, *size))), list(net.feature_info.channels())
+
+
+@lru_cache(maxsize=256)
+def input_size_problem(name: str, size: tuple[int, int], out_indices: tuple[int, ...] | None = None,
+                       output_stride: int | None = None) -> str | None:
+    """Why the features-only backbone `name` cannot take a (height, width) input: a forward pass on the meta device
+    (shapes only, no weights, milliseconds) fails, or gives maps that are not (N, C, H, W); with a size it takes
+    when one is near. None when it takes the input (or the check cannot run: an operation without a meta kernel)."""
+    kwargs = _timm_kwargs(name, out_indices, output_stride)
+    try:
+        maps, channels = _meta_forward(name, size, kwargs)
+    except NotImplementedError:
+        return None
+    except Exception as error:  # noqa: BLE001 - timm's own words say what the network needs
+        reason = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        return f"timm's {name} fails on a {size[0]}x{size[1]} input ({reason}){_size_that_works(name, size, kwargs)}"
+    if any(m.ndim != 4 or m.shape[1] != c for m, c in zip(maps, channels)):
+        return (f"timm's {name} gives its feature maps as {tuple(maps[0].shape)}, not (N, C, H, W) with C = "
+                f"{channels[0]} (channels last, as Swin's), which the heads cannot read; choose a backbone whose "
+                f"features come channels first")
+    return None
+
+
+def _size_that_works(name: str, size: tuple[int, int], kwargs: dict) -> str:
+    """"; ... takes [h, w]": the size rounded up to its largest stride, when the network takes that; else the size
+    timm's pretrained_cfg names."""
+    stride = max(stage_strides(name))
+    rounded = tuple(-(-side // stride) * stride for side in size)
+    try:
+        _meta_forward(name, rounded, kwargs)
+        return f"; it takes data.input_size=[{rounded[0]},{rounded[1]}] (multiples of its stride {stride})"
+    except Exception:  # noqa: BLE001 - no near size: name the one it was made for
+        made_for = tuple(getattr(timm.get_pretrained_cfg(name), "input_size", ())[1:])
+        return f"; it was made for {made_for[0]}x{made_for[1]} inputs" if len(made_for) == 2 else ""
 
 
 def _check_output_stride(output_stride) -> None:
@@ -94,10 +159,8 @@ def build_backbone(
     _check_output_stride(output_stride)
     if pretrained and checkpoint is not None:
         raise ValueError("build_backbone: give either pretrained=True or checkpoint=..., not both")
-    kwargs = {} if out_indices is None else {"out_indices": tuple(out_indices)}
-    if output_stride and not name.startswith("vgg"):
-        kwargs["output_stride"] = output_stride
-    net = timm.create_model(name, pretrained=pretrained, features_only=True, **kwargs)
+    net = timm.create_model(name, pretrained=pretrained, features_only=True,
+                            **_timm_kwargs(name, out_indices, output_stride))
     # the timm module itself (so hooks address e.g. "backbone.layer4"), plus our attributes
     backbone = net
     backbone.backbone_name = name

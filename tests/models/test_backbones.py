@@ -99,3 +99,35 @@ def test_bad_checkpoints_raise_clear_errors(tmp_path):
     junk.write_bytes(b"not a checkpoint")
     with pytest.raises(ValueError, match="junk.pt"):
         build_backbone("resnet18", checkpoint=str(junk))
+
+
+def test_a_vit_is_built_for_the_data_input_size_not_only_its_pretraining_size():
+    """timm's ViTs assert their 224x224 pretraining size unless built with dynamic_img_size: built so here, a ViT
+    takes the quickstart's 112x320 (a 7x20 patch grid), and the check before work finds nothing to say."""
+    from lanevil_train.models.backbones import input_size_problem
+
+    net = build_backbone("vit_tiny_patch16_224", out_indices=(11,)).eval()
+    with torch.no_grad():
+        maps = net(torch.zeros(1, 3, 112, 320))
+    assert [tuple(m.shape) for m in maps] == [(1, 192, 7, 20)] and net.strides == [16]
+    assert input_size_problem("vit_tiny_patch16_224", (112, 320), (11,)) is None
+    assert input_size_problem("resnet18", (112, 320), (4,)) is None
+
+
+def test_a_backbone_that_cannot_take_the_input_size_is_named_with_a_size_it_takes():
+    """A forward pass on the meta device (no weights) finds what would fail at the first training step: a patch
+    size that does not divide the input (with the size rounded up to it, which works), DLA's trees on a size that is
+    no multiple of 32, feature maps channels last (Swin's), which no head reads."""
+    from lanevil_train.models.backbones import input_size_problem
+
+    assert input_size_problem("eva02_tiny_patch14_224", (112, 320), (11,)) == (
+        "timm's eva02_tiny_patch14_224 fails on a 112x320 input (Input width (320) should be divisible by patch size "
+        "(14).); it takes data.input_size=[112,322] (multiples of its stride 14)")
+    assert input_size_problem("eva02_tiny_patch14_224", (112, 322), (11,)) is None
+    dla = input_size_problem("dla34", (360, 640))
+    assert dla.startswith("timm's dla34 fails on a 360x640 input (") and dla.endswith(
+        "; it takes data.input_size=[384,640] (multiples of its stride 32)"), dla
+    assert input_size_problem("dla34", (384, 640)) is None
+    swin = input_size_problem("swin_tiny_patch4_window7_224", (112, 320))
+    assert swin.startswith("timm's swin_tiny_patch4_window7_224 gives its feature maps as (1, 28, 80, 96), not "
+                           "(N, C, H, W) with C = 96 (channels last"), swin

@@ -267,6 +267,10 @@ BAD = [
     (["backbone=vgg16", "backbone.out_indices=[5]", "data.input_size=[24,320]"],
      "data.input_size: expected [height, width], both >= 32, got [24, 320]: the head reads the stride-32 "
      "feature map of vgg16 (backbone.out_indices [5])"),
+    (["experiment=quickstart", "backbone.name=eva02_tiny_patch14_224", "backbone.out_indices=[11]"],
+     "backbone.name: eva02_tiny_patch14_224 cannot take data.input_size=[112, 320]: timm's eva02_tiny_patch14_224 "
+     "fails on a 112x320 input (Input width (320) should be divisible by patch size (14).); it takes "
+     "data.input_size=[112,322]"),
     # defense
     (["+defense.callbacks=[]"],
      "defense: expected a mapping with the keys name, transforms, mixer, callback (and, in a textual defense"),

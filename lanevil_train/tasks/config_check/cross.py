@@ -7,7 +7,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
-from lanevil_train.models.backbones import indices_for_strides, stage_strides
+from lanevil_train.models.backbones import indices_for_strides, input_size_problem, stage_strides
 from lanevil_train.models.head import decode_option_problems
 from lanevil_train.perturbations import SUITE_KINDS, suite_names
 from lanevil_train.rules import (
@@ -23,8 +23,9 @@ from lanevil_train.tasks.kinds import task_target
 
 def check_feature_map(cfg: DictConfig) -> list[str]:
     """backbone.out_indices (or the stages of the family's model.feature_strides) must be stages the backbone has;
-    data.input_size at least the largest stride the head reads, so each map has a row and a column (any size >=
-    the stride works; a multiple of it is not needed)."""
+    data.input_size at least the largest stride the head reads, so each map has a row and a column (a multiple of
+    it is not needed for most), and a size the backbone takes (a forward pass on the meta device: a ViT's patches
+    must divide it, DLA's trees need a multiple of 32)."""
     keys = ("backbone.name", "backbone.out_indices", "data.input_size", "model.feature_strides", "model.output_stride")
     values = tuple(_get(cfg, k) for k in keys)
     name, indices, size, wanted, output_stride = values
@@ -44,11 +45,14 @@ def check_feature_map(cfg: DictConfig) -> list[str]:
         return [problem("backbone.out_indices", f"stage indices of {name} from 0 to {n - 1} (strides "
                          f"{', '.join(map(str, strides))})", indices)]
     stride = max(strides[i] for i in indices)
-    if RULES["data.input_size"].test(size) is None and min(size) < stride:
+    if RULES["data.input_size"].test(size) is not None:
+        return []
+    if min(size) < stride:
         return [f"{problem('data.input_size', f'[height, width], both >= {stride}', size)}: the head reads the "
                 f"stride-{stride} feature map of {name} (backbone.out_indices {list(indices)}), which must have at "
                 f"least one row and one column"]
-    return []
+    why = input_size_problem(name, tuple(size), tuple(indices), output_stride)
+    return [f"backbone.name: {name} cannot take data.input_size=[{size[0]}, {size[1]}]: {why}"] if why else []
 
 
 def check_decode_options(cfg: DictConfig) -> list[str]:
