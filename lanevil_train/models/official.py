@@ -112,9 +112,21 @@ def load_official(model, state: dict, where: str) -> str:
         fit_weights(model, converted, where)
     except CheckpointError as error:
         raise CheckpointError(f"{error}; the file is an official {release.name} checkpoint ({recognised.what}): "
-                              f"run it with {recognised.config}") from None
+                              f"{_advice(recognised, spec)}") from None
     return (f"{where}: official {release.name} checkpoint ({recognised.what}), {len(converted)} tensors "
             f"converted to this network's names")
+
+
+def _advice(recognised: Recognised, spec: dict) -> str:
+    """What to run a file whose shapes do not fit this run's network with: its release's settings; and where this
+    run already has that release's family and backbone (it may be running those very settings), that a setting
+    given on top of them changes the network, since the release's own network fits the file."""
+    advice = f"run it with {recognised.config}, whose network has its shapes"
+    backbone = str(spec.get("backbone", {}).get("name", ""))
+    if recognised.config.startswith("experiment=") and f"backbone={backbone}" in recognised.config.split():
+        advice += ("; if this run is that already, a setting given on top of it (data.input_size, data.max_lanes, "
+                   "model.head.*) changes the network: drop it")
+    return advice
 
 
 def _fit_optional(converted: dict, own: dict, optional: tuple[str, ...]) -> dict:

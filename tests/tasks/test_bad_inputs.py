@@ -439,3 +439,34 @@ def test_a_plain_script_checkpoint_and_a_bare_state_dict_load_and_other_layouts_
     with pytest.raises(CheckpointError, match=rf"^ckpt_path={script}: a file of weights alone .* holds no training "
                                               rf"state to resume; .*task\.init_from={script}$"):
         train(_config(tmp_path, f"ckpt_path={script}"))
+
+
+# ----------------------------------------------------------------------------------------------- smaller messages
+
+def test_an_official_file_that_does_not_fit_the_run_it_names_says_a_setting_on_top_changes_it(tmp_path):
+    """The file's release is the very experiment and backbone this run has, but data.input_size on top of it
+    changes the network: the message says so, rather than only advising the command already run."""
+    from lanevil_train.tasks.builders import checkpoint_model
+
+    weights, _ = _official_ufld(tmp_path)
+    path = tmp_path / "tusimple_18.pth"
+    torch.save({"model": weights}, path)
+    with pytest.raises(CheckpointError) as caught:
+        checkpoint_model(composed(["task=evaluate", "experiment=official_ufld_tusimple", "backbone=resnet18",
+                                   "data.input_size=[144,400]", f"ckpt_path={path}"]))
+    message = str(caught.value)
+    assert "head.cls.0.weight (2048, 1800) vs (2048, 520)" in message, message  # 5 x 13 cells x 8 channels
+    assert message.endswith("(the tusimple release, resnet18: 100 cells, 56 row anchors, 4 lanes): run it with "
+                            "experiment=official_ufld_tusimple backbone=resnet18, whose network has its shapes; if "
+                            "this run is that already, a setting given on top of it (data.input_size, "
+                            "data.max_lanes, model.head.*) changes the network: drop it"), message
+
+
+def test_an_anchor_frequency_file_of_another_anchor_set_names_the_file(tmp_path):
+    path = tmp_path / "tusimple_anchors_freq.pt"
+    torch.save(torch.ones(2782), path)
+    with pytest.raises(ValueError, match=rf"^model\.head\.anchor_frequency_file={path}: 2782 counts, and this head "
+                                         r"has \d+ anchors \(n_offsets 72, lateral_n None, bottom_n None at 64x160, "
+                                         r"data\.input_size\): the file was counted for another anchor set"):
+        build_model(model_config(_config(tmp_path, "model.head.topk_anchors=10",
+                                         f"+model.head.anchor_frequency_file={path}")))

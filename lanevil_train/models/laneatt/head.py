@@ -52,17 +52,22 @@ def _anchors_from_loaded_index(head: "LaneATTHead", incompatible_keys) -> None:
     head._set_anchors(head.anchor_index)
 
 
-def _read_frequency_file(path: str) -> np.ndarray:
+def _read_frequency_file(path: str, anchors: int, geometry: str) -> np.ndarray:
     """The counts per anchor saved in `path` (the official repository's data/<dataset>_anchors_freq.pt: a 1-D
-    tensor over the full anchor set, left, bottom, right), read weights-only."""
+    tensor over the full anchor set, left, bottom, right), read weights-only; one per anchor of the head's `anchors`
+    (its full set, which `geometry` says how it was made), else a ValueError naming the file."""
     from lanevil_train.checkpoints import load_checkpoint_file
 
+    where = f"model.head.anchor_frequency_file={path}"
     counts = load_checkpoint_file(path, "model.head.anchor_frequency_file")
     if not isinstance(counts, torch.Tensor) or counts.ndim != 1:
         is_tensor = isinstance(counts, torch.Tensor)
         found = f"a tensor of shape {tuple(counts.shape)}" if is_tensor else type(counts).__name__
-        raise ValueError(f"model.head.anchor_frequency_file={path}: expected a 1-D tensor of counts per anchor, got "
-                         f"{found}")
+        raise ValueError(f"{where}: expected a 1-D tensor of counts per anchor, got {found}")
+    if len(counts) != anchors:
+        raise ValueError(f"{where}: {len(counts)} counts, and this head has {anchors} anchors ({geometry}): the file "
+                         f"was counted for another anchor set; the official files fit the official input size and "
+                         f"anchor origins (lateral_n, bottom_n null)")
     return counts.double().numpy()
 
 
@@ -163,7 +168,9 @@ class LaneATTHead(LaneHead):
             if self.anchor_selection != "frequency":
                 raise ValueError("model.head.anchor_frequency_file: its counts choose the topk_anchors anchors; set "
                                  "anchor_selection=frequency and topk_anchors (the official: 1000)")
-            anchor_frequency = _read_frequency_file(anchor_frequency_file)
+            geometry = (f"n_offsets {n_offsets}, lateral_n {lateral_n}, bottom_n {bottom_n} at {h}x{w}, "
+                        f"data.input_size")
+            anchor_frequency = _read_frequency_file(anchor_frequency_file, len(self.all_anchors), geometry)
         if anchor_frequency is not None:
             self.use_frequency(anchor_frequency)
         self.register_load_state_dict_post_hook(_anchors_from_loaded_index)
