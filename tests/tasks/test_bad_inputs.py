@@ -399,6 +399,9 @@ def test_a_release_archive_is_read_at_its_last_epoch_or_the_named_member(tmp_pat
     check_config(composed(["task=evaluate", "experiment=official_ufld_tusimple", f"data.root={tmp_path}",
                            f"ckpt_path={named}"]))  # the config check takes ARCHIVE::member
     assert torch.equal(_loaded(tmp_path, named).state_dict()["backbone.conv1.weight"], weights[first] + 20)
+    with pytest.raises(CheckpointError, match=rf"^ckpt_path={release}: a checkpoint inside an archive cannot be "
+                                              rf"resumed .*task\.init_from={release}$"):
+        train(_config(tmp_path, f"ckpt_path={release}"))
     with pytest.raises(CheckpointError, match=rf"^ckpt_path={release}::models/model_0007\.pt: no member of that name; "
                                               r"its checkpoints: experiments/ufld_r18_tusimple/models/model_0005\.pt"):
         _loaded(tmp_path, f"{release}::models/model_0007.pt")
