@@ -111,7 +111,7 @@ def is_truncated_archive(path: str | Path) -> bool:
 
 def is_release_archive(path: Path) -> bool:
     """A zip archive that is not itself a torch.save file (whose pickle is <folder>/data.pkl beside its tensors)."""
-    if not _starts_like_zip(path) or not zipfile.is_zipfile(path):
+    if not path.is_file() or not _starts_like_zip(path) or not zipfile.is_zipfile(path):
         return False
     with zipfile.ZipFile(path) as archive:
         names = archive.namelist()
