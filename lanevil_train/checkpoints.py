@@ -71,8 +71,8 @@ def _load(source: Path | bytes, where: str) -> object:
     try:
         return torch.load(source if isinstance(source, Path) else io.BytesIO(source), map_location="cpu",
                           weights_only=True)
-    except Exception as error:  # noqa: BLE001 - every failure becomes one clear message below
-        del error  # its words depend on torch's version and advise loading the file unsafely: not passed on
+    except Exception:  # noqa: BLE001 - said below in our words: torch's change between versions and advise
+        pass           # loading the file unsafely
     objects = objects_not_loaded(source)
     if objects:
         shown = ", ".join(objects[:3]) + (f" and {len(objects) - 3} more" if len(objects) > 3 else "")
@@ -85,15 +85,13 @@ def _load(source: Path | bytes, where: str) -> object:
 
 def _reason(source: Path | bytes) -> str:
     """What is wrong with a file torch.load cannot read, in words, from its layout (torch.save writes a zip)."""
-    data = source if isinstance(source, bytes) else None
-    size = len(data) if data is not None else source.stat().st_size
-    stream = io.BytesIO(data) if data is not None else source
-    if _starts_like_zip(source) and not zipfile.is_zipfile(stream):
+    size = len(source) if isinstance(source, bytes) else source.stat().st_size
+    if not _starts_like_zip(source):
+        return f"its content is not a torch.save file ({size} bytes); expected a Lightning .ckpt or a torch.save file"
+    if not zipfile.is_zipfile(io.BytesIO(source) if isinstance(source, bytes) else source):
         return (f"it is truncated ({size} bytes: it starts like a torch.save archive but its end is missing; an "
                 f"interrupted save or copy leaves such a file)")
-    if _starts_like_zip(source):
-        return f"it is corrupt ({size} bytes: a zip archive whose content torch.load cannot read)"
-    return f"its content is not a torch.save file ({size} bytes); expected a Lightning .ckpt or a torch.save file"
+    return f"it is corrupt ({size} bytes: a zip archive whose content torch.load cannot read)"
 
 
 def _starts_like_zip(source: Path | bytes) -> bool:

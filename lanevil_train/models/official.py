@@ -85,8 +85,9 @@ def _first_weight(state: dict) -> str:
 
 
 def load_official(model, state: dict, where: str) -> str:
-    """Convert an official state dict and load it into `model` (strictly); returns the one line to log. Refuses a
-    file of no known release, of another family than the model's, or whose shapes do not fit this network."""
+    """Convert an official state dict and load it into `model` (strictly); returns the one line to log. Weights of no
+    release in this network's own names (a plain `torch.save(model.state_dict())`) load as they are. Refuses a file
+    of no known release, of another family than the model's, or whose shapes do not fit this network."""
     known = ", ".join(release.name for release in _releases())
     found = recognise(state)
     if found is None and state.keys() & model.state_dict().keys():  # weights in this project's own names
