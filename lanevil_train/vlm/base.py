@@ -73,11 +73,12 @@ class VLM(ABC):
     """A driving VLM: answers questions about clips.
 
     name: the model's label in tables; batch_size: how many (clip, question) pairs `answer` is given at once by
-    the evaluation loop.
+    the evaluation loop; reads_frames: whether it looks at the clips at all (the text-only baseline does not).
     """
 
     name: str = "vlm"
     batch_size: int = 1
+    reads_frames: bool = True  # False: answers from the text alone (an evaluation then loads no frames for it)
 
     @abstractmethod
     def answer(self, clips: Sequence[Frames], questions: Sequence[str]) -> list[str]:

@@ -109,3 +109,29 @@ def test_a_server_model_is_evaluated_on_a_built_suite_judged_and_reported_with_t
     assert [row["model"] for row in main] == ["fake-vlm", "tiny-qwen2-vl"]
     # the judge scored one run only: the common scores are Language and Accuracy
     assert "road_damage/Language/Perturbed" in main[0] and not any("GPT_score" in key for key in main[0])
+
+
+def test_the_text_only_baseline_and_the_visual_reliance_from_the_command_line(tmp_path):
+    """task.blind=all: the model, the same model on grey frames and the text-only reader (fitted on data.train's QA:
+    no frame rendered, no server request) answer every question; the tables hold all three and the visual reliance."""
+    out = tmp_path / "blind"
+    with FakeServer() as server:
+        run_in_process(["task=evaluate", "model=vlm/openai", f"model.base_url={server.url}", "model.name=fake-vlm",
+                        "task.suite=synthetic", "judge=none", f"task.out_dir={out}", "task.blind=all",
+                        "data.train.num_cases=12", *CLIPS], tmp_path / "run")
+        assert server.stats()["chat_requests"] == 2 * ANSWERS  # the model and its grey twin; the reader asks none
+    text = ResultsLog(out / "text" / "per_answer.jsonl").records()
+    assert len(text) == ANSWERS and {r["model"] for r in text} == {"fake-vlm-text"}
+    closed = [r for r in text if r["qa_type"] != "open"]
+    assert closed and all(r["answer"] in ("Yes", "No") if r["qa_type"] == "yes_no" else r["answer"] in "ABCD"
+                          for r in closed)
+    assert [row["model"] for row in json.loads((out / "main.json").read_text())] == [
+        "fake-vlm", "fake-vlm-blind", "fake-vlm-text"]
+    rows = json.loads((out / "visual_reliance.json").read_text())
+    total = rows[-1]
+    assert total["qa_category"] == "all" and total["yes_no/n"] + total["choice/n"] == len(closed)
+    assert total["yes_no/best_baseline"] in ("fake-vlm-blind", "fake-vlm-text")
+    assert "## Visual reliance: fake-vlm beside its blind baselines" in (out / "report.md").read_text()
+    with pytest.raises(Exception, match=r"task\.blind: expected true or false or one of grey, text, all, got 'txt'"):
+        run_in_process(["task=evaluate", "model=vlm/openai", f"model.base_url={server.url}", "model.name=fake-vlm",
+                        "task.suite=synthetic", "task.blind=txt", *CLIPS], tmp_path / "run2")

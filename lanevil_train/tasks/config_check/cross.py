@@ -123,6 +123,8 @@ def check_task_kind(cfg: DictConfig) -> list[str]:
 
 def check_vlm_task(cfg: DictConfig) -> list[str]:
     """A VLM is evaluated on clips (task=evaluate) or reported (task=report); its suite is a clip suite."""
+    if _get(cfg, "task.name") == "audit_qa":
+        return []  # it reads a QA file of any model's benchmark, never a model
     if not _is_vlm(cfg):
         suite = _get(cfg, "task.suite")
         if isinstance(suite, str) and (Path(suite) / "clips.jsonl").is_file():

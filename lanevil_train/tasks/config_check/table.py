@@ -196,7 +196,7 @@ RULES: dict[str, Rule] = {
     "task.init_from": null_or(checkpoint_file()),
     "task.suite": illusion_suite(),
     "task.label": null_or(text()),
-    "task.blind": boolean(),
+    "task.blind": any_of(boolean(), one_of("grey", "text", "all")),  # VLMs: true is grey (tasks/vlm/evaluate.py)
     "task.baseline": null_or(text()),
     "task.runs": string_list(),
     "task.defenses": defense_names(),
@@ -213,6 +213,10 @@ RULES: dict[str, Rule] = {
     "task.decode.conf_threshold": null_or(number(0, 1)),
     "task.decode.nms_threshold": null_or(number(0)),
     "task.decode.nms_topk": null_or(integer(1)),
+    # task=audit_qa
+    "task.folds": integer(2),
+    "task.min_count": integer(2),
+    "task.alpha": number(0, 1, low_open=True, high_open=True),
     # task=closed_loop
     "task.policy": null_or(one_of("detector", "truth", "vlm")),
     "task.models": null_or(checkpoint_mapping()),

@@ -18,14 +18,17 @@ from omegaconf import DictConfig, open_dict
 from lanevil_train.evaluation.results import log_results, write_results
 from lanevil_train.evaluation.streaming import claim_results
 from lanevil_train.files.atomic import atomic_write_text
-from lanevil_train.tasks.builders import build_logger, output_dir
+from lanevil_train.progress import progress_counter
+from lanevil_train.tasks.builders import build_logger, build_split, output_dir
 from lanevil_train.tasks.vlm.builders import (
     add_defense_to_report,
     build_defended_vlm,
     build_judge,
     clip_suite,
 )
+from lanevil_train.vlm.backends.text_only import TextOnlyReader, TextOnlyVLM
 from lanevil_train.vlm.base import VLM, BlindVLM
+from lanevil_train.vlm.clips.qa_records import QA_CATEGORIES
 from lanevil_train.vlm.scoring.evaluation import ANSWERS, PER_ANSWER, evaluate_clips
 
 
@@ -39,22 +42,55 @@ def evaluate_vlm(cfg: DictConfig) -> float:
     """Evaluate the VLM; returns its headline score (the judge's, else Language) over the perturbed answers."""
     pl.seed_everything(cfg.seed, workers=True)
     dataset, dataset_name = clip_suite(cfg)  # read and checked before the model is loaded
+    reader = text_reader(cfg) if "text" in blind_kinds(cfg) else None  # the text-only baseline: fitted first
     out = Path(cfg.task.out_dir) if cfg.task.out_dir else output_dir(cfg)
     vlm = build_defended_vlm(cfg)  # defense=pat++ defense.prefix_path=...: the tuned prefix before every question
     judge = build_judge(cfg, out)
     name = cfg.task.label or vlm.name
     results = evaluate_into(vlm, dataset, judge, out, {"model": name, "dataset": dataset_name}, cfg.progress)
-    files = [results]
-    if cfg.task.get("blind"):  # the same questions on grey frames, reported beside the model
-        blind = BlindVLM(vlm)
-        files.append(evaluate_into(blind, dataset, judge, out / "blind",
-                                   {"model": f"{name}-blind", "dataset": dataset_name}, cfg.progress))
+    files = [results, *blind_baselines(cfg, vlm, reader, dataset, judge, out, name, dataset_name)]
     value = write_results(files, out, baseline=cfg.task.baseline)
+    write_visual_reliance(files, out)
     add_defense_to_report(out, vlm)
     write_language_summary(files, out)
     write_worst_answers(results, out)
     log_results(build_logger(cfg), out)
     return value
+
+
+# task.blind: which blind baselines answer the same questions beside the model (true: the grey frames, as before)
+BLIND_KINDS = {"false": (), "true": ("grey",), "grey": ("grey",), "text": ("text",), "all": ("grey", "text")}
+
+
+def blind_kinds(cfg: DictConfig) -> tuple[str, ...]:
+    return BLIND_KINDS[str(cfg.task.get("blind") or False).lower()]
+
+
+def text_reader(cfg: DictConfig) -> TextOnlyReader:
+    """The text-only reader fitted on the QA of data.train (question and options only: no frame is rendered),
+    checked before any question is asked."""
+    train = build_split(cfg, "train")
+    bases = list(dict.fromkeys(train.clip_meta(i)["base_clip_id"] for i in range(len(train))))
+    qas, bar = [], progress_counter(len(bases), desc="text-only reader: train QA", unit="base clip", mode=cfg.progress)
+    for base in bases:
+        qas += train.qa_for(base)
+        bar.update(1)
+    bar.close()
+    return TextOnlyReader().fit(qas)
+
+
+def blind_baselines(cfg: DictConfig, vlm: VLM, reader: TextOnlyReader | None, dataset, judge, out: Path, name: str,
+                    dataset_name: str) -> list[Path]:
+    """The results files of the blind baselines task.blind asks for, each asked every question the model is: the
+    model on grey frames (`<name>-blind`, in out/blind) and the text-only reader (`<name>-text`, in out/text)."""
+    files = []
+    if "grey" in blind_kinds(cfg):
+        files.append(evaluate_into(BlindVLM(vlm), dataset, judge, out / "blind",
+                                   {"model": f"{name}-blind", "dataset": dataset_name}, cfg.progress))
+    if "text" in blind_kinds(cfg):
+        files.append(evaluate_into(TextOnlyVLM(reader, f"{name}-text"), dataset, judge, out / "text",
+                                   {"model": f"{name}-text", "dataset": dataset_name}, cfg.progress))
+    return files
 
 
 def evaluate_into(vlm: VLM, dataset, judge, out: Path, label: dict, progress: str) -> Path:
@@ -64,6 +100,35 @@ def evaluate_into(vlm: VLM, dataset, judge, out: Path, label: dict, progress: st
         path = out / name
         claim_results(path, identity, resuming=path.is_file() and path.stat().st_size > 0)
     return evaluate_clips(vlm, dataset, out, label, judge=judge, progress=progress)
+
+
+def write_visual_reliance(results: list[Path], out: Path) -> Path | None:
+    """visual_reliance.{json,md} and a section of report.md: the model's (results[0]) yes/no and choice accuracy
+    beside its blind baselines' (the other files) and the reliance on the frames with intervals
+    (report/reliance.py); None without a baseline."""
+    from lanevil_train.evaluation.scoring import read_records
+    from lanevil_train.report.reliance import reliance_markdown, reliance_rows
+
+    if len(results) < 2:
+        return None
+    model = read_records(results[0], keep_lanes=False)
+    baselines = {}
+    for path in results[1:]:
+        records = read_records(path, keep_lanes=False)
+        baselines[records[0]["model"] if records else path.parent.name] = records
+    rows = reliance_rows(model, baselines, order=QA_CATEGORIES)
+    names = list(baselines)
+    section = (f"## Visual reliance: {model[0]['model'] if model else 'the model'} beside its blind baselines\n\n"
+               f"Accuracy (%) on every answer (clean and perturbed clips); reliance = the model minus the better "
+               f"blind baseline, with a paired bootstrap 95 % interval over the scenes (* : it excludes 0).\n\n"
+               f"{reliance_markdown(rows, names)}")
+    atomic_write_text(out / "visual_reliance.json", json.dumps(rows, indent=1) + "\n")
+    atomic_write_text(out / "visual_reliance.md", f"# {section[3:]}")
+    report = out / "report.md"
+    if report.is_file():
+        atomic_write_text(report, f"{report.read_text().rstrip()}\n\n{section}")
+    print(section)
+    return out / "visual_reliance.md"
 
 
 def _cell(text: str) -> str:
@@ -128,17 +193,16 @@ def write_language_summary(results: list[Path], out: Path) -> Path:
 
 def test_vlm(cfg: DictConfig, vlm, name: str, out: Path) -> float:
     """The VLM on the test clips (task.suite, else task.cases scenes of data=clips' test split, rendered on the
-    fly), with its blind baseline when task.blind: the tables of task=evaluate in out/."""
-    from lanevil_train.vlm.base import BlindVLM
-
+    fly), with the blind baselines task.blind asks for: the tables of task=evaluate in out/."""
     if cfg.task.suite is None:  # not the whole test split: the task.cases scenes of it, rendered on the fly
         cfg = cfg.copy()
         with open_dict(cfg):
             cfg.task.suite = "synthetic"
     dataset, dataset_name = clip_suite(cfg)
     judge = build_judge(cfg, out)
-    files = [evaluate_into(vlm, dataset, judge, out, {"model": name, "dataset": dataset_name}, cfg.progress)]
-    if cfg.task.get("blind"):
-        files.append(evaluate_into(BlindVLM(vlm), dataset, judge, out / "blind",
-                                   {"model": f"{name}-blind", "dataset": dataset_name}, cfg.progress))
-    return write_results(files, out)
+    reader = text_reader(cfg) if "text" in blind_kinds(cfg) else None
+    files = [evaluate_into(vlm, dataset, judge, out, {"model": name, "dataset": dataset_name}, cfg.progress),
+             *blind_baselines(cfg, vlm, reader, dataset, judge, out, name, dataset_name)]
+    value = write_results(files, out)
+    write_visual_reliance(files, out)
+    return value

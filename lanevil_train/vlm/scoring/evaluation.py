@@ -65,11 +65,12 @@ def _ask(vlm: VLM, dataset, pairs: list[tuple[int, dict, dict]], answers: dict[s
     todo = [p for p in pairs if pair_key(p[1]["clip_id"], p[2]["qa_id"]) not in answers]
     frames: dict[int, list] = {}
     step = max(1, int(getattr(vlm, "batch_size", 1) or 1))
+    reads = getattr(vlm, "reads_frames", True)
     for start in range(0, len(todo), step):
         batch = todo[start:start + step]
         for index, _, _ in batch:
             if index not in frames:
-                frames[index] = dataset[index]["frames"]
+                frames[index] = dataset[index]["frames"] if reads else []  # a text-only model: nothing rendered
         clips = [frames[index] for index, _, _ in batch]
         for i, text in vlm.answer_stream(clips, [prompt_text(qa) for _, _, qa in batch]):
             _, meta, qa = batch[i]
