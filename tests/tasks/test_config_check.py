@@ -64,6 +64,8 @@ def needs(group: str, option: str, files: Path) -> list[str]:
     if (group == "data" and option in ("tusimple", "culane", "llamas")) or \
             (group == "experiment" and option.startswith(("paper_", "official_"))):
         return [f"data.root={files / 'dataset'}"]
+    if group == "task" and option == "audit_qa":  # the QA file to audit
+        return ["task.suite=synthetic"]
     if group == "task" and option in ("evaluate", "cross_domain", "closed_loop"):
         return [f"ckpt_path={files / 'model.ckpt'}"]
     if group == "backbone" and option == "dla34":  # its trees add maps that a size of no multiple of 32 misaligns:
