@@ -10,8 +10,8 @@ import pytorch_lightning as pl
 from omegaconf import DictConfig
 
 from lanevil_train.checkpoints import (
+    ARCHIVE_MEMBER,
     CheckpointError,
-    archive_path,
     is_release_archive,
     load_checkpoint_file,
     load_weights,
@@ -50,7 +50,7 @@ def train(cfg: DictConfig) -> float | None:
     # so a corrupt file or another network is reported before any data is read or any step runs
     # (task.init_from: its weights only, to fine-tune; ckpt_path: Lightning then restores the whole training state)
     if cfg.ckpt_path is not None:
-        if str(archive_path(cfg.ckpt_path)) != str(cfg.ckpt_path) or is_release_archive(Path(cfg.ckpt_path)):
+        if ARCHIVE_MEMBER in str(cfg.ckpt_path) or is_release_archive(Path(cfg.ckpt_path)):
             raise CheckpointError(f"ckpt_path={cfg.ckpt_path}: a checkpoint inside an archive cannot be resumed "
                                   f"(Lightning reads the training state from the file itself): extract it, or start "
                                   f"a run from its weights with task.init_from={cfg.ckpt_path}")
