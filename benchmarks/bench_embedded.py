@@ -45,9 +45,10 @@ from lanevil_train.vlm.backends.embedded import (
 from lanevil_train.vlm.backends.hf import HFVLM
 from lanevil_train.vlm.clips import clips as geometry
 from lanevil_train.vlm.clips.clip_set import SEGMENTS, base_clip_id
-from lanevil_train.vlm.clips.qa import make_qa, scene_classes, training_aids
+from lanevil_train.vlm.clips.qa import scene_classes, training_aids
 from lanevil_train.vlm.clips.qa_facts import WEATHER_TEXT
 from lanevil_train.vlm.clips.qa_records import answer_is_correct, chosen_letter, prompt_text
+from lanevil_train.vlm.clips.suite_qa import suite_qa
 
 TEST_FIRST_SEED = 1_000_000
 CHUNK = 25  # cases per cache file
@@ -56,16 +57,15 @@ CHUNK = 25  # cases per cache file
 # ---------------------------------------------------------------------------------------------- clips
 
 def _render_case(args) -> list[dict]:
-    """The 3 base clips of one case: frames [2, 6, H, W, 3] (clean, perturbed at the case's severity) and QA."""
+    """The 3 base clips of one case: frames [2, 6, H, W, 3] (clean, perturbed at the case's severity)."""
     case, size = args
     severity = 1 + case.seed % 5
     out = []
     for segment in SEGMENTS:
         base = base_clip_id(case, segment)
-        truth = geometry.clip_truth(case, segment, size=size)
         rendered = geometry.render_clip(case, segment, [0, severity], size=size)
         out.append({"frames": np.stack([np.stack(rendered[0]), np.stack(rendered[severity])]),
-                    "qa": make_qa(truth, base, case.seed), "severity": severity, "base_clip_id": base})
+                    "severity": severity, "base_clip_id": base})
     return out
 
 
@@ -90,16 +90,17 @@ def load_split(first_seed: int, num_cases: int, size: tuple[int, int], cache: Pa
 
 
 def add_truth_facts(clips: list[dict], first_seed: int, size: tuple[int, int], cache: Path) -> None:
-    """Give each base clip its training-only QA (qa.training_aids: the scene description and the open questions
-    naming its facts) and scene classes (qa.scene_classes, what the vision tower is pretrained on), cached as JSON."""
-    path = cache / f"aids_{size[0]}x{size[1]}_{first_seed}_{len(clips) // len(SEGMENTS)}.json"
+    """Give each base clip its QA (planned over the split, suite_qa.suite_qa), its training-only QA (qa.training_aids:
+    the scene description and the open questions naming its facts) and scene classes (qa.scene_classes, what the
+    vision tower is pretrained on), cached as JSON."""
+    path = cache / f"facts_qa2_{size[0]}x{size[1]}_{first_seed}_{len(clips) // len(SEGMENTS)}.json"
     if not path.is_file():
         cases = geometry.clip_cases(len(clips) // len(SEGMENTS), first_seed, list(ILLUSION_NAMES))
-        facts = {}
-        for case in cases:
-            for segment in SEGMENTS:
-                base, truth = base_clip_id(case, segment), geometry.clip_truth(case, segment, size=size)
-                facts[base] = {"aids": training_aids(truth, base), "classes": scene_classes(truth, base)}
+        truths = [(base_clip_id(case, segment), case.seed, geometry.clip_truth(case, segment, size=size))
+                  for case in cases for segment in SEGMENTS]
+        planned = suite_qa(truths)
+        facts = {base: {"qa": planned[base], "aids": training_aids(truth, base), "classes": scene_classes(truth, base)}
+                 for base, _, truth in truths}
         atomic_write_text(path, json.dumps(facts))
     facts = json.loads(path.read_text())
     for clip in clips:

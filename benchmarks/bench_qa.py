@@ -1,6 +1,7 @@
-"""QA generation rate: QA per second from scene-truth dicts (vlm/clips/qa.make_qa), truths taken from the real renderer.
+"""QA planning rate: QA per second planned for a suite from its scene-truth dicts (vlm/clips/suite_qa.suite_qa),
+truths taken from the real renderer.
 
-    python benchmarks/bench_qa.py [--cases 20] [--repeat 200]
+    python benchmarks/bench_qa.py [--cases 200] [--repeat 5]
 """
 
 from __future__ import annotations
@@ -10,24 +11,23 @@ import time
 
 from lanevil_train.taxonomy import ILLUSION_NAMES
 from lanevil_train.vlm.clips.clips import SEGMENTS, clip_cases, clip_truth
-from lanevil_train.vlm.clips.qa import make_qa
+from lanevil_train.vlm.clips.suite_qa import suite_qa
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--cases", type=int, default=20)
-    parser.add_argument("--repeat", type=int, default=200)
+    parser.add_argument("--cases", type=int, default=200)
+    parser.add_argument("--repeat", type=int, default=5)
     args = parser.parse_args()
-    truths = [(clip_truth(case, segment, size=(90, 160)), f"{case.case_id}-{segment}", case.seed)
-              for case in clip_cases(args.cases, 1000000, list(ILLUSION_NAMES)) for segment in SEGMENTS]
     start = time.perf_counter()
-    count = 0
-    for r in range(args.repeat):
-        for truth, base, seed in truths:
-            count += len(make_qa(truth, base, seed + r))
+    clips = [(f"{case.case_id}-{segment}", case.seed, clip_truth(case, segment, size=(90, 160)))
+             for case in clip_cases(args.cases, 1000000, list(ILLUSION_NAMES)) for segment in SEGMENTS]
+    truth_s = time.perf_counter() - start
+    start = time.perf_counter()
+    count = sum(len(qas) for _ in range(args.repeat) for qas in suite_qa(clips).values())
     elapsed = time.perf_counter() - start
-    print(f"QA generation: {count} QA from {len(truths)} clip truths x {args.repeat} seeds in {elapsed:.2f} s = "
-          f"{count / elapsed:,.0f} QA/s ({count / 5 / elapsed:,.0f} clips/s)")
+    print(f"scene truth: {len(clips)} base clips in {truth_s:.2f} s; QA planning: {count} QA over {args.repeat} "
+          f"plans of the suite in {elapsed:.2f} s = {count / elapsed:,.0f} QA/s")
 
 
 if __name__ == "__main__":

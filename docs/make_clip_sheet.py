@@ -13,10 +13,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from lanevil_train.vlm.clips.clips import SEGMENTS, ClipCase, clip_truth, render_clip
-from lanevil_train.vlm.clips.qa import make_qa
+from lanevil_train.taxonomy import ILLUSION_NAMES
+from lanevil_train.vlm.clips.clips import SEGMENTS, ClipCase, clip_cases, clip_truth, render_clip
+from lanevil_train.vlm.clips.suite_qa import suite_qa
 
 DOCS = Path(__file__).resolve().parent
+SUITE_CASES = 100
 
 
 def labelled_row(frames: list[np.ndarray], label: str, gap: int = 4) -> np.ndarray:
@@ -38,9 +40,16 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=DOCS / "clips.png")
     args = parser.parse_args()
     size = tuple(int(v) for v in args.size.split("x"))
-    rows, qa_lines = [], ["# QA of the clips in clips.png", ""]
-    for i, illusion in enumerate(args.cases):
-        case = ClipCase(f"clip-{args.first_seed + i}", args.first_seed + i, illusion)
+    rows, qa_lines = [], ["# QA of the clips in clips.png", "",
+                          f"Planned as the first cases of a suite of {SUITE_CASES} (vlm/clips/suite_qa.py: a closed "
+                          f"question is asked only where its suite answers it both ways).", ""]
+    cases = [ClipCase(f"clip-{args.first_seed + i}", args.first_seed + i, illusion)
+             for i, illusion in enumerate(args.cases)]
+    suite = cases + clip_cases(SUITE_CASES - len(cases), args.first_seed + len(cases), list(ILLUSION_NAMES))
+    planned = suite_qa([(f"{case.case_id}-{segment}", case.seed, clip_truth(case, segment, size=size))
+                        for case in suite for segment in SEGMENTS])
+    for case in cases:
+        illusion = case.illusion
         for segment in SEGMENTS:
             frames = render_clip(case, segment, [0, 5], size=size)
             rows.append(labelled_row(frames[0], f"{illusion} {segment}: clean"))
@@ -48,8 +57,7 @@ def main() -> None:
             rows.append(np.full((8, rows[-1].shape[1], 3), 255, np.uint8))
             qa_lines.append(f"## {illusion}, {segment}")
             qa_lines.append("")
-            truth = clip_truth(case, segment, size=size)
-            for qa in make_qa(truth, f"{case.case_id}-{segment}", case.seed):
+            for qa in planned[f"{case.case_id}-{segment}"]:
                 choices = f" ({' / '.join(qa['choices'])})" if qa["type"] == "choice" else ""
                 qa_lines.append(f"- *{qa['category']}, {qa['type']}*: {qa['question']}{choices} — **{qa['answer']}**")
             qa_lines.append("")

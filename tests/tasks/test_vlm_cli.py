@@ -114,14 +114,15 @@ def test_a_server_model_is_evaluated_on_a_built_suite_judged_and_reported_with_t
 def test_the_text_only_baseline_and_the_visual_reliance_from_the_command_line(tmp_path):
     """task.blind=all: the model, the same model on grey frames and the text-only reader (fitted on data.train's QA:
     no frame rendered, no server request) answer every question; the tables hold all three and the visual reliance."""
-    out = tmp_path / "blind"
+    out, cases = tmp_path / "blind", 4  # one case alone answers few closed questions both ways: they are open
+    answers = ANSWERS * cases
     with FakeServer() as server:
         run_in_process(["task=evaluate", "model=vlm/openai", f"model.base_url={server.url}", "model.name=fake-vlm",
                         "task.suite=synthetic", "judge=none", f"task.out_dir={out}", "task.blind=all",
-                        "data.train.num_cases=12", *CLIPS], tmp_path / "run")
-        assert server.stats()["chat_requests"] == 2 * ANSWERS  # the model and its grey twin; the reader asks none
+                        "data.train.num_cases=12", *CLIPS, f"task.cases={cases}"], tmp_path / "run")
+        assert server.stats()["chat_requests"] == 2 * answers  # the model and its grey twin; the reader asks none
     text = ResultsLog(out / "text" / "per_answer.jsonl").records()
-    assert len(text) == ANSWERS and {r["model"] for r in text} == {"fake-vlm-text"}
+    assert len(text) == answers and {r["model"] for r in text} == {"fake-vlm-text"}
     closed = [r for r in text if r["qa_type"] != "open"]
     assert closed and all(r["answer"] in ("Yes", "No") if r["qa_type"] == "yes_no" else r["answer"] in "ABCD"
                           for r in closed)

@@ -19,7 +19,6 @@ from lanevil_train.vlm.clips.clip_set import (
     build_clip_set,
     kept_questions,
     suite_base_clips,
-    suite_qa,
     variant_records,
 )
 from lanevil_train.vlm.clips.clips import (
@@ -32,7 +31,7 @@ from lanevil_train.vlm.clips.clips import (
     segment_positions,
     suite_cases,
 )
-from lanevil_train.vlm.clips.qa import case_plan, make_qa
+from lanevil_train.vlm.clips.suite_qa import suite_qa
 from tests.vlm.truth_fixture import truth
 
 SIZE = (48, 80)
@@ -122,35 +121,50 @@ def test_the_pair_variant_draws_the_second_illusion_over_the_first():
 
 
 def test_corruption_suite_qa_leaves_out_what_the_frames_no_longer_show():
-    """A kept question's template works on a truth without the illusion, weather and light (so it cannot read the
-    illusion, which is not drawn, nor what weather and brightness corruptions change); a left-out one needs them."""
-    from lanevil_train.vlm.clips.qa import KINDS
+    """A corruption suite asks only kinds that work on a truth without the illusion, weather and light (so they
+    cannot read the illusion, which is not drawn, nor what weather and brightness corruptions change); the others
+    need them. Slots whose category keeps no open kind are left out, the others keep their numbers."""
+    from lanevil_train.vlm.clips.qa import OPEN_KINDS
+    from lanevil_train.vlm.clips.qa_closed import CLOSED_KINDS
+    from lanevil_train.vlm.clips.suite_qa import allowed_kinds
 
+    hidden = ("illusion", "illusion_lane", "category", "weather", "wet", "night")
+    blind = {k: v for k, v in truth().items() if k not in hidden}
+    for kinds in [*CLOSED_KINDS.values(), *OPEN_KINDS.values()]:
+        for kind in kinds:
+            args = (blind,) if kinds in CLOSED_KINDS.values() else (blind, np.random.default_rng(0))
+            if kind in allowed_kinds(kinds, "corruptions"):
+                kind(*args)
+            else:
+                with pytest.raises(KeyError):
+                    kind(*args)
+    assert allowed_kinds(OPEN_KINDS["object_recognition"], "corruptions") == ()
+    clips = [(f"c{s}-{g}", s, truth(segment=g, num_lanes=2 + s % 3, ego_lane=0, curvature_sign=s % 3 - 1,
+                                    markings=[("white_solid", "yellow_solid", "white_dashed")[s % 3]] * (3 + s % 3)))
+             for s in range(40) for g in SEGMENTS]
+    ours = suite_qa(clips, 5, "corruptions")
     kept_total = 0
-    for seed in range(40):
-        for segment in SEGMENTS:
-            plan = case_plan(seed, 5)[segment]
-            kept = kept_questions("corruptions", seed, segment, 5)
-            assert kept_questions("illusions", seed, segment, 5) == kept_questions("combined", seed, segment, 5) \
-                == tuple(range(5))
-            assert all(plan[k][0] != "object_recognition" for k in kept)
-            blind = {k: v for k, v in truth(segment=segment).items()
-                     if k not in ("illusion", "illusion_lane", "category", "weather", "wet", "night")}
-            for k, (category, index, _) in enumerate(plan):
-                template = KINDS[category][index]
-                if k in kept:
-                    template(blind, np.random.default_rng(seed))
-                else:
-                    with pytest.raises(KeyError):
-                        template(blind, np.random.default_rng(seed))
-            kept_total += len(kept)
-            full = make_qa(truth(segment=segment), f"c-{segment}", seed, 5)
-            ours = suite_qa(truth(segment=segment), f"c-{segment}", seed, 5, "corruptions")
-            assert ours == [full[k] for k in kept]  # the same records, numbered as in the other suites
-    assert 0.3 < kept_total / (40 * 3 * 5) < 0.6
+    for base, seed, t in clips:
+        kept = kept_questions("corruptions", seed, t["segment"], 5)
+        assert kept_questions("illusions", seed, t["segment"], 5) == kept_questions("combined", seed, t["segment"],
+                                                                                    5) == tuple(range(5))
+        assert [int(qa["qa_id"].rsplit("-q", 1)[1]) for qa in ours[base]] == list(kept)
+        seen_blind = {**t, **{k: None for k in hidden}}
+        for qa in ours[base]:
+            assert qa["category"] != "object_recognition"
+            if qa["type"] == "open":
+                said = {kind(t, np.random.default_rng(r))["question"] for r in range(20)
+                        for kind in allowed_kinds(OPEN_KINDS[qa["category"]], "corruptions")}
+            else:
+                said = {c["template"] for kind in allowed_kinds(CLOSED_KINDS[qa["category"]], "corruptions")
+                        for c in kind(seen_blind)}
+            assert qa["question"] in said, qa
+        kept_total += len(kept)
+    assert sum(qa["type"] != "open" for qas in ours.values() for qa in qas) >= 100
+    assert 0.5 < kept_total / (40 * 3 * 5) < 0.95
     cases = [ClipCase(f"c{s}", s, "road_crack") for s in range(40)]
     assert len(suite_base_clips(cases, "corruptions")) == sum(bool(kept_questions("corruptions", s, g, 5))
-                                                              for s in range(40) for g in SEGMENTS) < 120
+                                                              for s in range(40) for g in SEGMENTS)
     assert len(suite_base_clips(cases, "illusions")) == 120
 
 
@@ -218,7 +232,7 @@ def test_prepare_renders_in_worker_processes_what_the_suite_gives_one_by_one():
     suite = SyntheticClipSuite(2, 40, ["rail_shadow", "vehicle"], severities=[2, 4], size=(32, 48))
     bases = list(dict.fromkeys(suite.clip_meta(i)["base_clip_id"] for i in range(len(suite))))
     rendered = suite.prepare(bases[1:], render=[bases[4], bases[2]], workers=2, progress="none")
-    assert list(rendered) == [bases[4], bases[2]] and set(suite._qa) == set(bases[1:])
+    assert list(rendered) == [bases[4], bases[2]] and set(suite._truths) == set(bases[1:])
     fresh = SyntheticClipSuite(2, 40, ["rail_shadow", "vehicle"], severities=[2, 4], size=(32, 48))
     for base in bases[1:]:
         assert suite.qa_for(base) == fresh.qa_for(base) and suite.lanes_for(base) == fresh.lanes_for(base)

@@ -1,53 +1,58 @@
-"""QA from the simulator's truth: categories, reference answers true to the scene, the accuracy rule."""
+"""QA from the simulator's truth: categories, reference answers true to the scene, the accuracy rule, and a suite
+whose wordings give no answer away (each yes/no template as often Yes as No, choice options evenly right,
+counterfactual twins asked in the same words)."""
 
 from __future__ import annotations
 
-import itertools
+from collections import Counter, defaultdict
 
 import numpy as np
 import pytest
 
 from lanevil_train.vlm.clips import qa as qa_module
-from lanevil_train.vlm.clips.qa import clip_categories, make_qa
+from lanevil_train.vlm.clips import qa_closed
+from lanevil_train.vlm.clips.qa import clip_categories
+from lanevil_train.vlm.clips.qa_facts import CUE_GROUP, ILLUSION_FACTS, NATURE
 from lanevil_train.vlm.clips.qa_records import QA_CATEGORIES, answer_is_correct, chosen_letter
+from lanevil_train.vlm.clips.suite_qa import suite_qa
 from tests.vlm.truth_fixture import truth
 
 SEGMENTS = ("before", "over", "alongside")
 
 
-def all_kinds(t: dict, seeds=range(40)) -> list[dict]:
-    """Every question kind's output over many rng draws (phrasings and options vary with the rng)."""
-    out = []
-    for kinds in qa_module.KINDS.values():
-        for kind, seed in itertools.product(kinds, seeds):
-            out.append(kind(t, np.random.default_rng(seed)))
-    return out
+def candidates(t: dict) -> dict[str, dict]:
+    """Every closed question a clip of truth `t` could be asked, by template."""
+    return {c["template"]: c for kinds in qa_closed.CLOSED_KINDS.values() for kind in kinds for c in kind(t)}
+
+
+def opens(t: dict, seeds=range(20)) -> list[dict]:
+    return [kind(t, np.random.default_rng(s)) for kinds in qa_module.OPEN_KINDS.values() for kind in kinds
+            for s in seeds]
 
 
 def test_five_qa_per_clip_and_one_case_covers_all_six_categories():
-    suite = [qa for seg in SEGMENTS for qa in make_qa(truth(segment=seg), f"case-{seg}", seed=7)]
-    assert len(suite) == 15
-    assert {qa["category"] for qa in suite} == set(QA_CATEGORIES)
+    planned = suite_qa([(f"case-{seg}", 7, truth(segment=seg)) for seg in SEGMENTS])
+    every = [qa for seg in SEGMENTS for qa in planned[f"case-{seg}"]]
+    assert len(every) == 15 and {qa["category"] for qa in every} == set(QA_CATEGORIES)
     for seg in SEGMENTS:
-        clip = [qa for qa in suite if qa["base_clip_id"] == f"case-{seg}"]
+        clip = planned[f"case-{seg}"]
         assert len({qa["category"] for qa in clip}) == 5
         assert [qa["qa_id"] for qa in clip] == [f"case-{seg}-q{k}" for k in range(5)]
+        assert all(qa["template"] == qa["question"] for qa in clip)
     missing = [set(QA_CATEGORIES) - set(clip_categories(7, seg, 5)) for seg in SEGMENTS]
     assert len(set().union(*missing)) == 3  # each segment leaves out a different category
+    # one case alone answers a closed template both ways only where its segments differ (where the car is)
+    closed = {qa["template"] for qa in every if qa["type"] != "open"}
+    answers = {t: {str(candidates(truth(segment=seg)).get(t)) for seg in SEGMENTS} for t in closed}
+    assert all(len(said) >= 2 for said in answers.values()), answers
 
 
-def test_deterministic_given_seed_and_different_for_another_seed():
-    t = truth()
-    assert make_qa(t, "c", 3) == make_qa(dict(t), "c", 3)
-    assert any(make_qa(t, "c", s) != make_qa(t, "c", 3) for s in range(4, 10))
-
-
-def test_categories_are_not_one_fixed_sentence():
-    questions = {c: set() for c in QA_CATEGORIES}
-    for seed, seg in itertools.product(range(30), SEGMENTS):
-        for qa in make_qa(truth(segment=seg), "c", seed):
-            questions[qa["category"]].add(qa["question"])
-    assert all(len(q) >= 4 for q in questions.values()), {c: len(q) for c, q in questions.items()}
+def test_deterministic_given_the_suite_and_different_for_another():
+    clips = [(f"c{s}-{seg}", s, truth(segment=seg, num_lanes=2 + s % 4, ego_lane=0, markings=["white_solid"] *
+                                      (3 + s % 4), night=bool(s % 3 == 0), illusion=list(CUE_GROUP)[s % 14]))
+             for s in range(30) for seg in SEGMENTS]
+    assert suite_qa(clips) == suite_qa([(b, s, dict(t)) for b, s, t in clips])
+    assert suite_qa(clips) != suite_qa(clips[3:])
 
 
 @pytest.mark.parametrize("lanes", [2, 3, 4, 5])
@@ -55,52 +60,87 @@ def test_lane_count_is_the_renderers_lane_count(lanes):
     t = truth(num_lanes=lanes, ego_lane=0, markings=["yellow_solid"] + ["white_dashed"] * (lanes - 1) +
               ["white_solid"])
     words = {2: "two", 3: "three", 4: "four", 5: "five"}
-    counts = [qa for qa in all_kinds(t) if qa["question"].startswith(("How many", "Count the"))]
-    assert {qa["type"] for qa in counts} == {"open", "choice"}
-    for qa in counts:
-        assert words[lanes] in qa["answer"].lower()
-        if qa["type"] == "choice":
-            assert answer_is_correct(qa, f"{words[lanes].capitalize()} lanes.")
-            assert not answer_is_correct(qa, f"{words[2 + (lanes - 1) % 4].capitalize()} lanes.")
-
-
-def test_marking_versus_shadow_question_is_answered_by_the_illusion():
-    for illusion, lane, looks, real in (("rail_shadow", "left", "dark straight line in the left lane", "rail"),
-                                        ("road_crack", "ego", "dark jagged line in the ego lane", "crack")):
-        qas = [qa for qa in all_kinds(truth(illusion=illusion, illusion_lane=lane))
-               if qa["category"] == "lane_recognition" and looks in qa["question"]]
-        assert qas and all(qa["type"] == "yes_no" and real in qa["answer"] for qa in qas)
-        asks_marking = [qa for qa in qas if qa["question"].endswith(qa_module.MARKING_QUESTIONS_NO)]
-        assert asks_marking and all(qa["answer"].startswith("No.") for qa in asks_marking)
-        others = [qa for qa in qas if qa not in asks_marking]  # "... really the shadow of ...?", "... ignored ...?"
-        assert others and all(qa["answer"].startswith("Yes.") for qa in others)
-    paper = [qa for qa in all_kinds(truth()) if qa["question"] ==
-             "Is the dark straight line in the left lane a lane marking?"]
-    assert paper and paper[0]["answer"].startswith("No. It is the shadow of a rail")
+    counts = [c for c in candidates(t).values() if c["template"].startswith(("How many", "Count the"))]
+    assert counts and all(c["correct"] == f"{words[lanes].capitalize()} lanes." for c in counts)
+    said = {c["template"]: c["yes"] for c in candidates(t).values() if c["template"].startswith("Does this road have")}
+    assert said == {f"Does this road have {words[k]} lanes?": k == lanes for k in (2, 3, 4, 5)}
+    assert all(words[lanes] in qa["answer"] for qa in opens(t) if qa["question"].startswith(("How many", "Count")))
 
 
 def test_answers_follow_the_truth():
-    night = [qa for qa in all_kinds(truth(weather="night", night=True)) if qa["question"] ==
-             "Is this clip recorded at night?"]
-    day = [qa for qa in all_kinds(truth()) if qa["question"] == "Is this clip recorded at night?"]
-    assert night[0]["answer"].startswith("Yes") and day[0]["answer"].startswith("No")
-    ego = [qa for qa in all_kinds(truth(ego_lane=2)) if "lane is the ego vehicle driving in" in qa["question"]]
-    assert all("rightmost" in qa["answer"] or "third lane" in qa["answer"] for qa in ego)
+    night, day = candidates(truth(weather="night", night=True)), candidates(truth())
+    assert night["Is this clip recorded at night?"]["yes"] and not day["Is this clip recorded at night?"]["yes"]
+    assert day["Is it daytime in this scene?"]["yes"] and not night["Is it daytime in this scene?"]["yes"]
+    ego = candidates(truth(ego_lane=2))
+    assert ego["Which lane is the ego vehicle driving in?"]["correct"] == "The third lane from the left."
+    assert ego["Is the ego vehicle in the rightmost lane?"]["yes"] and not ego["Is the ego vehicle in the leftmost "
+                                                                               "lane?"]["yes"]
     # left of ego lane 1 is white_dashed (crossable); ego lane 0's left is the road's left edge
-    change = [qa for qa in all_kinds(truth())
-              if qa["question"] == "May the ego vehicle change to the lane on its left here?"]
-    assert change[0]["answer"].startswith("Yes") and "dashed white" in change[0]["answer"]
-    solid = truth(markings=["yellow_solid", "white_solid", "white_dashed", "white_solid"])
-    change = [qa for qa in all_kinds(solid)
-              if qa["question"] == "May the ego vehicle change to the lane on its left here?"]
-    assert change[0]["answer"].startswith("No")
-    shapes = [qa for qa in all_kinds(truth(slope="uphill", curvature_sign=0)) if qa["category"] == "scene_description"
-              and qa["type"] == "choice" and "uphill" in " ".join(qa["choices"])]
-    assert all(qa["answer"].endswith("Climbing uphill.") for qa in shapes)
+    change = "May the ego vehicle change to the lane on its left here?"
+    assert candidates(truth())[change]["yes"] and "dashed white" in candidates(truth())[change]["reason"]
+    assert not candidates(truth(markings=["yellow_solid", "white_solid", "white_dashed", "white_solid"]))[change]["yes"]
+    assert not candidates(truth(ego_lane=0))[change]["yes"]
+    shape = "How does the road run ahead of the ego vehicle?"
+    assert candidates(truth(slope="uphill", curvature_sign=0))[shape]["correct"] == "Climbing uphill."
+    # an s-curve scene whose clip bends right, on the level: the clip's shape, not the scene's road kind
+    assert candidates(truth(road="s_curve", curvature_sign=1))[shape]["correct"] == "Curving to the right."
+    marked = candidates(truth())
+    assert marked["Is the line on the left of the ego lane white?"]["yes"]
+    assert not marked["Is the line on the left of the ego lane yellow?"]["yes"]
+    assert marked["Is the ego lane marked on its right by a dashed white line?"]["yes"]
+    assert not marked["Is the ego lane marked on its right by a solid white line?"]["yes"]
+    fast = candidates(truth(ego_speed_mps=15.0))
+    assert fast["Is the ego vehicle driving faster than 50 km/h?"]["yes"]  # 54 km/h
+    assert not candidates(truth(ego_speed_mps=10.0))["Is the ego vehicle driving faster than 40 km/h?"]["yes"]
+
+
+def test_counterfactual_twins_are_asked_in_the_same_words_and_answered_the_other_way():
+    """Illusions are named by what a camera sees: every cue is shared by illusions of two natures, so the same
+    words ask about a shadow in one scene and a crack, a real rail or a real vehicle in its twin."""
+    for group in set(CUE_GROUP.values()):
+        assert len({NATURE[name] for name in CUE_GROUP if CUE_GROUP[name] == group}) == 2, group
+    for name, facts in ILLUSION_FACTS.items():  # the cue never says what it is
+        said = qa_closed.cue(truth(illusion=name)).split()
+        assert not {"shadow", "shadows", "crack", "cracks", "reflection", "reflections", "rail"} & set(said), name
+    twins = (("rail_shadow", "road_crack", "left", "Are the dark lines in the left lane shadows or reflections of "
+                                                    "light?"),
+             ("guard_rail", "sunlight_reflection", "right_shoulder", "Do the bright streaks on the right shoulder "
+                                                                     "stand up above the road surface?"),
+             ("vehicle", "vehicle_reflection", "ego", "Must the ego vehicle stop before the shapes of people or "
+                                                      "vehicles in the ego lane?"))
+    for first, second, lane, question in twins:
+        a = candidates(truth(illusion=first, illusion_lane=lane))[question]
+        b = candidates(truth(illusion=second, illusion_lane=lane))[question]
+        assert a["type"] == b["type"] == "yes_no" and a["yes"] is True and b["yes"] is False, question
+    # the real vehicle blocks the ego lane: the safe action is to stop, in the words every scene is asked
+    action = "What should the ego vehicle do next?"
+    stop = candidates(truth(illusion="vehicle", illusion_lane="ego"))[action]["correct"]
+    assert stop == "Slow down and stop behind what blocks its lane."
+    assert candidates(truth(illusion="vehicle_reflection", illusion_lane="ego"))[action]["correct"] == \
+        "Follow the road's bend to the left in its lane."
+    assert candidates(truth(curvature_sign=0))[action]["correct"] == "Keep driving straight on in its lane."
+    assert candidates(truth(curvature_sign=1))[action]["correct"] == "Follow the road's bend to the right in its lane."
+
+
+def test_traffic_is_passed_not_driven_over():
+    question = "Relative to the shapes of people or vehicles in the left lane, what is the ego vehicle doing?"
+    for illusion, seg, expected in (("vehicle", "over", "Closing in on them"), ("vehicle", "alongside", "Passing"),
+                                    ("vehicle_reflection", "over", "Driving over them")):
+        said = candidates(truth(illusion=illusion, illusion_lane="left", segment=seg))[question]["correct"]
+        assert said.startswith(expected), (illusion, seg, said)
+    blocked = candidates(truth(illusion="pedestrian", illusion_lane="ego", segment="alongside"))
+    assert blocked["Relative to the shapes of people or vehicles in the ego lane, what is the ego vehicle "
+                   "doing?"]["correct"] == "Stopping behind them."
+    assert not blocked["Does the ego vehicle reach the shapes of people or vehicles in the ego lane during this "
+                       "clip?"]["yes"]
 
 
 def test_every_answer_has_its_form():
-    for qa in all_kinds(truth(), seeds=range(5)) + all_kinds(truth(illusion="pedestrian"), seeds=range(5)):
+    planned = suite_qa([(f"c{s}-{seg}", s, truth(segment=seg, night=bool(s % 2), illusion=list(CUE_GROUP)[s % 14]))
+                        for s in range(40) for seg in SEGMENTS])
+    every = [qa for qas in planned.values() for qa in qas] + opens(truth()) + opens(truth(illusion="pedestrian"))
+    assert {qa["type"] for qa in every} == {"open", "yes_no", "choice"}
+    for qa in every:
         assert qa["answer"].endswith(".") and qa["answer"][0].isupper()
         if qa["type"] == "yes_no":
             assert qa["answer"].split(".")[0] in ("Yes", "No")
@@ -128,138 +168,92 @@ def test_accuracy_rule():
 
 def test_bad_truth_is_named():
     with pytest.raises(ValueError, match="truth of c: missing keys num_lanes"):
-        make_qa({k: v for k, v in truth().items() if k != "num_lanes"}, "c", 0)
+        suite_qa([("c", 0, {k: v for k, v in truth().items() if k != "num_lanes"})])
     with pytest.raises(ValueError, match="illusion_lane: expected one of ego, left"):
-        make_qa(truth(illusion_lane="middle"), "c", 0)
+        suite_qa([("c", 0, truth(illusion_lane="middle"))])
     with pytest.raises(ValueError, match="markings: expected num_lanes \\+ 1"):
-        make_qa(truth(markings=["white_solid"]), "c", 0)
+        suite_qa([("c", 0, truth(markings=["white_solid"]))])
     with pytest.raises(ValueError, match="per_clip"):
-        make_qa(truth(), "c", 0, per_clip=0)
-
-
-def test_traffic_is_passed_not_driven_over_and_the_road_shape_is_the_clips():
-    for seg, expected in (("over", "Closing in on them"), ("alongside", "Passing right beside them")):
-        qas = [qa for qa in all_kinds(truth(illusion="vehicle", illusion_lane="ego", segment=seg))
-               if qa["category"] == "motion_reasoning" and qa["type"] == "choice" and "Relative to" in qa["question"]]
-        assert qas and all(qa["answer"][3:].startswith(expected) for qa in qas)
-    # an s-curve scene whose clip bends right, on the level: the clip's shape, not the scene's road kind
-    shapes = [qa for qa in all_kinds(truth(road="s_curve", curvature_sign=1)) if qa["category"] ==
-              "scene_description" and qa["type"] == "choice" and "Going downhill." in " ".join(qa["choices"])]
-    assert shapes and all(qa["answer"].endswith("Curving to the right.") for qa in shapes)
+        suite_qa([("c", 0, truth())], per_clip=0)
 
 
 # ---------------------------------------------------------------------------------------------- fairness on a suite
 
-@pytest.fixture(scope="module")
-def suite_qa():
-    """(truth, QA) of every base clip of the 28-case suite with all 14 illusions (truths only: no frames)."""
+def _suite(cases: int, first_seed: int) -> list[tuple[dict, list[dict]]]:
+    """(truth, QA) of every base clip of a suite with all 14 illusions, from the renderer's truth (no frames)."""
     from lanevil_train.vlm.clips.clip_set import SyntheticClipSuite
-    from lanevil_train.vlm.clips.clips import clip_truth
 
-    suite = SyntheticClipSuite(28, 1000000, "all", (3,), (72, 128))
-    out = []
-    for base in sorted(suite.by_base):
-        case, segment = suite.by_base[base]
-        out.append((clip_truth(case, segment, size=suite.size), suite.qa_for(base)))
-    return out
+    suite = SyntheticClipSuite(cases, first_seed, "all", (3,), (64, 112))
+    return [(suite._truth(base), suite.qa_for(base)) for base in suite.by_base]
 
 
-def test_yes_no_answers_are_balanced_over_the_suite_and_per_category(suite_qa):
-    answers = {c: [] for c in QA_CATEGORIES}
-    for _, qas in suite_qa:
+@pytest.fixture(scope="module")
+def suite():
+    return _suite(120, 1000000)
+
+
+def test_every_yes_no_template_is_asked_as_often_yes_as_no(suite):
+    """The old generator chose each wording so that the truth answered it its way: a text-only classifier answered
+    85.5 % of yes/no questions of held-out scenes."""
+    answers = defaultdict(list)
+    for _, qas in suite:
         for qa in qas:
             if qa["type"] == "yes_no":
-                answers[qa["category"]].append(qa["answer"].split(".")[0])
-    every = [a for said in answers.values() for a in said]
-    assert len(every) >= 150
-    assert 0.45 <= every.count("Yes") / len(every) <= 0.55  # the old generator: 36 of 195 (18 %)
-    for category, said in answers.items():
-        if len(said) >= 20:
-            share = said.count("Yes") / len(said)
-            assert 0.35 <= share <= 0.65, (category, said.count("Yes"), len(said))
+                answers[qa["template"]].append(qa["answer"].startswith("Yes."))
+    assert sum(map(len, answers.values())) >= 400 and len(answers) >= 60
+    assert {t: (sum(a), len(a)) for t, a in answers.items() if 2 * sum(a) != len(a)} == {}
+    by_category = Counter(qa["category"] for _, qas in suite for qa in qas if qa["type"] == "yes_no")
+    assert set(by_category) == set(QA_CATEGORIES) and min(by_category.values()) >= 30, by_category
 
 
-def test_choice_letters_are_uniform_and_every_choice_has_four_options(suite_qa):
-    choices = [qa for _, qas in suite_qa for qa in qas if qa["type"] == "choice"]
-    assert len(choices) >= 100 and {len(qa["choices"]) for qa in choices} == {qa_module.CHOICE_OPTIONS}
-    letters = [qa["answer"][0] for qa in choices]
-    for letter in "ABCD":  # the old generator: A 44 %, B 15 %, and a stray E
-        assert 0.2 <= letters.count(letter) / len(letters) <= 0.3, (letter, letters.count(letter), len(letters))
+def test_choice_options_are_evenly_right_and_letters_uniform(suite):
+    choices = [qa for _, qas in suite for qa in qas if qa["type"] == "choice"]
+    assert len(choices) >= 300
+    by_template = defaultdict(list)
+    for qa in choices:
+        by_template[qa["template"]].append(qa)
+        assert 2 <= len(qa["choices"]) <= 4 and len(set(qa["choices"])) == len(qa["choices"])
+    judged = 0
+    for template, qas in by_template.items():
+        right = Counter(qa["answer"][3:] for qa in qas)
+        assert len(right) >= 2 or len(qas) < 4, template  # the correct option's text varies
+        if len(qas) >= 20:
+            judged += 1
+            options = min(len(qa["choices"]) for qa in qas)
+            assert right.most_common(1)[0][1] / len(qas) <= 1 / options + 0.10, (template, right)
+    assert judged >= 5
+    for count in (3, 4):
+        letters = Counter(qa["answer"][0] for qa in choices if len(qa["choices"]) == count)
+        assert max(letters.values()) - min(letters.values()) <= 2 and len(letters) == count, (count, letters)
 
 
-def _yes(qa: dict) -> bool:
-    return qa["answer"].startswith("Yes.")
+def test_a_text_only_reader_scores_chance_on_held_out_scenes(suite):
+    from lanevil_train.vlm.backends.text_only import TextOnlyReader
+
+    reader = TextOnlyReader().fit([qa for _, qas in suite for qa in qas])
+    held = [qa for _, qas in _suite(40, 2000000) for qa in qas]
+    for kind in ("yes_no", "choice"):
+        asked = [qa for qa in held if qa["type"] == kind]
+        accuracy = np.mean([answer_is_correct(qa, reader.predict(qa)) for qa in asked])
+        chance = np.mean([0.5 if kind == "yes_no" else 1 / len(qa["choices"]) for qa in asked])
+        assert len(asked) >= 80 and abs(accuracy - chance) <= 0.10, (kind, accuracy, chance, len(asked))
 
 
-def _check_against_truth(t: dict, qa: dict) -> bool | None:
-    """Whether a QA whose truth a test can read agrees with the clip truth `t`; None for other questions."""
-    q, n = qa["question"], t["num_lanes"]
-    words = ("two", "three", "four", "five")
-    if q.startswith(("How many", "Count the")):
-        said = [w for w in words if w in qa["answer"].lower()]
-        return said == [words[n - 2]]
-    if q in ("Is this clip recorded at night?", "Is it night-time in this scene?", "Is the ego vehicle driving in "
-             "the dark?"):
-        return _yes(qa) == t["night"]
-    if q in ("Is this clip recorded in daylight?", "Is it daytime in this scene?", "Is the scene lit by daylight?"):
-        return _yes(qa) != t["night"]
-    if "lane is the ego vehicle driving in" in q or "lane is the camera car" in q or "lane does the ego" in q:
-        ordinal = ("first", "second", "third", "fourth", "fifth")[t["ego_lane"]]
-        edge = {0: "leftmost", n - 1: "rightmost"}.get(t["ego_lane"], ordinal)
-        return f"{ordinal} lane" in qa["answer"] or edge in qa["answer"]
-    for side in ("left", "right"):
-        marking = t["markings"][t["ego_lane"] + (side == "right")]
-        if q.startswith(f"Is the ego lane marked on its {side} by "):
-            asked = q[len(f"Is the ego lane marked on its {side} by "):-1]
-            return _yes(qa) == (asked == qa_module.marking_text(marking))
-        for colour in ("yellow", "white"):
-            if q in (f"Is the line on the {side} of the ego lane {colour}?",
-                     f"Is the ego lane bounded on the {side} by a {colour} line?"):
-                return marking != "none" and _yes(qa) == (t["marking_colors"][t["ego_lane"] + (side == "right")]
-                                                          == colour)
-    return None
-
-
-def test_reference_answers_match_the_renderers_truth(suite_qa):
-    checked = {}
-    for t, qas in suite_qa:
+def test_reference_answers_match_the_renderers_truth(suite):
+    checked = Counter()
+    for t, qas in suite:
+        said = candidates(t)
         for qa in qas:
-            verdict = _check_against_truth(t, qa)
-            if verdict is not None:
-                assert verdict, (t["case_id"], t["segment"], qa)
-                checked[qa["question"].split()[0]] = checked.get(qa["question"].split()[0], 0) + 1
-    assert sum(checked.values()) >= 30, checked
-
-
-@pytest.mark.parametrize("night", [False, True])
-def test_every_yes_no_kind_says_both_yes_and_no_and_stays_true(night):
-    t = truth(weather="night" if night else "clear_noon", night=night)
-    for kind in qa_module.YES_NO_KINDS:
-        if kind is qa_module._lane_change_yes_no:  # its answer is the markings', the wish only picks the side
-            continue
-        said = {kind(t, np.random.default_rng(s), yes)["answer"].split(".")[0]: yes for s in range(8)
-                for yes in (False, True)}
-        assert said == {"Yes": True, "No": False}, kind.__name__
-    assert _check_against_truth(t, {"question": "Is it daytime in this scene?", "answer": "No. It is night."}) \
-        is night
-
-
-def test_case_plan_pairs_yes_and_no_and_deals_letters_evenly():
-    for seed in range(40):
-        plan = qa_module.case_plan(seed, 5)
-        wants = {}
-        letters = []
-        for segment in SEGMENTS:
-            for category, index, want in plan[segment]:
-                kind = qa_module.KINDS[category][index]
-                if kind in qa_module.YES_NO_KINDS:
-                    wants.setdefault(category, []).append(want)
-                elif kind in qa_module.CHOICE_KINDS:
-                    letters.append(want)
-        per_category = [said.count(True) - said.count(False) for said in wants.values()]
-        assert all(abs(d) <= 1 for d in per_category) and abs(sum(per_category)) <= 1, (seed, wants)
-        counts = [letters.count(k) for k in range(qa_module.CHOICE_OPTIONS)]
-        assert max(counts) - min(counts) <= 1, (seed, letters)
+            if qa["type"] == "yes_no":
+                assert qa["answer"].startswith("Yes." if said[qa["template"]]["yes"] else "No."), qa
+            elif qa["type"] == "choice":
+                assert qa["answer"][3:] == said[qa["template"]]["correct"], qa
+            checked[qa["type"]] += 1
+            if qa["template"].startswith(("How many", "Count the")):
+                assert ("two", "three", "four", "five")[t["num_lanes"] - 2] in qa["answer"].lower()
+            if qa["template"] == "Is the ego vehicle in the leftmost lane?":
+                assert qa["answer"].startswith("Yes.") == (t["ego_lane"] == 0)
+    assert checked["yes_no"] >= 400 and checked["choice"] >= 300
 
 
 def test_the_scene_description_says_what_the_frames_show_in_the_qas_own_words():
@@ -282,7 +276,7 @@ def test_the_scene_description_says_what_the_frames_show_in_the_qas_own_words():
     # a slope hides the bend in the road's shape: the description names it, and the steering it asks for
     hill = describe_scene(truth(curvature_sign=1, slope="downhill"), "c")["answer"]
     assert hill.endswith("Going downhill. Curving to the right. The ego vehicle must steer gently to the right.")
-    assert all(qa["question"] != DESCRIBE_QUESTION for qa in make_qa(truth(), "case-1-before", 3))
+    assert all(qa["question"] != DESCRIBE_QUESTION for qa in opens(truth()))
     with pytest.raises(ValueError, match="num_lanes"):
         describe_scene(truth(num_lanes=9), "c")
 
@@ -330,7 +324,7 @@ def test_training_aids_are_the_description_and_open_questions_whose_answers_turn
     assert aids[2]["answer"] == "The ego vehicle is in the rightmost lane; the road has four lanes."
     assert aids[3]["answer"] == "It must steer gently to the right, following the road's curve."
     assert aids[4]["category"] == "action" and aids[4]["answer"].startswith(
-        "It should stay in the rightmost lane and follow the road's curve; the dark straight lines in the left lane "
+        "It should stay in the rightmost lane and follow the road's curve; the dark lines in the left lane "
         "are shadows of a roadside rail")
     straight = training_aids(truth(curvature_sign=0), "case-7-over")
     assert straight[3]["answer"].startswith("No steering is needed")

@@ -44,7 +44,7 @@ from lanevil_train.results_log import ResultsLog
 from lanevil_train.taxonomy import ILLUSION_CATEGORY, ILLUSION_NAMES
 from lanevil_train.vlm.clips.qa import scene_classes, training_aids
 from lanevil_train.vlm.clips.qa_records import check_qa_record
-from lanevil_train.vlm.clips.suite_qa import kept_questions, suite_qa
+from lanevil_train.vlm.clips.suite_qa import QA_PLAN, kept_questions, suite_qa
 
 CLIPS_FILE = "clips.jsonl"
 QA_FILE = "qa.jsonl"
@@ -114,6 +114,27 @@ def _write_frame(path: Path, frame: np.ndarray) -> None:
     if not ok:
         raise OSError(f"cv2 could not encode {path}")
     atomic_write_bytes(path, encoded.tobytes())
+
+
+def truth_of(args: tuple) -> dict:
+    """The scene truth of one base clip (case, segment, size): a worker's job."""
+    case, segment, size = args
+    return _geometry().clip_truth(case, segment, size=tuple(size))
+
+
+def plan_qa(bases: Sequence[tuple], size: Sequence[int], per_clip: int, kind: str, workers: int = 0,
+            progress: str = "auto", truths: dict | None = None) -> dict[str, list[dict]]:
+    """{base clip id: its QA} of the base clips `bases` ((case, segment) in suite order), planned together
+    (suite_qa.suite_qa) from their truth, computed in `workers` processes; `truths` (base clip id -> truth) holds
+    those known already and is given the others."""
+    truths = {} if truths is None else truths
+    todo = [(case, segment) for case, segment in bases if base_clip_id(case, segment) not in truths]
+    bar = progress_counter(len(todo), desc="scene truth for the QA", unit="base clip", mode=progress)
+    for (case, segment), truth in zip(todo, map_jobs(truth_of, [(c, s, tuple(size)) for c, s in todo], workers)):
+        truths[base_clip_id(case, segment)] = truth
+        bar.update(1)
+    bar.close()
+    return suite_qa([(base_clip_id(c, s), c.seed, truths[base_clip_id(c, s)]) for c, s in bases], per_clip, kind)
 
 
 def render_with_truth(args: tuple) -> tuple[dict | None, dict]:
@@ -196,7 +217,7 @@ def build_clip_set(cases: Sequence, severities: Sequence[int], root: str | Path,
     _check_build_arguments(cases, severities, size, kind, names)
     bases = suite_base_clips(cases, kind, per_clip)
     plan = {"size": list(size), "severities": list(severities), "per_clip": per_clip,
-            "paraphrased": paraphraser is not None, "cases_digest": _cases_digest(cases)}
+            "paraphrased": paraphraser is not None, "cases_digest": _cases_digest(cases), "qa_plan": QA_PLAN}
     if kind != "illusions":  # an illusion suite's plan stays as it was: sets built before suite kinds resume
         plan.update(kind=kind, names=list(names))
     expected = {"clips": sum(len(variant_records(c, s, severities, kind, names)) for c, s in bases),
@@ -210,11 +231,11 @@ def build_clip_set(cases: Sequence, severities: Sequence[int], root: str | Path,
     jobs = [(case, segment, severities, size, str(root), frozenset(done_clips), kind, names)
             for case, segment in bases
             if any(r["clip_id"] not in done_clips for r in variant_records(case, segment, severities, kind, names))]
+    planned = plan_qa(bases, size, per_clip, kind, workers, progress) if jobs else {}
     bar = progress_counter(expected["clips"], len(done_clips), "build", "clips", progress)
     written = 0
-    for (case, segment, *_), (truth, records) in zip(jobs, map_jobs(render_base_clip, jobs, workers)):
-        qas = [q for q in suite_qa(truth, base_clip_id(case, segment), case.seed, per_clip, kind)
-               if q["qa_id"] not in done_qa]
+    for (case, segment, *_), (_, records) in zip(jobs, map_jobs(render_base_clip, jobs, workers)):
+        qas = [q for q in planned[base_clip_id(case, segment)] if q["qa_id"] not in done_qa]
         qa_log.append(paraphrase_qa(qas, paraphraser))
         clip_log.append(records)
         written += len(records)
@@ -400,7 +421,8 @@ class SyntheticClipSuite(Dataset):
         self.items = [(case, segment, record) for case, segment in suite_base_clips(self.cases, kind, per_clip)
                       for record in variant_records(case, segment, self.severities, kind, self.names)]
         self.by_base = {base_clip_id(case, segment): (case, segment) for case, segment, _ in self.items}
-        self._qa: dict[str, tuple[list[dict], list[dict], list[int], list]] = {}
+        self._truths: dict[str, dict] = {}
+        self._planned: dict[str, list[dict]] | None = None
         self.cache_clips = cache_clips
         self._renders: OrderedDict[tuple, dict] = OrderedDict()  # (case, segment) -> severity -> frames, LRU
 
@@ -414,7 +436,13 @@ class SyntheticClipSuite(Dataset):
         return _meta(self.items[index][2])
 
     def qa_for(self, base_clip_id: str) -> list[dict]:
-        return self._facts(base_clip_id)[0]
+        """The base clip's QA, planned with every other base clip's of the suite (the first call computes the truth
+        of those not yet prepared)."""
+        self._base(base_clip_id)
+        if self._planned is None:
+            bases = list(dict.fromkeys((case, segment) for case, segment, _ in self.items))
+            self._planned = plan_qa(bases, self.size, self.per_clip, self.kind, truths=self._truths)
+        return self._planned[base_clip_id]
 
     def qa_count(self, base_clip_id: str) -> int:
         """How many QA the base clip has (per_clip, less those a corruption suite leaves out), without its truth."""
@@ -426,39 +454,33 @@ class SyntheticClipSuite(Dataset):
     def training_aids_for(self, base_clip_id: str) -> list[dict]:
         """The base clip's training-only QA (qa.training_aids: the scene description and the open questions that
         name its facts): a suite on disk has no truth."""
-        return self._facts(base_clip_id)[1]
+        return training_aids(self._truth(base_clip_id), base_clip_id)
 
     def scene_classes_for(self, base_clip_id: str) -> list[int]:
         """The base clip's scene truth as class indices (qa.scene_classes): what the embedded VLM's vision tower is
         pretrained on."""
-        return self._facts(base_clip_id)[2]
+        return scene_classes(self._truth(base_clip_id), base_clip_id)
 
     def lanes_for(self, base_clip_id: str) -> list[list[list[list[float]]]]:
         """The lane polylines ([x, y] pixels at the suite's frame size) of each of the base clip's frames: every
         variant's ground truth, as illusions never move a lane (AAM's lanes on a VLM's frames)."""
-        return self._facts(base_clip_id)[3]
+        return self._truth(base_clip_id)["lanes_px"]
 
-    def _facts(self, base_clip_id: str) -> tuple[list[dict], list[dict], list[int], list]:
-        """(QA, training aids, scene classes, lanes per frame) of a base clip, from its truth (computed once)."""
-        if base_clip_id not in self._qa:
+    def _truth(self, base_clip_id: str) -> dict:
+        """The base clip's scene truth (computed once)."""
+        if base_clip_id not in self._truths:
             case, segment = self._base(base_clip_id)
-            self._keep_facts(base_clip_id, _geometry().clip_truth(case, segment, size=self.size))
-        return self._qa[base_clip_id]
+            self._truths[base_clip_id] = _geometry().clip_truth(case, segment, size=self.size)
+        return self._truths[base_clip_id]
 
     def _base(self, base_clip_id: str) -> tuple:
         if base_clip_id not in self.by_base:
             raise KeyError(f"no base clip {base_clip_id!r} in this synthetic suite")
         return self.by_base[base_clip_id]
 
-    def _keep_facts(self, base_clip_id: str, truth: dict) -> None:
-        case, _ = self.by_base[base_clip_id]
-        self._qa[base_clip_id] = (suite_qa(truth, base_clip_id, case.seed, self.per_clip, self.kind),
-                                  training_aids(truth, base_clip_id), scene_classes(truth, base_clip_id),
-                                  truth["lanes_px"])
-
     def prepare(self, base_clip_ids: Sequence[str], render: Sequence[str] = (), workers: int = 0,
                 progress: str = "auto") -> dict[str, list[list[np.ndarray]]]:
-        """Compute the facts of the base clips `base_clip_ids` (so qa_for, training_aids_for, scene_classes_for and
+        """Compute the truth of the base clips `base_clip_ids` (so qa_for, training_aids_for, scene_classes_for and
         lanes_for compute nothing for them) and render those also in `render`, all in `workers` processes (0: in this
         one); {base clip id: the frames of each of its variants, in item order}, in `render`'s order. Frames and facts
         are those __getitem__ and qa_for give: each is a function of its case alone."""
@@ -476,7 +498,7 @@ class SyntheticClipSuite(Dataset):
         bar = progress_counter(len(jobs), desc="scene truth and frames", unit="base clip", mode=progress)
         rendered = {}
         for base, (renders, truth) in zip(base_clip_ids, map_jobs(render_with_truth, jobs, workers)):
-            self._keep_facts(base, truth)
+            self._truths[base] = truth
             if renders is not None:
                 rendered[base] = [list(renders[key]) for key in variants[base]]
             bar.update(1)

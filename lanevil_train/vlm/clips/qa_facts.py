@@ -53,6 +53,27 @@ ILLUSION_FACTS = MappingProxyType({
                                  "A reflection is not an object on the road."),
 })
 
+# What a question calls an illusion: what a camera sees, shared by illusions of different natures, so that the words
+# never say what it is (a "dark line" may be a crack or a shadow; only the pixels tell). (plural, singular) by group.
+CUES = MappingProxyType({"dark": ("dark lines", "dark line"), "bright": ("bright streaks", "bright streak"),
+                         "figures": ("shapes of people or vehicles", "shape of a person or vehicle")})
+CUE_GROUP = MappingProxyType({
+    **dict.fromkeys(("road_crack", "road_repair", "tire_marks", "streetlight_shadow", "fence_shadow", "rail_shadow",
+                     "wire_shadow"), "dark"),
+    **dict.fromkeys(("guard_rail", "sunlight_reflection", "streetlight_reflection"), "bright"),
+    **dict.fromkeys(("pedestrian", "vehicle", "bicycle", "vehicle_reflection"), "figures"),
+})
+# What an illusion is made of: light (a shadow or a reflection), a mark in the asphalt itself, or a real object
+# standing on or beside the road. Each cue group holds two natures, so a question about one is answered both ways.
+NATURES = MappingProxyType({"light": "shadows or reflections of light", "surface": "marks in the asphalt itself",
+                            "object": "real objects standing on or beside the road"})
+NATURE = MappingProxyType({
+    **dict.fromkeys(("streetlight_shadow", "fence_shadow", "rail_shadow", "wire_shadow", "sunlight_reflection",
+                     "streetlight_reflection", "vehicle_reflection"), "light"),
+    **dict.fromkeys(("road_crack", "road_repair", "tire_marks"), "surface"),
+    **dict.fromkeys(("guard_rail", "pedestrian", "vehicle", "bicycle"), "object"),
+})
+
 LANE_PLACES = MappingProxyType({
     "ego": "in the ego lane", "left": "in the left lane", "right": "in the right lane",
     "left_shoulder": "on the left shoulder", "right_shoulder": "on the right shoulder",
