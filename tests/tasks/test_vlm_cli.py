@@ -89,6 +89,14 @@ def test_a_server_model_is_evaluated_on_a_built_suite_judged_and_reported_with_t
     scores = json.loads((out / "test_scores.json").read_text())
     assert {"GPT_score", "Language", "BLEU_4", "CIDEr"} <= set(scores[0])
     assert [(row["answers_kind"], row["answers"]) for row in scores] == [("original", 15), ("perturbed", 15)]
+    # DriveLM's challenge score where a judge is set and closed questions were asked; no coordinate question here
+    closed = any(r["correct"] is not None for r in records)
+    assert (out / "drivelm_score.json").is_file() == closed
+    if closed:
+        for row in json.loads((out / "drivelm_score.json").read_text()):
+            assert row["Match"] is None and row["final"] == pytest.approx(
+                0.4 * row["GPT"] + 0.2 * row["Language"] + 0.2 * row["Accuracy"])
+        assert "match is absent and counted as 0" in (out / "report.md").read_text()
 
     truncated = shutil.copytree(tiny_model, tmp_path / "truncated-model")
     weights = truncated / "model.safetensors"

@@ -18,7 +18,6 @@ from omegaconf import DictConfig, open_dict
 from lanevil_train.evaluation.results import log_results, write_results
 from lanevil_train.evaluation.streaming import claim_results
 from lanevil_train.files.atomic import atomic_write_text
-from lanevil_train.progress import progress_counter
 from lanevil_train.tasks.builders import build_logger, build_split, output_dir
 from lanevil_train.tasks.vlm.builders import (
     add_defense_to_report,
@@ -51,6 +50,7 @@ def evaluate_vlm(cfg: DictConfig) -> float:
     files = [results, *blind_baselines(cfg, vlm, reader, dataset, judge, out, name, dataset_name)]
     value = write_results(files, out, baseline=cfg.task.baseline)
     write_visual_reliance(files, out)
+    write_drivelm_score(files, out)
     add_defense_to_report(out, vlm)
     write_language_summary(files, out)
     write_worst_answers(results, out)
@@ -70,13 +70,10 @@ def text_reader(cfg: DictConfig) -> TextOnlyReader:
     """The text-only reader fitted on the QA of data.train (question and options only: no frame is rendered),
     checked before any question is asked."""
     train = build_split(cfg, "train")
+    if hasattr(train, "plan"):  # a synthetic split: its QA planned from the scenes' truth, with a progress bar
+        return TextOnlyReader().fit([qa for qas in train.plan(progress=cfg.progress).values() for qa in qas])
     bases = list(dict.fromkeys(train.clip_meta(i)["base_clip_id"] for i in range(len(train))))
-    qas, bar = [], progress_counter(len(bases), desc="text-only reader: train QA", unit="base clip", mode=cfg.progress)
-    for base in bases:
-        qas += train.qa_for(base)
-        bar.update(1)
-    bar.close()
-    return TextOnlyReader().fit(qas)
+    return TextOnlyReader().fit([qa for base in bases for qa in train.qa_for(base)])
 
 
 def blind_baselines(cfg: DictConfig, vlm: VLM, reader: TextOnlyReader | None, dataset, judge, out: Path, name: str,
@@ -129,6 +126,41 @@ def write_visual_reliance(results: list[Path], out: Path) -> Path | None:
         atomic_write_text(report, f"{report.read_text().rstrip()}\n\n{section}")
     print(section)
     return out / "visual_reliance.md"
+
+
+def write_drivelm_score(results: list[Path], out: Path) -> Path | None:
+    """drivelm_score.json and a section of report.md: DriveLM's challenge score of each model's original and
+    perturbed answers and its parts (vlm/scoring/drivelm_score.py); None where no answer has a GPT score (no LLM
+    judge)."""
+    from lanevil_train.evaluation.scoring import read_records
+    from lanevil_train.report.tables import markdown_table
+    from lanevil_train.vlm.scoring.drivelm_score import drivelm_parts
+
+    rows = []
+    for path in results:
+        records = read_records(path, keep_lanes=False)
+        for kind, chosen in (("original", [r for r in records if r["severity"] == 0]),
+                             ("perturbed", [r for r in records if r["severity"] != 0])):
+            parts = drivelm_parts(chosen)
+            if parts is not None:
+                rows.append({"model": records[0]["model"], "answers_kind": kind, **parts})
+    if not rows:
+        return None
+    absent = any(row["Match"] is None for row in rows)
+    table = markdown_table([{**row, "Match": "absent (0)" if row["Match"] is None else round(row["Match"], 2),
+                             **{k: round(row[k], 2) for k in ("GPT", "Language", "Accuracy", "final")}}
+                            for row in rows])
+    note = (" These clips hold no coordinate question, so match is absent and counted as 0, as DriveLM scores a "
+            "submission without it: the final score cannot exceed 80." if absent else "")
+    section = ("## DriveLM's challenge score\n\n"
+               "final = 0.4 GPT + 0.2 Language + 0.2 match + 0.2 Accuracy (DriveLM's challenge/evaluation.py, here x "
+               f"100), from the judge's GPT score, the Language score of every answer and the yes/no and choice "
+               f"accuracy.{note}\n\n{table}")
+    atomic_write_text(out / "drivelm_score.json", json.dumps(rows, indent=1) + "\n")
+    report = out / "report.md"
+    if report.is_file():
+        atomic_write_text(report, f"{report.read_text().rstrip()}\n\n{section}")
+    return out / "drivelm_score.json"
 
 
 def _cell(text: str) -> str:

@@ -439,10 +439,15 @@ class SyntheticClipSuite(Dataset):
         """The base clip's QA, planned with every other base clip's of the suite (the first call computes the truth
         of those not yet prepared)."""
         self._base(base_clip_id)
+        return self.plan()[base_clip_id]
+
+    def plan(self, workers: int = 0, progress: str = "auto") -> dict[str, list[dict]]:
+        """{base clip id: its QA} of the whole suite (computed once; the truths not yet known in `workers`
+        processes)."""
         if self._planned is None:
             bases = list(dict.fromkeys((case, segment) for case, segment, _ in self.items))
-            self._planned = plan_qa(bases, self.size, self.per_clip, self.kind, truths=self._truths)
-        return self._planned[base_clip_id]
+            self._planned = plan_qa(bases, self.size, self.per_clip, self.kind, workers, progress, self._truths)
+        return self._planned
 
     def qa_count(self, base_clip_id: str) -> int:
         """How many QA the base clip has (per_clip, less those a corruption suite leaves out), without its truth."""
@@ -480,10 +485,11 @@ class SyntheticClipSuite(Dataset):
 
     def prepare(self, base_clip_ids: Sequence[str], render: Sequence[str] = (), workers: int = 0,
                 progress: str = "auto") -> dict[str, list[list[np.ndarray]]]:
-        """Compute the truth of the base clips `base_clip_ids` (so qa_for, training_aids_for, scene_classes_for and
-        lanes_for compute nothing for them) and render those also in `render`, all in `workers` processes (0: in this
-        one); {base clip id: the frames of each of its variants, in item order}, in `render`'s order. Frames and facts
-        are those __getitem__ and qa_for give: each is a function of its case alone."""
+        """Compute the truth of the base clips `base_clip_ids` and render those also in `render`, all in `workers`
+        processes (0: in this one), then plan the suite's QA (so qa_for, training_aids_for, scene_classes_for and
+        lanes_for compute nothing more); {base clip id: the frames of each of its variants, in item order}, in
+        `render`'s order. Frames and facts are those __getitem__ and qa_for give: frames and truth are functions of
+        their case alone, the QA of the suite."""
         for base in base_clip_ids:
             self._base(base)
         stray = sorted(set(render) - set(base_clip_ids))
@@ -503,6 +509,7 @@ class SyntheticClipSuite(Dataset):
                 rendered[base] = [list(renders[key]) for key in variants[base]]
             bar.update(1)
         bar.close()
+        self.plan(workers, progress)  # the QA of the clips asked: planned with the whole suite's
         return {base: rendered[base] for base in variants}
 
     def __getitem__(self, index: int) -> dict:

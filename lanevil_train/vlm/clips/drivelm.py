@@ -40,9 +40,24 @@ _OPTION = re.compile(r"(?:^|\s)([A-Z])\.\s+(.*?)(?=\s+[A-Z]\.\s|$)", re.DOTALL)
 
 
 def _item(qa: dict) -> dict:
-    """One DriveLM QA item for our QA record (ours kept whole under "lanevil")."""
+    """One DriveLM QA item for our QA record (ours kept whole under "lanevil"), with the tags DriveLM's evaluation
+    scores it by (challenge/evaluation.py: 0 accuracy for yes/no and choice, 1 GPT and 2 language for open)."""
+    tag = qa.get("drivelm_tag") or ([0] if qa["type"] != "open" else [1, 2])
     return {"Q": prompt_text(qa), "A": qa["answer"], "C": None, "con_up": None, "con_down": None, "cluster": None,
-            "layer": None, "lanevil": dict(qa)}
+            "layer": None, "tag": list(tag), "lanevil": dict(qa)}
+
+
+def _tags(item: dict, where: str) -> dict:
+    """{"drivelm_tag": [...]} from a DriveLM item's "tag" (the parts of DriveLM's score it counts in), or {}."""
+    tag = item.get("tag")
+    if tag is None:
+        return {}
+    tags = [tag] if isinstance(tag, int) and not isinstance(tag, bool) else tag
+    if not isinstance(tags, list) or not all(isinstance(t, int) and not isinstance(t, bool) and 0 <= t <= 3
+                                             for t in tags):
+        raise ValueError(f"{where}: tag: expected a list of DriveLM score tags 0 (accuracy), 1 (GPT), 2 (language), "
+                         f"3 (match), got {tag!r}")
+    return {"drivelm_tag": list(tags)}
 
 
 def to_drivelm(clips: list[dict], qas: list[dict]) -> dict:
@@ -107,7 +122,7 @@ def _their_qa(item, where: str, qa_id: str, base: str, section: str) -> dict:
         if not isinstance(item.get(field), str) or not item[field].strip():
             raise ValueError(f"{where}: {field}: expected a non-empty string, got {item.get(field)!r}")
     question, answer = item["Q"].strip(), item["A"].strip()
-    record = {"qa_id": qa_id, "base_clip_id": base, "category": DRIVELM_TO_CATEGORY[section]}
+    record = {"qa_id": qa_id, "base_clip_id": base, "category": DRIVELM_TO_CATEGORY[section], **_tags(item, where)}
     options = _OPTION.findall(question)
     if len(options) >= 2 and re.match(r"^\(?[A-Z]\b", answer):
         first = re.search(r"(?:^|\s)A\.\s", question)

@@ -1,4 +1,4 @@
-"""A QA record (what qa.jsonl holds and make_qa writes) and the accuracy rule for yes/no and choice answers.
+"""A QA record (what qa.jsonl holds and suite_qa.suite_qa writes) and the accuracy rule for yes/no and choice answers.
 
 A record: {"qa_id", "base_clip_id", "category" (QA_CATEGORIES, the paper's six), "type" (QA_TYPES), "question",
 "answer", and "choices" (["A. ...", ...]) for a choice question, whose answer is its letter and text ("B. Two lanes.")}.
@@ -60,7 +60,7 @@ _QA_FIELDS = {"qa_id": str, "base_clip_id": str, "category": str, "type": str, "
 
 
 def check_qa_record(record, where: str) -> dict:
-    """A QA record as qa.jsonl holds it (the fields make_qa gives), else a ValueError naming `where` and the
+    """A QA record as qa.jsonl holds it (the fields suite_qa.suite_qa gives), else a ValueError naming `where` and the
     field."""
     if not isinstance(record, dict):
         raise ValueError(f"{where}: expected a QA object, got {type(record).__name__}")

@@ -85,6 +85,7 @@ def answer_records(pairs: Sequence[tuple[dict, dict]], answers: Sequence[str], l
     questions, the judge's score, and the PTB tokens of answer and reference (from which the Language score of any
     group is computed later)."""
     from lanevil_train.vlm.clips.qa_records import answer_is_correct
+    from lanevil_train.vlm.scoring.drivelm_score import MATCH_TAG, match_f1
 
     if tokenize is None:
         from lanevil_train.metrics.vqa import ptb_tokenize as tokenize
@@ -107,6 +108,8 @@ def answer_records(pairs: Sequence[tuple[dict, dict]], answers: Sequence[str], l
         if field:
             record[field] = judged[i]
             record["judge"] = judge.name
+        if MATCH_TAG in qa.get("drivelm_tag", ()):  # a DriveLM coordinate question: its match F1 (x 100)
+            record["match_f1"] = 100.0 * match_f1(text, qa["answer"])
         records.append(record)
     return records
 
