@@ -27,6 +27,27 @@ def _scene(record: dict):
     return record.get("scene") or record["case_id"]
 
 
+def _scene_weights(scenes: list, replicates: int, seed: int) -> np.ndarray:
+    """Bootstrap weights [replicates, scenes]: each replicate draws the scenes with replacement."""
+    rng = np.random.default_rng(seed)
+    if not scenes:
+        return np.zeros((replicates, 0))
+    return rng.multinomial(len(scenes), np.full(len(scenes), 1.0 / len(scenes)), size=replicates).astype(float)
+
+
+def _difference_interval(first: np.ndarray, second: np.ndarray, weights: np.ndarray,
+                         confidence: float) -> tuple[float, float]:
+    """The interval of accuracy(first) - accuracy(second) (x 100) over the weights' replicates; each table holds
+    (correct, asked) per scene."""
+    alpha = (1 - confidence) / 2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        diff = 100.0 * ((weights @ first[:, 0]) / (weights @ first[:, 1])
+                        - (weights @ second[:, 0]) / (weights @ second[:, 1]))
+    diff = diff[np.isfinite(diff)]
+    low, high = np.quantile(diff, [alpha, 1 - alpha]) if len(diff) else (math.nan, math.nan)
+    return float(low), float(high)
+
+
 def reliance_rows(model: list[dict], baselines: dict[str, list[dict]], order: Sequence[str] = (),
                   replicates: int = REPLICATES, confidence: float = CONFIDENCE, seed: int = 0) -> list[dict]:
     """One row per QA category present (in `order`, then as found; then "all"): for each closed type, n, the
@@ -39,10 +60,7 @@ def reliance_rows(model: list[dict], baselines: dict[str, list[dict]], order: Se
             **{name: {r["key"]: r for r in rs if r["key"] in keys} for name, rs in baselines.items()}}
     scenes = sorted({_scene(r) for r in runs["model"].values()}, key=str)
     index = {s: i for i, s in enumerate(scenes)}
-    rng = np.random.default_rng(seed)
-    weights = rng.multinomial(len(scenes), np.full(len(scenes), 1.0 / len(scenes)), size=replicates).astype(float) \
-        if scenes else np.zeros((replicates, 0))
-    alpha = (1 - confidence) / 2
+    weights = _scene_weights(scenes, replicates, seed)
     groups: dict[tuple[str, str], list[str]] = defaultdict(list)
     for key, r in runs["model"].items():
         if r["qa_type"] in CLOSED_TYPES:
@@ -68,16 +86,50 @@ def reliance_rows(model: list[dict], baselines: dict[str, list[dict]], order: Se
             best = max(baselines, key=lambda name: row[f"{kind}/{name}"])
             row[f"{kind}/best_baseline"] = best
             row[f"{kind}/reliance"] = row[f"{kind}/model"] - row[f"{kind}/{best}"]
-            with np.errstate(invalid="ignore", divide="ignore"):
-                boot = [100.0 * (weights @ tables[name][:, 0]) / (weights @ tables[name][:, 1])
-                        for name in ("model", best)]
-            diff = boot[0] - boot[1]
-            diff = diff[np.isfinite(diff)]
-            low, high = np.quantile(diff, [alpha, 1 - alpha]) if len(diff) else (math.nan, math.nan)
-            row[f"{kind}/low"], row[f"{kind}/high"] = float(low), float(high)
+            low, high = _difference_interval(tables["model"], tables[best], weights, confidence)
+            row[f"{kind}/low"], row[f"{kind}/high"] = low, high
             row[f"{kind}/distinguishable"] = bool(low > 0 or high < 0)
         rows.append(row)
     return rows
+
+
+def gap_rows(records: list[dict], order: Sequence[str] = (), replicates: int = REPLICATES,
+             confidence: float = CONFIDENCE, seed: int = 0) -> list[dict]:
+    """The illusion's accuracy Gap with its interval: one row per QA category present (in `order`, then as found;
+    then "all"): n perturbed closed answers, their accuracy, the accuracy of the same questions on the clean clips
+    (each clean answer counted once per perturbed answer it pairs with), Gap = perturbed - original and its 95 %
+    interval from a paired bootstrap over the scenes."""
+    clean = {r["qa_id"]: r for r in records if r["severity"] == 0 and r["qa_type"] in CLOSED_TYPES}
+    pairs = [(r, clean[r["qa_id"]]) for r in records
+             if r["severity"] != 0 and r["qa_type"] in CLOSED_TYPES and r["qa_id"] in clean]
+    scenes = sorted({_scene(r) for r, _ in pairs}, key=str)
+    index = {s: i for i, s in enumerate(scenes)}
+    weights = _scene_weights(scenes, replicates, seed)
+    groups: dict[str, list[tuple[dict, dict]]] = defaultdict(list)
+    for pair in pairs:
+        groups[pair[0]["qa_category"]].append(pair)
+        groups[ALL].append(pair)
+    rows = []
+    for category in [c for c in dict.fromkeys([*order, *groups, ALL]) if c in groups]:
+        perturbed, original = np.zeros((len(scenes), 2)), np.zeros((len(scenes), 2))
+        for answer, twin in groups[category]:
+            perturbed[index[_scene(answer)]] += (answer["correct"], 1)
+            original[index[_scene(answer)]] += (twin["correct"], 1)
+        accuracy = [100.0 * table[:, 0].sum() / table[:, 1].sum() for table in (perturbed, original)]
+        low, high = _difference_interval(perturbed, original, weights, confidence)
+        rows.append({"qa_category": category, "n": len(groups[category]), "perturbed": accuracy[0],
+                     "original": accuracy[1], "gap": accuracy[0] - accuracy[1], "low": low, "high": high,
+                     "distinguishable": bool(low > 0 or high < 0)})
+    return rows
+
+
+def gap_markdown(rows: list[dict]) -> str:
+    lines = ["| QA category | n | Perturbed | Original | Gap [95 % CI] |", "|---|---|---|---|---|"]
+    for row in rows:
+        mark = " *" if row["distinguishable"] else ""
+        lines.append(f"| {row['qa_category']} | {row['n']} | {row['perturbed']:.1f} | {row['original']:.1f} | "
+                     f"{row['gap']:+.1f} [{row['low']:+.1f}, {row['high']:+.1f}]{mark} |")
+    return "\n".join(lines) + "\n"
 
 
 def reliance_markdown(rows: list[dict], baselines: list[str]) -> str:

@@ -184,3 +184,23 @@ def test_visual_reliance_is_the_model_minus_the_better_baseline_with_a_paired_in
     assert same["yes_no/reliance"] == 0.0 and not same["yes_no/distinguishable"]
     with pytest.raises(ValueError, match="at least one blind baseline"):
         reliance_rows(model, {})
+
+
+def test_the_accuracy_gap_pairs_each_perturbed_answer_with_its_clean_twin_and_has_an_interval():
+    from lanevil_train.report.reliance import gap_rows
+
+    records = []
+    for s in range(30):
+        for k in range(4):
+            base = {"scene": f"s{s}", "case_id": f"s{s}-over", "qa_id": f"s{s}-q{k}", "qa_type": "yes_no",
+                    "qa_category": "lane_recognition" if k < 2 else "action"}
+            records.append({**base, "severity": 0, "correct": 1})  # right on every clean clip
+            for severity in (1, 2):  # the illusion breaks question 0 at both severities, question 2 at severity 2
+                wrong = k == 0 or (k == 2 and severity == 2)
+                records.append({**base, "severity": severity, "correct": int(not wrong)})
+    rows = {row["qa_category"]: row for row in gap_rows(records, order=["action", "lane_recognition"])}
+    assert list(rows) == ["action", "lane_recognition", "all"]
+    assert rows["lane_recognition"]["n"] == 120 and rows["lane_recognition"]["gap"] == pytest.approx(-50.0)
+    assert rows["action"]["gap"] == pytest.approx(-25.0) and rows["all"]["gap"] == pytest.approx(-37.5)
+    assert rows["all"]["original"] == 100.0 and rows["all"]["high"] < 0 and rows["all"]["distinguishable"]
+    assert gap_rows([r for r in records if r["severity"] == 0]) == []  # no perturbed answer: no gap

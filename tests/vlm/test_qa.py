@@ -351,3 +351,16 @@ def test_scene_classes_index_each_fact_of_the_truth():
         "wet": True, "left_marking": "white_solid", "right_marking": "white_solid", "bend": "left"}
     with pytest.raises(ValueError, match="truth of c-1: ego_lane"):
         scene_classes(truth(ego_lane=3), "c-1")
+
+
+def test_the_audit_finds_no_leak_in_the_suite(suite):
+    """task=audit_qa's cross-fitted reader on this benchmark's own QA: no template gives its answer away, and the
+    reader does no better than chance (it does worse: each template is exactly balanced over the suite, so the
+    scenes it is fitted on hold the opposite majority of the ones it answers)."""
+    from lanevil_train.vlm.scoring.leakage import audit
+
+    records = [{**qa, "scene": t["case_id"]} for t, qas in suite for qa in qas]
+    result = audit(records, folds=2, seed=0, min_count=8, alpha=0.01)
+    assert result["leaking"] == [] and result["settings"]["templates_judged"] >= 20
+    for row in result["by_type"]:
+        assert row["text_only_accuracy"] <= row["chance"] + 10, row

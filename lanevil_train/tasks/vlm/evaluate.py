@@ -49,6 +49,7 @@ def evaluate_vlm(cfg: DictConfig) -> float:
     results = evaluate_into(vlm, dataset, judge, out, {"model": name, "dataset": dataset_name}, cfg.progress)
     files = [results, *blind_baselines(cfg, vlm, reader, dataset, judge, out, name, dataset_name)]
     value = write_results(files, out, baseline=cfg.task.baseline)
+    write_gap_intervals(results, out)
     write_visual_reliance(files, out)
     write_drivelm_score(files, out)
     add_defense_to_report(out, vlm)
@@ -97,6 +98,28 @@ def evaluate_into(vlm: VLM, dataset, judge, out: Path, label: dict, progress: st
         path = out / name
         claim_results(path, identity, resuming=path.is_file() and path.stat().st_size > 0)
     return evaluate_clips(vlm, dataset, out, label, judge=judge, progress=progress)
+
+
+def write_gap_intervals(results: Path, out: Path) -> Path | None:
+    """gap_intervals.json and a section of report.md: the model's yes/no and choice accuracy on perturbed clips
+    minus that on the same questions' clean clips, per QA category, with a paired bootstrap 95 % interval over the
+    scenes (report/reliance.py gap_rows); None without a closed question."""
+    from lanevil_train.evaluation.scoring import read_records
+    from lanevil_train.report.reliance import gap_markdown, gap_rows
+
+    records = read_records(results, keep_lanes=False)
+    rows = gap_rows(records, order=QA_CATEGORIES)
+    if not rows:
+        return None
+    section = (f"## The illusions' accuracy Gap of {records[0]['model']}, with intervals\n\n"
+               f"Yes/no and choice accuracy (%) on the perturbed clips and on the same questions' clean clips; Gap = "
+               f"Perturbed - Original with a paired bootstrap 95 % interval over the scenes (* : it excludes 0).\n\n"
+               f"{gap_markdown(rows)}")
+    atomic_write_text(out / "gap_intervals.json", json.dumps(rows, indent=1) + "\n")
+    report = out / "report.md"
+    if report.is_file():
+        atomic_write_text(report, f"{report.read_text().rstrip()}\n\n{section}")
+    return out / "gap_intervals.json"
 
 
 def write_visual_reliance(results: list[Path], out: Path) -> Path | None:
@@ -236,5 +259,6 @@ def test_vlm(cfg: DictConfig, vlm, name: str, out: Path) -> float:
     files = [evaluate_into(vlm, dataset, judge, out, {"model": name, "dataset": dataset_name}, cfg.progress),
              *blind_baselines(cfg, vlm, reader, dataset, judge, out, name, dataset_name)]
     value = write_results(files, out)
+    write_gap_intervals(files[0], out)
     write_visual_reliance(files, out)
     return value
