@@ -304,7 +304,8 @@ def test_mirror_scene_classes_are_the_classes_of_the_mirrored_scene():
 
 def test_training_aids_are_the_description_and_open_questions_whose_answers_turn_on_the_frames():
     """training_aids: the description, then the lane count, ego lane, steering and safe action asked openly, each
-    answer the truth's (a hill's bend included), phrased as the benchmark's own kinds, the same for the same clip."""
+    answer the truth's (a hill's bend included), phrased as the benchmark's own kinds, the same for the same clip;
+    then a closed question the clip answers Yes, one it answers No and a choice, each its closed kind's answer."""
     from lanevil_train.vlm.clips.qa import (
         DESCRIBE_QUESTION,
         EGO_LANE_QUESTIONS,
@@ -315,10 +316,15 @@ def test_training_aids_are_the_description_and_open_questions_whose_answers_turn
 
     aids = training_aids(truth(num_lanes=4, ego_lane=3, curvature_sign=1, slope="uphill",
                                markings=["white_solid"] * 5), "case-7-over")
-    assert [a["qa_id"] for a in aids] == ["case-7-over-describe"] + [f"case-7-over-aid{k}" for k in range(1, 5)]
-    assert aids[0] == describe_scene(truth(num_lanes=4, ego_lane=3, curvature_sign=1, slope="uphill",
-                                           markings=["white_solid"] * 5), "case-7-over")
-    assert aids[0]["question"] == DESCRIBE_QUESTION and all(a["type"] == "open" for a in aids)
+    hill = truth(num_lanes=4, ego_lane=3, curvature_sign=1, slope="uphill", markings=["white_solid"] * 5)
+    assert [a["qa_id"] for a in aids] == ["case-7-over-describe"] + [f"case-7-over-aid{k}" for k in range(1, 8)]
+    assert aids[0] == describe_scene(hill, "case-7-over")
+    assert aids[0]["question"] == DESCRIBE_QUESTION and all(a["type"] == "open" for a in aids[:5])
+    assert [a["type"] for a in aids[5:]] == ["yes_no", "yes_no", "choice"]
+    said = candidates(hill)
+    assert aids[5]["answer"].startswith("Yes.") and said[aids[5]["question"]]["yes"] is True
+    assert aids[6]["answer"].startswith("No.") and said[aids[6]["question"]]["yes"] is False
+    assert aids[7]["answer"][3:] == said[aids[7]["question"]]["correct"] and aids[7]["answer"] in aids[7]["choices"]
     assert aids[1]["question"] in LANE_COUNT_QUESTIONS and aids[1]["answer"] == "The road has four lanes."
     assert aids[2]["question"] in EGO_LANE_QUESTIONS
     assert aids[2]["answer"] == "The ego vehicle is in the rightmost lane; the road has four lanes."
@@ -329,7 +335,7 @@ def test_training_aids_are_the_description_and_open_questions_whose_answers_turn
     straight = training_aids(truth(curvature_sign=0), "case-7-over")
     assert straight[3]["answer"].startswith("No steering is needed")
     assert "hold a straight course" in straight[4]["answer"]
-    assert [a["question"] for a in straight] == [a["question"] for a in aids]  # phrasing follows the clip id
+    assert [a["question"] for a in straight[:5]] == [a["question"] for a in aids[:5]]  # phrasing follows the clip id
     with pytest.raises(ValueError, match="truth of c: num_lanes"):
         training_aids(truth(num_lanes=9), "c")
 

@@ -19,6 +19,7 @@ import numpy as np
 
 from lanevil_train.vlm.clips.qa_closed import (
     BENDS,
+    CLOSED_KINDS,
     EGO_LANE_QUESTIONS,
     LANE_COUNT_QUESTIONS,
     SEGMENT_ORDER,
@@ -28,7 +29,9 @@ from lanevil_train.vlm.clips.qa_closed import (
     curve,
     ego_lane_words,
     is_traffic,
+    lettered,
     road_shape,
+    yes_no_answer,
 )
 from lanevil_train.vlm.clips.qa_facts import (
     ILLUSION_FACTS,
@@ -231,21 +234,49 @@ def describe_scene(truth: dict, base_clip_id: str) -> dict:
             **_qa("scene_description", DESCRIBE_QUESTION, answer)}
 
 
+def _closed_aids(truth: dict, rng: np.random.Generator) -> list[dict]:
+    """A yes/no question the clip answers Yes, one it answers No and a choice question, each of a closed kind
+    drawn first (then one of its candidates), so no kind with many templates crowds out the others."""
+    def answers(candidate: dict, wanted) -> bool:
+        return candidate["type"] == "choice" if wanted == "choice" else candidate.get("yes") is wanted
+
+    kinds = [(category, kind) for category, kinds in CLOSED_KINDS.items() for kind in kinds]
+    out = []
+    for wanted in (True, False, "choice"):
+        fits = [(category, [c for c in kind(truth) if answers(c, wanted)]) for category, kind in kinds]
+        fits = [(category, candidates) for category, candidates in fits if candidates]
+        category, candidates = fits[int(rng.integers(len(fits)))]
+        candidate = candidates[int(rng.integers(len(candidates)))]
+        record = {"category": category, "type": candidate["type"], "question": candidate["template"]}
+        if candidate["type"] == "yes_no":
+            out.append({**record, "answer": yes_no_answer(candidate)})
+            continue
+        others = [d for d in candidate["domain"] if d != candidate["correct"]]
+        texts = [candidate["correct"], *(others[i] for i in rng.choice(len(others), min(3, len(others)),
+                                                                        replace=False))]
+        texts = [texts[i] for i in rng.permutation(len(texts))]
+        choices, answer = lettered(texts, candidate["correct"])
+        out.append({**record, "answer": answer, "choices": choices})
+    return out
+
+
 def training_aids(truth: dict, base_clip_id: str) -> list[dict]:
     """A clip's training-only QA, from its truth: the scene description (`{base_clip_id}-describe`), then the open
     questions whose answers name what the frames show (`{base_clip_id}-aid1..4`): the lane count, the ego lane, the
-    steering the road's bend asks for and the safe action. Never part of the benchmark's QA; phrased as the
-    benchmark's own open kinds, with the phrasing drawn from the clip id.
+    steering the road's bend asks for and the safe action; then closed questions of the benchmark's closed kinds
+    (`-aid5..7`): one the clip answers Yes, one it answers No and a choice question. Never part of the benchmark's
+    QA; phrased as the benchmark's own kinds, with the phrasing drawn from the clip id.
 
     Why: a small VLM trained from scratch (vlm/backends/embedded.py) gets its say on the frames from a few answer tokens
     ("three", "left"); in the 5 benchmark QA of a clip those are rare (one steering question in about 30), in a
     description one token in 60. Short answers that turn on a fact make that fact's tokens a large part of the loss
-    (what that changes: benchmarks/RESULTS.md, "VLM fine-tuning")."""
+    (what that changes: benchmarks/RESULTS.md, "VLM fine-tuning"). The closed aids give each clip a Yes and a No,
+    so a closed answer can only be learned from the frames."""
     check_truth(truth, f"truth of {base_clip_id}")
     rng = np.random.default_rng([zlib.crc32(base_clip_id.encode("utf-8")), 0xA1D])
     facts = (_lane_count_open(truth, _pick(rng, LANE_COUNT_QUESTIONS)),
              _ego_lane_open(truth, _pick(rng, EGO_LANE_QUESTIONS)), _steering_open(truth, rng),
-             _safe_action_open(truth, rng))
+             _safe_action_open(truth, rng), *_closed_aids(truth, rng))
     return [describe_scene(truth, base_clip_id),
             *({"qa_id": f"{base_clip_id}-aid{k}", "base_clip_id": base_clip_id, **qa} for k, qa in enumerate(facts, 1))]
 

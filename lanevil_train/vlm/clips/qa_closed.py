@@ -50,6 +50,17 @@ def choice(template: str, correct: str, domain) -> dict:
     return {"type": "choice", "template": template, "correct": correct, "domain": domain}
 
 
+def yes_no_answer(candidate: dict) -> str:
+    """A yes/no candidate's reference answer: "Yes. <reason>" or "No. <reason>"."""
+    return f"{'Yes' if candidate['yes'] else 'No'}. {candidate['reason']}"
+
+
+def lettered(texts, correct: str) -> tuple[list[str], str]:
+    """(["A. text", ...], the correct one's "X. text") of option texts in their order."""
+    choices = [f"{chr(65 + k)}. {text}" for k, text in enumerate(texts)]
+    return choices, choices[list(texts).index(correct)]
+
+
 # ---------------------------------------------------------------------------------------------- truth, in words
 
 def curve(truth: dict) -> int:

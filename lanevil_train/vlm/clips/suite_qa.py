@@ -33,7 +33,7 @@ import numpy as np
 
 from lanevil_train.perturbations import check_kind
 from lanevil_train.vlm.clips.qa import OPEN_KINDS, check_truth, clip_categories
-from lanevil_train.vlm.clips.qa_closed import CLOSED_KINDS
+from lanevil_train.vlm.clips.qa_closed import CLOSED_KINDS, lettered, yes_no_answer
 
 # truth keys a corruption-suite question must not read: the illusion is not drawn, weather and light are what the
 # weather and brightness corruptions change the look of
@@ -131,18 +131,17 @@ class _Balance:
         record = {"category": category, "type": candidate["type"], "question": template, "template": template}
         if candidate["type"] == "yes_no":
             self.yes_minus_no[template] += 1 if candidate["yes"] else -1
-            return {**record, "answer": f"{'Yes' if candidate['yes'] else 'No'}. {candidate['reason']}"}
+            return {**record, "answer": yes_no_answer(candidate)}
         self.correct[template][candidate["correct"]] += 1
         others = [d for d in candidate["domain"] if d != candidate["correct"]]
         count = min(CHOICE_OPTIONS, len(candidate["domain"]))
-        texts = [candidate["correct"], *(others[i] for i in rng.choice(len(others), count - 1, replace=False))]
-        order = [int(i) for i in rng.permutation(count) if i]
+        texts = [others[i] for i in rng.choice(len(others), count - 1, replace=False)]
         deck = self.letters[count]
         if not deck:
             deck.extend(int(i) for i in self.deck_rng.permutation(count))
-        order.insert(deck.pop(), 0)
-        choices = [f"{chr(65 + k)}. {texts[i]}" for k, i in enumerate(order)]
-        return {**record, "answer": choices[order.index(0)], "choices": choices}
+        texts.insert(deck.pop(), candidate["correct"])
+        choices, answer = lettered(texts, candidate["correct"])
+        return {**record, "answer": answer, "choices": choices}
 
     def unbalanced(self) -> set[str]:
         return {template for template, d in self.yes_minus_no.items() if d}
