@@ -100,6 +100,13 @@ def evaluate_into(vlm: VLM, dataset, judge, out: Path, label: dict, progress: st
     return evaluate_clips(vlm, dataset, out, label, judge=judge, progress=progress)
 
 
+def append_to_report(out: Path, section: str) -> None:
+    """Add a markdown section at the end of out/report.md (when it exists)."""
+    report = out / "report.md"
+    if report.is_file():
+        atomic_write_text(report, f"{report.read_text().rstrip()}\n\n{section}")
+
+
 def write_gap_intervals(results: Path, out: Path) -> Path | None:
     """gap_intervals.json and a section of report.md: the model's yes/no and choice accuracy on perturbed clips
     minus that on the same questions' clean clips, per QA category, with a paired bootstrap 95 % interval over the
@@ -116,9 +123,7 @@ def write_gap_intervals(results: Path, out: Path) -> Path | None:
                f"Perturbed - Original with a paired bootstrap 95 % interval over the scenes (* : it excludes 0).\n\n"
                f"{gap_markdown(rows)}")
     atomic_write_text(out / "gap_intervals.json", json.dumps(rows, indent=1) + "\n")
-    report = out / "report.md"
-    if report.is_file():
-        atomic_write_text(report, f"{report.read_text().rstrip()}\n\n{section}")
+    append_to_report(out, section)
     return out / "gap_intervals.json"
 
 
@@ -144,9 +149,7 @@ def write_visual_reliance(results: list[Path], out: Path) -> Path | None:
                f"{reliance_markdown(rows, names)}")
     atomic_write_text(out / "visual_reliance.json", json.dumps(rows, indent=1) + "\n")
     atomic_write_text(out / "visual_reliance.md", f"# {section[3:]}")
-    report = out / "report.md"
-    if report.is_file():
-        atomic_write_text(report, f"{report.read_text().rstrip()}\n\n{section}")
+    append_to_report(out, section)
     print(section)
     return out / "visual_reliance.md"
 
@@ -180,9 +183,7 @@ def write_drivelm_score(results: list[Path], out: Path) -> Path | None:
                f"100), from the judge's GPT score, the Language score of every answer and the yes/no and choice "
                f"accuracy.{note}\n\n{table}")
     atomic_write_text(out / "drivelm_score.json", json.dumps(rows, indent=1) + "\n")
-    report = out / "report.md"
-    if report.is_file():
-        atomic_write_text(report, f"{report.read_text().rstrip()}\n\n{section}")
+    append_to_report(out, section)
     return out / "drivelm_score.json"
 
 
