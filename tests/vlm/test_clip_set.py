@@ -204,14 +204,15 @@ def test_a_window_shuffle_renders_each_base_clip_once_per_epoch_and_mixes_clips_
 
 
 def test_aids_add_training_aid_pairs_a_set_on_disk_cannot_give(tmp_path):
-    """ClipQADataset(aids=2): each clip variant's 5 QA plus each of its base clip's 5 training aids (description and
-    fact questions) twice, as the truth gives them; a built set has no truth, so aids are refused there, naming why."""
+    """ClipQADataset(aids=2): each clip variant's 5 QA plus each of its base clip's 8 training aids (description,
+    fact questions, a Yes, a No and a choice question) twice, as the truth gives them; a built set has no truth, so aids are refused there, naming why."""
     from lanevil_train.vlm.clips.qa import DESCRIBE_QUESTION, training_aids
     from lanevil_train.vlm.clips.qa_data import ClipQADataset
+    from lanevil_train.vlm.clips.qa_records import prompt_text
 
     suite = SyntheticClipSuite(1, 500, ["rail_shadow"], [2], SIZE)
     pairs = ClipQADataset(suite, "all", aids=2)
-    assert len(pairs) == 3 * 2 * (5 + 2 * 5) == len(ClipQADataset(suite, "all")) + 60
+    assert len(pairs) == 3 * 2 * (5 + 2 * 8) == len(ClipQADataset(suite, "all")) + 96
     items = [pairs[i] for i in range(len(pairs))]
     described = [item for item in items if item["question"] == DESCRIBE_QUESTION]
     assert len(described) == 12 and {item["meta"]["severity"] for item in described} == {0, 2}
@@ -221,7 +222,7 @@ def test_aids_add_training_aid_pairs_a_set_on_disk_cannot_give(tmp_path):
     of_base = [item for item in items if item["meta"]["base_clip_id"] == base and item["meta"]["severity"] == 0]
     aid_items = [item for item in of_base if item["meta"]["qa_id"] in {aid["qa_id"] for aid in expected}]
     assert [(item["question"], item["answer"]) for item in aid_items] == \
-        [(aid["question"], aid["answer"]) for aid in expected] * 2
+        [(prompt_text(aid), aid["answer"]) for aid in expected] * 2  # a choice aid is asked with its options
     assert described[0]["key"].endswith(f"/{base}-describe")
     build_clip_set(suite.cases, [2], tmp_path, size=SIZE, progress="none")
     with pytest.raises(ValueError, match="aids: 1 rounds of training aids need the scene truth, which "
