@@ -205,7 +205,8 @@ def test_a_window_shuffle_renders_each_base_clip_once_per_epoch_and_mixes_clips_
 
 def test_aids_add_training_aid_pairs_a_set_on_disk_cannot_give(tmp_path):
     """ClipQADataset(aids=2): each clip variant's 5 QA plus each of its base clip's 8 training aids (description,
-    fact questions, a Yes, a No and a choice question) twice, as the truth gives them; a built set has no truth, so aids are refused there, naming why."""
+    fact questions, a Yes, a No and a choice question) twice, as the truth gives them; a built set has no truth, so
+    aids are refused there, naming why."""
     from lanevil_train.vlm.clips.qa import DESCRIBE_QUESTION, training_aids
     from lanevil_train.vlm.clips.qa_data import ClipQADataset
     from lanevil_train.vlm.clips.qa_records import prompt_text
