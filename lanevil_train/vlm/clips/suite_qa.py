@@ -157,29 +157,33 @@ def _answer(candidate: dict):
     return candidate["yes"] if candidate["type"] == "yes_no" else candidate["correct"]
 
 
-def _answers_seen(clips, kind: str) -> dict[str, set]:
+def _closed_candidates(clips, kind: str) -> list[dict[str, list[dict]]]:
+    """Per clip, {category: the candidates of its closed kinds a `kind` suite asks}: computed once, read twice."""
+    return [{category: [c for closed_kind in allowed_kinds(kinds, kind) for c in closed_kind(truth)]
+             for category, kinds in CLOSED_KINDS.items()} for _, _, truth in clips]
+
+
+def _answers_seen(candidates: list[dict[str, list[dict]]]) -> dict[str, set]:
     """The answers each closed template takes over the suite's clips (True/False, or correct option texts)."""
     seen: dict[str, set] = defaultdict(set)
-    for _, _, truth in clips:
-        for kinds in CLOSED_KINDS.values():
-            for closed_kind in allowed_kinds(kinds, kind):
-                for candidate in closed_kind(truth):
-                    seen[candidate["template"]].add(_answer(candidate))
+    for of_clip in candidates:
+        for listed in of_clip.values():
+            for candidate in listed:
+                seen[candidate["template"]].add(_answer(candidate))
     return seen
 
 
-def _varying(kinds, truth: dict, answers: dict[str, set]) -> list[dict]:
-    """The candidates of `kinds` for a clip whose template the suite answers more than one way, a choice's domain
-    cut to the correct texts the suite holds (an option never right over the suite would be one to rule out)."""
+def _varying(candidates: list[dict], answers: dict[str, set]) -> list[dict]:
+    """The candidates whose template the suite answers more than one way, a choice's domain cut to the correct texts
+    the suite holds (an option never right over the suite would be one to rule out)."""
     out = []
-    for closed_kind in kinds:
-        for candidate in closed_kind(truth):
-            seen = answers[candidate["template"]]
-            if len(seen) < 2:
-                continue
-            if candidate["type"] == "choice":
-                candidate = {**candidate, "domain": tuple(d for d in candidate["domain"] if d in seen)}
-            out.append(candidate)
+    for candidate in candidates:
+        seen = answers[candidate["template"]]
+        if len(seen) < 2:
+            continue
+        if candidate["type"] == "choice":
+            candidate = {**candidate, "domain": tuple(d for d in candidate["domain"] if d in seen)}
+        out.append(candidate)
     return out
 
 
@@ -190,19 +194,21 @@ def suite_qa(clips: Sequence[tuple[str, int, dict]], per_clip: int = 5, kind: st
         raise ValueError(f"per_clip: expected an integer >= 1, got {per_clip!r}")
     for base, _, truth in clips:
         check_truth(truth, f"truth of {base}")
-    answers = _answers_seen(clips, kind)
+    candidates = _closed_candidates(clips, kind)
+    answers = _answers_seen(candidates)
     balance, out, slots = _Balance(), {}, []
-    for base, seed, truth in clips:
+    for (base, seed, truth), of_clip in zip(clips, candidates):
         rng = np.random.default_rng([int(seed), zlib.crc32(base.encode("utf-8"))])
         asked: set[str] = set()
         out[base] = []
+        kept = kept_questions(kind, seed, truth["segment"], per_clip)
         for k, category in enumerate(clip_categories(int(seed), truth["segment"], per_clip)):
-            if k not in kept_questions(kind, seed, truth["segment"], per_clip):
+            if k not in kept:
                 continue
-            closed = allowed_kinds(CLOSED_KINDS[category], kind)
             qa = None
-            if closed and rng.random() >= OPEN_SHARE:
-                fits = [c for c in _varying(closed, truth, answers) if c["template"] not in asked and balance.allows(c)]
+            if of_clip[category] and rng.random() >= OPEN_SHARE:
+                fits = [c for c in _varying(of_clip[category], answers)
+                        if c["template"] not in asked and balance.allows(c)]
                 types = sorted({c["type"] for c in fits})
                 if types:
                     chosen = types[int(rng.integers(len(types)))]
