@@ -90,9 +90,9 @@ def ego_lane_words(truth: dict) -> str:
     return f"the {ORDINALS[ego]} lane from the left"
 
 
-def cue(truth: dict, singular: bool = False) -> str:
+def cue(truth: dict) -> str:
     """The illusion as a camera sees it and where it lies: "dark lines in the left lane"."""
-    return f"{CUES[CUE_GROUP[truth['illusion']]][int(singular)]} {LANE_PLACES[truth['illusion_lane']]}"
+    return f"{CUES[CUE_GROUP[truth['illusion']]]} {LANE_PLACES[truth['illusion_lane']]}"
 
 
 def is_traffic(truth: dict) -> bool:

@@ -1,7 +1,8 @@
 """The words the QA templates (vlm/clips/qa.py) use for the simulator's names: illusions, lanes, markings, weather.
 
-Each illusion has what it looks like to a camera (the misleading cue a question carries) and what it really is
-(the reference answer). The names are the simulator's (sim/presets.py) and the taxonomy's (taxonomy.py).
+Each illusion has what it really is (the reference answer) and a note; what a question calls it is its cue group's
+words (CUES: what a camera sees, shared by illusions of two natures). The names are the simulator's (sim/presets.py)
+and the taxonomy's (taxonomy.py).
 """
 
 from __future__ import annotations
@@ -9,54 +10,37 @@ from __future__ import annotations
 from types import MappingProxyType
 
 
-def _facts(looks: str, looks_one: str, is_: str, is_one: str, note: str, traffic: bool = False) -> dict:
-    return {"looks": looks, "looks_one": looks_one, "is": is_, "is_one": is_one, "note": note, "traffic": traffic}
+def _facts(is_: str, note: str, traffic: bool = False) -> dict:
+    return {"is": is_, "note": note, "traffic": traffic}
 
 
 ILLUSION_FACTS = MappingProxyType({
-    "road_crack": _facts("dark jagged lines", "dark jagged line", "cracks in the asphalt", "a crack in the asphalt",
-                         "Cracks are damage to the road surface and do not guide traffic."),
-    "road_repair": _facts("dark glossy strips", "dark glossy strip", "sealed tar repairs of the asphalt",
-                          "a sealed tar repair of the asphalt",
-                          "Repairs run where the road was patched, not where the lanes are."),
-    "tire_marks": _facts("dark curved streaks", "dark curved streak", "tyre skid marks on the asphalt",
-                         "a tyre skid mark on the asphalt", "Skid marks are rubber left by braking vehicles."),
-    "guard_rail": _facts("long bright lines along the road edge", "long bright line along the road edge",
-                         "a metal guard rail on posts beside the road", "a metal guard rail beside the road",
-                         "The rail stands beside the road; the edge line is painted on the asphalt."),
-    "pedestrian": _facts("people standing on the lane line", "person standing on the lane line",
-                         "pedestrians standing on the road", "a pedestrian standing on the road",
-                         "They hide parts of the lane line but do not move it.", traffic=True),
-    "vehicle": _facts("vehicles standing on the lane line", "vehicle standing on the lane line",
-                      "stopped vehicles on the road", "a stopped vehicle on the road",
-                      "They hide parts of the lane line but do not move it.", traffic=True),
-    "bicycle": _facts("cyclists on the lane line", "cyclist on the lane line", "cyclists with their bicycles",
-                      "a cyclist with a bicycle", "They hide parts of the lane line but do not move it.",
-                      traffic=True),
-    "streetlight_shadow": _facts("long dark slanting lines", "long dark slanting line",
-                                 "shadows of street lamp poles", "the shadow of a street lamp pole",
-                                 "The lamps beside the road cast them across the asphalt."),
-    "fence_shadow": _facts("rows of dark stripes", "row of dark stripes", "shadows of a roadside fence",
-                           "the shadow of a roadside fence", "The fence beside the road casts them."),
-    "rail_shadow": _facts("dark straight lines", "dark straight line", "shadows of a roadside rail",
-                          "the shadow of a rail beside the road", "The low sun casts the rail's bars along the lanes."),
-    "wire_shadow": _facts("thin dark lines", "thin dark line", "shadows of overhead wires",
-                          "the shadow of an overhead wire", "Wires above the road cast thin shadows on it."),
-    "sunlight_reflection": _facts("bright glare patches", "bright glare patch", "sunlight reflected by the road",
-                                  "sunlight reflected by the road", "Glare changes brightness, not the lanes."),
-    "streetlight_reflection": _facts("bright streaks", "bright streak", "reflections of street lights on the road",
-                                     "a reflection of a street light on the road",
-                                     "The road surface mirrors the lamps."),
-    "vehicle_reflection": _facts("mirror images of a vehicle", "mirror image of a vehicle",
-                                 "reflections of a vehicle on the road surface",
-                                 "a reflection of a vehicle on the road surface",
-                                 "A reflection is not an object on the road."),
+    "road_crack": _facts("cracks in the asphalt", "Cracks are damage to the road surface and do not guide traffic."),
+    "road_repair": _facts("sealed tar repairs of the asphalt",
+                         "Repairs run where the road was patched, not where the lanes are."),
+    "tire_marks": _facts("tyre skid marks on the asphalt", "Skid marks are rubber left by braking vehicles."),
+    "guard_rail": _facts("a metal guard rail on posts beside the road",
+                        "The rail stands beside the road; the edge line is painted on the asphalt."),
+    "pedestrian": _facts("pedestrians standing on the road",
+                        "They hide parts of the lane line but do not move it.", traffic=True),
+    "vehicle": _facts("stopped vehicles on the road",
+                     "They hide parts of the lane line but do not move it.", traffic=True),
+    "bicycle": _facts("cyclists with their bicycles",
+                     "They hide parts of the lane line but do not move it.", traffic=True),
+    "streetlight_shadow": _facts("shadows of street lamp poles",
+                                "The lamps beside the road cast them across the asphalt."),
+    "fence_shadow": _facts("shadows of a roadside fence", "The fence beside the road casts them."),
+    "rail_shadow": _facts("shadows of a roadside rail", "The low sun casts the rail's bars along the lanes."),
+    "wire_shadow": _facts("shadows of overhead wires", "Wires above the road cast thin shadows on it."),
+    "sunlight_reflection": _facts("sunlight reflected by the road", "Glare changes brightness, not the lanes."),
+    "streetlight_reflection": _facts("reflections of street lights on the road", "The road surface mirrors the lamps."),
+    "vehicle_reflection": _facts("reflections of a vehicle on the road surface",
+                                "A reflection is not an object on the road."),
 })
 
 # What a question calls an illusion: what a camera sees, shared by illusions of different natures, so that the words
-# never say what it is (a "dark line" may be a crack or a shadow; only the pixels tell). (plural, singular) by group.
-CUES = MappingProxyType({"dark": ("dark lines", "dark line"), "bright": ("bright streaks", "bright streak"),
-                         "figures": ("shapes of people or vehicles", "shape of a person or vehicle")})
+# never say what it is (a "dark line" may be a crack or a shadow; only the pixels tell).
+CUES = MappingProxyType({"dark": "dark lines", "bright": "bright streaks", "figures": "shapes of people or vehicles"})
 CUE_GROUP = MappingProxyType({
     **dict.fromkeys(("road_crack", "road_repair", "tire_marks", "streetlight_shadow", "fence_shadow", "rail_shadow",
                      "wire_shadow"), "dark"),
@@ -90,11 +74,6 @@ ROAD_SHAPES = MappingProxyType({
 
 SCENE_KINDS_TEXT = MappingProxyType({"urban": "An urban street between buildings.",
                                      "highway": "A multi-lane highway.", "rural": "A rural road through fields."})
-# never the simulator's scene: the fourth option of the scene-kind question (every choice question has 4)
-SCENE_KIND_DISTRACTOR = "An unpaved track through a forest."
-
-SPEED_BANDS = ("Standing still.", "Slower than 20 km/h.", "Between 20 and 40 km/h.", "Between 40 and 60 km/h.",
-               "Faster than 60 km/h.")
 
 WEATHER_TEXT = MappingProxyType({
     "clear_noon": "It is a clear day around noon with bright sunlight.",
