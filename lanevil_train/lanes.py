@@ -47,11 +47,82 @@ def lane_x_at(lane: np.ndarray, ys: np.ndarray) -> np.ndarray:
     return out
 
 
-def lanes_to_rows(lanes: list[np.ndarray], ys: np.ndarray) -> np.ndarray:
-    """Lanes as a (L, len(ys)) array of x per row (INVALID_X where a lane has no point)."""
+# How a lane's x is read at given rows (a dataset's h_samples), `model.row_sampling`: what the family's official
+# prediction writer does with the lanes its decoding gives.
+#   linear: interpolated linearly between the lane's points, INVALID_X outside its span (lane_x_at);
+#   spline: the official LaneATT / CLRNet ``Lane`` (LaneATT lib/lane.py:10-23, CLRNet clrnet/utils/lane.py:11-28): an
+#     interpolating spline of x over y of degree min(3, N - 1) through the points (scipy's
+#     InterpolatedUnivariateSpline), valid within 1 % of the image height past the lane's highest and lowest point,
+#     extrapolated there; then the TuSimple writers' ``(xs * img_w).astype(int)`` (LaneATT
+#     lib/datasets/tusimple.py:56-62, CLRNet clrnet/datasets/tusimple.py:63-71): x truncated toward zero, INVALID_X
+#     where x < 0, any x past the right edge kept;
+#   points: x only at the rows where the lane has a point (within POINT_ROW_TOLERANCE px), INVALID_X at every other
+#     row: row-wise decoders (UFLD's row anchors, SCNN's rows) whose official writers emit one value per row.
+ROW_SAMPLINGS = ("linear", "spline", "points")
+SPLINE_MARGIN_FRAC = 0.01   # the Lane's validity margin: 0.01 in y normalised by the image height
+POINT_ROW_TOLERANCE = 0.05  # px: a point "at" a row (records keep points to 1e-4 px)
+
+
+def check_row_sampling(sampling: str, key: str = "model.row_sampling") -> str:
+    """`sampling` if it is one of ROW_SAMPLINGS, else a ValueError naming `key`."""
+    if sampling not in ROW_SAMPLINGS:
+        raise ValueError(f"{key}={sampling!r}: expected one of {', '.join(ROW_SAMPLINGS)}")
+    return sampling
+
+
+def spline_x_at(lane: np.ndarray, ys: np.ndarray, height: float) -> np.ndarray:
+    """The official Lane's x at rows ys (see ROW_SAMPLINGS), truncated to whole pixels; INVALID_X outside its
+    span widened by SPLINE_MARGIN_FRAC * height, and where x < 0. Fewer than 2 points: INVALID_X everywhere."""
+    from scipy.interpolate import InterpolatedUnivariateSpline
+
+    ys = np.asarray(ys, dtype=np.float64)
+    out = np.full(ys.shape, INVALID_X)
+    if len(lane) < 2:
+        return out
+    order = np.argsort(lane[:, 1], kind="stable")
+    ly, lx = lane[order, 1], lane[order, 0]
+    keep = np.concatenate([[True], np.diff(ly) > 0])  # the spline needs strictly increasing y
+    ly, lx = ly[keep], lx[keep]
+    if len(ly) < 2:
+        return out
+    xs = InterpolatedUnivariateSpline(ly, lx, k=min(3, len(ly) - 1))(ys)
+    margin = SPLINE_MARGIN_FRAC * float(height)
+    valid = (ys >= ly[0] - margin) & (ys <= ly[-1] + margin) & (xs >= 0)
+    out[valid] = np.trunc(xs[valid])
+    return out
+
+
+def point_x_at(lane: np.ndarray, ys: np.ndarray) -> np.ndarray:
+    """x of the lane's point at each row in ys (within POINT_ROW_TOLERANCE); INVALID_X where it has none."""
+    ys = np.asarray(ys, dtype=np.float64)
+    out = np.full(ys.shape, INVALID_X)
+    if len(lane) == 0:
+        return out
+    distance = np.abs(lane[None, :, 1] - ys[:, None])
+    nearest = distance.argmin(axis=1)
+    at_row = distance[np.arange(len(ys)), nearest] <= POINT_ROW_TOLERANCE
+    out[at_row] = lane[nearest[at_row], 0]
+    out[out < 0] = INVALID_X
+    return out
+
+
+def sample_lane(lane: np.ndarray, ys: np.ndarray, sampling: str = "linear", height: float | None = None) -> np.ndarray:
+    """x of one lane at rows ys, read as `sampling` says (ROW_SAMPLINGS); `height` (the image's) for "spline"."""
+    if check_row_sampling(sampling) == "points":
+        return point_x_at(lane, ys)
+    if sampling == "spline":
+        if height is None:
+            raise ValueError("row sampling 'spline' needs the image height (its validity margin is 1 % of it)")
+        return spline_x_at(lane, ys, height)
+    return lane_x_at(lane, ys)
+
+
+def lanes_to_rows(lanes: list[np.ndarray], ys: np.ndarray, sampling: str = "linear",
+                  height: float | None = None) -> np.ndarray:
+    """Lanes as a (L, len(ys)) array of x per row (INVALID_X where a lane has no point), read as `sampling`."""
     if not lanes:
         return np.zeros((0, len(ys)))
-    return np.stack([lane_x_at(lane, ys) for lane in lanes])
+    return np.stack([sample_lane(lane, ys, sampling, height) for lane in lanes])
 
 
 def rows_to_lane(xs: np.ndarray, ys: np.ndarray) -> np.ndarray:

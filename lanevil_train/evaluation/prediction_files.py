@@ -38,20 +38,26 @@ NO_POINT = -2  # TuSimple's x for a row a lane does not reach
 FIELDS = ("pred_points", "h_samples", "run_time")
 
 
-def prediction_fields(pred: list[np.ndarray], meta: dict, run_time_ms: float) -> dict:
+def prediction_fields(pred: list[np.ndarray], meta: dict, run_time_ms: float, row_sampling: str = "linear") -> dict:
     """What a per-image record keeps for the prediction files: the predicted lanes (original-image pixels, x and y
-    to 0.01 px), the image's h_samples and the run time (ms)."""
-    return {"pred_points": [np.round(np.asarray(lane, dtype=np.float64), 2).tolist() for lane in pred],
+    to 1e-4 px), how they are read at rows (the model's row sampling, lanes.ROW_SAMPLINGS; named when not linear),
+    the image's height and h_samples and the run time (ms)."""
+    return {"pred_points": [np.round(np.asarray(lane, dtype=np.float64), 4).tolist() for lane in pred],
+            **({"row_sampling": row_sampling, "height": int(meta["height"])} if row_sampling != "linear" else {}),
             "h_samples": [float(y) for y in meta["h_samples"]], "run_time": round(float(run_time_ms), 3)}
 
 
 def tusimple_line(record: dict) -> dict:
-    """One line of the TuSimple prediction file from a record holding ``prediction_fields``."""
+    """One line of the TuSimple prediction file from a record holding ``prediction_fields``: each lane read at the
+    h_samples as its row sampling says (x to 0.01 px; whole pixels where the sampling truncates, as the official
+    spline writers)."""
     rows = np.asarray(record["h_samples"], dtype=np.float64)
     lanes = [np.asarray(points, dtype=np.float64).reshape(-1, 2) for points in record["pred_points"]]
-    xs = lanes_to_rows([lane for lane in lanes if len(lane) >= 2], rows)
+    sampling = record.get("row_sampling", "linear")
+    xs = lanes_to_rows([lane for lane in lanes if len(lane) >= 2], rows, sampling, record.get("height"))
+    number = int if sampling == "spline" else (lambda x: round(x, 2))
     return {"raw_file": record["key"],
-            "lanes": [[round(float(x), 2) if x >= 0 else NO_POINT for x in lane] for lane in xs],
+            "lanes": [[number(float(x)) if x >= 0 else NO_POINT for x in lane] for lane in xs],
             "h_samples": [int(y) if float(y).is_integer() else y for y in record["h_samples"]],
             "run_time": record["run_time"]}
 

@@ -24,22 +24,26 @@ LANE_FIELDS = ("pred_lanes", "gt_lanes")
 RESULTS = "per_image.jsonl"
 
 
-def _compact(lanes: list[np.ndarray], rows: np.ndarray) -> list[list[list[int]]]:
-    """Lanes sampled at the scoring rows, as integer [x, y] lists (small enough to keep per image)."""
+def _compact(lanes: list[np.ndarray], rows: np.ndarray, row_sampling: str = "linear",
+             height: float | None = None) -> list[list[list[int]]]:
+    """Lanes sampled at the scoring rows (as `row_sampling` reads them), as integer [x, y] lists (small enough to
+    keep per image)."""
     out = []
-    for xs in lanes_to_rows(lanes, rows):
+    for xs in lanes_to_rows(lanes, rows, row_sampling, height):
         valid = xs >= 0
         out.append(np.stack([np.round(xs[valid]), rows[valid]], 1).astype(int).tolist())
     return out
 
 
-def lane_record(pred: list[np.ndarray], gt: list[np.ndarray], meta: dict, keep_lanes: bool = True) -> dict:
+def lane_record(pred: list[np.ndarray], gt: list[np.ndarray], meta: dict, keep_lanes: bool = True,
+                row_sampling: str = "linear") -> dict:
     """The per-image record of predicted vs ground-truth lanes (original-image pixels) of the sample `meta`
-    describes: TuSimple accuracy/FP/FN and lane counts (F1_count's TP/FP/FN) at its h_samples and CULane TP/FP/FN
-    (30 px lanes at 1640 px wide; a LLAMAS image, meta "culane_metric" "llamas", by the official LLAMAS procedure:
-    metrics/llamas.py)."""
-    acc, fp, fn, tp_count, fp_count, fn_count = tusimple_lane_scores(pred, gt, meta["h_samples"], with_counts=True)
+    describes: TuSimple accuracy/FP/FN and lane counts (F1_count's TP/FP/FN) at its h_samples (the predicted lanes
+    read there as `row_sampling` says, the model's) and CULane TP/FP/FN (30 px lanes at 1640 px wide; a LLAMAS
+    image, meta "culane_metric" "llamas", by the official LLAMAS procedure: metrics/llamas.py)."""
     width, height = int(meta["width"]), int(meta["height"])
+    acc, fp, fn, tp_count, fp_count, fn_count = tusimple_lane_scores(pred, gt, meta["h_samples"], with_counts=True,
+                                                                     row_sampling=row_sampling, height=height)
     if meta.get("culane_metric") == "llamas":
         if (width, height) != (1276, 717):
             raise ValueError(f"{meta.get('source') or meta['case_id']}: a LLAMAS image is 1276x717 (the official "
@@ -56,7 +60,7 @@ def lane_record(pred: list[np.ndarray], gt: list[np.ndarray], meta: dict, keep_l
               "num_pred": len(pred), "num_gt": len(gt)}
     if keep_lanes:
         rows = np.asarray(meta["h_samples"], dtype=np.float64)
-        record.update(pred_lanes=_compact(pred, rows), gt_lanes=_compact(gt, rows))
+        record.update(pred_lanes=_compact(pred, rows, row_sampling, height), gt_lanes=_compact(gt, rows))
     return record
 
 
@@ -88,7 +92,8 @@ class PerImageWriter(pl.Callback):
 
     def on_test_batch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule, outputs, batch, batch_idx: int,
                           dataloader_idx: int = 0) -> None:
-        records = [{**self.label, **lane_record(pred, gt, meta)}
+        row_sampling = getattr(pl_module, "row_sampling", "linear")
+        records = [{**self.label, **lane_record(pred, gt, meta, row_sampling=row_sampling)}
                    for pred, gt, meta in zip(outputs, batch["lanes"], batch["meta"])]
         ResultsLog(self._part(trainer.global_rank)).append(records)
 

@@ -61,8 +61,8 @@ def stream_evaluate(model: LaneDetector, dataset: Dataset, out_path: str | Path,
             if images.is_cuda:
                 torch.cuda.synchronize(device)
             run_time_ms = (time.perf_counter() - start) * 1000 / len(preds)
-            log.append({**label, **lane_record(pred, gt, meta, keep_lanes),
-                        **(prediction_fields(pred, meta, run_time_ms) if predictions else {})}
+            log.append({**label, **lane_record(pred, gt, meta, keep_lanes, model.row_sampling),
+                        **(prediction_fields(pred, meta, run_time_ms, model.row_sampling) if predictions else {})}
                        for pred, gt, meta in zip(preds, batch["lanes"], batch["meta"]))
             bar.update(len(preds))
     bar.close()
@@ -88,6 +88,7 @@ def run_identity(model: LaneDetector, label: dict) -> dict:
             "input_size": list(spec.get("input_size", [])), "crop_top": spec.get("crop_top", 0.0),
             **({"normalize": normalize} if normalize != DEFAULT_NORMALIZATION else {}),
             **({"resize": resize} if resize != DEFAULT_RESIZE else {}),
+            **({"row_sampling": model.row_sampling} if model.row_sampling != "linear" else {}),
             "decode": {k: v for k, v in sorted(model.decode_kwargs.items())}}
 
 

@@ -213,12 +213,15 @@ def tusimple_summary(acc_sum: float, fp_sum: float, fn_sum: float, num_images: i
 
 
 def tusimple_lane_scores(pred_lanes: Sequence[np.ndarray], gt_lanes: Sequence[np.ndarray], h_samples: np.ndarray,
-                         pixel_thresh: float = 20.0, pt_thresh: float = 0.85, with_counts: bool = False) -> tuple:
-    """(accuracy, fp, fn) of one image from lanes in pixels, sampled at its h_samples rows; with ``with_counts``
-    also (tp, fp_count, fn_count) lanes, as tusimple_image_scores."""
+                         pixel_thresh: float = 20.0, pt_thresh: float = 0.85, with_counts: bool = False,
+                         row_sampling: str = "linear", height: float | None = None) -> tuple:
+    """(accuracy, fp, fn) of one image from lanes in pixels, sampled at its h_samples rows (the predicted lanes as
+    `row_sampling` reads them, lanes.ROW_SAMPLINGS; `height` the image's, for "spline"); with ``with_counts`` also
+    (tp, fp_count, fn_count) lanes, as tusimple_image_scores."""
     ys = np.asarray(h_samples, dtype=np.float64).reshape(-1)
-    return tusimple_image_scores(lanes_to_rows(list(pred_lanes), ys), lanes_to_rows(list(gt_lanes), ys), ys,
-                                 pixel_thresh, pt_thresh, with_counts)
+    pred_rows = lanes_to_rows(list(pred_lanes), ys, row_sampling, height)
+    return tusimple_image_scores(pred_rows, lanes_to_rows(list(gt_lanes), ys), ys, pixel_thresh, pt_thresh,
+                                 with_counts)
 
 
 def _read_json_lines(path: Path, required: tuple[str, ...]) -> list[tuple[int, dict]]:

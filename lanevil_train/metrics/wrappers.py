@@ -12,6 +12,7 @@ import numpy as np
 import torch
 from torchmetrics import Metric
 
+from lanevil_train.lanes import check_row_sampling
 from lanevil_train.metrics.culane import culane_image_counts, culane_summary
 from lanevil_train.metrics.tusimple import tusimple_lane_scores, tusimple_summary
 
@@ -39,8 +40,9 @@ class TuSimpleMetric(Metric):
     """TuSimple Accuracy / FP / FN / F1 and the lane-count F1_count over decoded lanes (pixels); DDP-safe sum
     states (the per-image sums and the TP / FP / FN lane counts, each summed over processes).
 
-    Each image's lanes are sampled at its h_samples with ``lanes_to_rows`` (linear
-    interpolation, -2 outside a lane's span); pass the GT file's h_samples to get the official
+    Each image's lanes are sampled at its h_samples with ``lanes_to_rows`` (the predicted lanes as
+    ``row_sampling`` reads them, lanes.ROW_SAMPLINGS, default linear interpolation, -2 outside a lane's span; the
+    ground truth linearly); pass the GT file's h_samples to get the official
     score. With ``h_samples=None`` the rows are the sorted unique y values of that image's GT
     points. TuSimple GT points already lie on its h_samples, so every GT point is kept exactly,
     but rows where NO GT lane has a point (often the top rows) are dropped, and the official
@@ -51,10 +53,12 @@ class TuSimpleMetric(Metric):
     full_state_update = False
     is_differentiable = False
 
-    def __init__(self, pixel_thresh: float = 20, pt_thresh: float = 0.85, **kwargs) -> None:
+    def __init__(self, pixel_thresh: float = 20, pt_thresh: float = 0.85, row_sampling: str = "linear",
+                 **kwargs) -> None:
         super().__init__(**kwargs)
         self.pixel_thresh = pixel_thresh
         self.pt_thresh = pt_thresh
+        self.row_sampling = check_row_sampling(row_sampling, "row_sampling")
         for name in ("acc_sum", "fp_sum", "fn_sum", "num_images"):
             self.add_state(name, default=torch.tensor(0.0, dtype=torch.float64), dist_reduce_fx="sum")
         for name in _COUNT_STATES:  # F1_count's lanes: integers, so sums over processes are exact
@@ -65,8 +69,10 @@ class TuSimpleMetric(Metric):
         preds: Sequence[Sequence[np.ndarray]],
         targets: Sequence[Sequence[np.ndarray]],
         h_samples: Sequence[np.ndarray] | np.ndarray | None = None,
+        heights: Sequence[float] | None = None,
     ) -> None:
-        """Add a batch: preds[i] and targets[i] are image i's lanes, each an (N, 2) pixel array."""
+        """Add a batch: preds[i] and targets[i] are image i's lanes, each an (N, 2) pixel array; heights[i] the
+        image's height (needed by row_sampling "spline" only)."""
         if len(preds) != len(targets):
             raise ValueError(f"preds has {len(preds)} images but targets has {len(targets)}")
         if h_samples is not None and isinstance(h_samples, np.ndarray) and h_samples.ndim == 1:
@@ -82,7 +88,9 @@ class TuSimpleMetric(Metric):
                 ys = np.unique(np.concatenate([g[:, 1] for g in gts])) if gts else np.zeros(0)
             else:
                 ys = np.asarray(h_samples[i], dtype=np.float64).reshape(-1)
-            a, p, n, *lanes = tusimple_lane_scores(prs, gts, ys, self.pixel_thresh, self.pt_thresh, with_counts=True)
+            height = None if heights is None else heights[i]
+            a, p, n, *lanes = tusimple_lane_scores(prs, gts, ys, self.pixel_thresh, self.pt_thresh, with_counts=True,
+                                                   row_sampling=self.row_sampling, height=height)
             acc += a
             fp += p
             fn += n

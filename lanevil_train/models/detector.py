@@ -14,7 +14,7 @@ import pytorch_lightning as pl
 import torch
 from torch import nn
 
-from lanevil_train.lanes import default_h_samples, scale_lanes
+from lanevil_train.lanes import check_row_sampling, default_h_samples, scale_lanes
 from lanevil_train.metrics import TuSimpleMetric, tusimple_lane_scores
 from lanevil_train.models.head import check_decode_options, targets_to
 from lanevil_train.models.schedules import cosine, scaled_lr
@@ -42,7 +42,7 @@ class LaneDetector(pl.LightningModule):
     def __init__(self, backbone: nn.Module, head: nn.Module, neck: nn.Module | None = None, optimizer=None,
                  scheduler=cosine, reference_batch_size: int | None = None, lr_scaling: str = "none",
                  decode: dict | None = None, crop_top: float = 0.0, lr_multipliers: dict | None = None,
-                 gradient_clip_norm: float | None = None):
+                 gradient_clip_norm: float | None = None, row_sampling: str = "linear"):
         super().__init__()
         self.backbone = backbone
         self.neck = neck
@@ -59,8 +59,10 @@ class LaneDetector(pl.LightningModule):
         self.decode_kwargs = dict(decode or {})
         check_decode_options(head, self.decode_kwargs, "model.decode")
         self.crop_top = crop_top  # fraction of the original height cut before resizing (data.crop_top)
-        self.val_metric = TuSimpleMetric()
-        self.test_metric = TuSimpleMetric()
+        # how the decoded lanes are read at a dataset's rows, in scores and prediction files (lanes.ROW_SAMPLINGS)
+        self.row_sampling = check_row_sampling(row_sampling)
+        self.val_metric = TuSimpleMetric(row_sampling=row_sampling)
+        self.test_metric = TuSimpleMetric(row_sampling=row_sampling)
         # The config that built this model (set by the tasks); saved in checkpoints so that
         # evaluation rebuilds the same network.
         self.build_config: dict | None = None
@@ -119,7 +121,7 @@ class LaneDetector(pl.LightningModule):
         rows = default_h_samples(height)
         thresh = 20.0 * width / TUSIMPLE_WIDTH
         scores = [tusimple_lane_scores(pred, [np.asarray(lane, dtype=np.float64) for lane in gt], rows,
-                                       pixel_thresh=thresh)[0]
+                                       pixel_thresh=thresh, row_sampling=self.row_sampling, height=height)[0]
                   for pred, gt in zip(preds, batch["input_lanes"])]
         return torch.tensor(scores, dtype=torch.float32)
 
@@ -127,7 +129,7 @@ class LaneDetector(pl.LightningModule):
         sizes = [_original_size(meta) for meta in batch["meta"]]
         preds = self.predict_lanes(batch["images"], sizes)
         h_samples = [meta["h_samples"] for meta in batch["meta"]]
-        metric.update(preds, batch["lanes"], h_samples)
+        metric.update(preds, batch["lanes"], h_samples, heights=[h for h, _ in sizes])
         return preds
 
     def validation_step(self, batch: dict, batch_idx: int) -> None:

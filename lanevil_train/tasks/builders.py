@@ -108,7 +108,8 @@ def build_model(spec: dict) -> LaneDetector:
                             reference_batch_size=model.get("reference_batch_size"),
                             lr_scaling=model.get("lr_scaling", "none"), decode=model.get("decode"),
                             crop_top=spec.get("crop_top", 0.0), lr_multipliers=model.get("lr_multipliers"),
-                            gradient_clip_norm=model.get("gradient_clip_norm"))
+                            gradient_clip_norm=model.get("gradient_clip_norm"),
+                            row_sampling=model.get("row_sampling", "linear"))
     detector.build_config = spec
     return detector
 
