@@ -27,6 +27,7 @@ from lanevil_train.vlm.clips.qa_closed import (
     boundary,
     cue,
     curve,
+    distractors,
     ego_lane_words,
     is_traffic,
     lettered,
@@ -251,9 +252,7 @@ def _closed_aids(truth: dict, rng: np.random.Generator) -> list[dict]:
         if candidate["type"] == "yes_no":
             out.append({**record, "answer": yes_no_answer(candidate)})
             continue
-        others = [d for d in candidate["domain"] if d != candidate["correct"]]
-        texts = [candidate["correct"], *(others[i] for i in rng.choice(len(others), min(3, len(others)),
-                                                                        replace=False))]
+        texts = [candidate["correct"], *distractors(candidate, rng)]
         texts = [texts[i] for i in rng.permutation(len(texts))]
         choices, answer = lettered(texts, candidate["correct"])
         out.append({**record, "answer": answer, "choices": choices})

@@ -55,6 +55,17 @@ def yes_no_answer(candidate: dict) -> str:
     return f"{'Yes' if candidate['yes'] else 'No'}. {candidate['reason']}"
 
 
+CHOICE_OPTIONS = 4  # a choice question has this many options, or its domain's size where that is smaller
+
+
+def distractors(candidate: dict, rng) -> list[str]:
+    """The wrong options of a choice candidate: CHOICE_OPTIONS - 1 texts of its domain other than the correct one
+    (all of them when the domain is smaller), drawn without replacement in the order drawn."""
+    others = [d for d in candidate["domain"] if d != candidate["correct"]]
+    count = min(CHOICE_OPTIONS, len(candidate["domain"])) - 1
+    return [others[i] for i in rng.choice(len(others), count, replace=False)]
+
+
 def lettered(texts, correct: str) -> tuple[list[str], str]:
     """(["A. text", ...], the correct one's "X. text") of option texts in their order."""
     choices = [f"{chr(65 + k)}. {text}" for k, text in enumerate(texts)]

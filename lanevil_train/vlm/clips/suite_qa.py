@@ -12,7 +12,7 @@ way, and one the suite's balance allows:
   template of a suite is asked as often where its answer is Yes as where it is No: only the frames tell them apart;
 - a choice template is asked only where its correct option text stays within SHARE_SLACK of an even share of its
   domain (the texts its answer takes over a suite); its options are the correct one and others of that domain
-  (all of them when the domain has at most CHOICE_OPTIONS), so no option is one a reader can rule out, and the
+  (all of them when the domain has at most qa_closed.CHOICE_OPTIONS), so no option is one a reader can rule out, and the
   correct letter is dealt from shuffled decks, so every letter is equally often right.
 
 A slot no candidate fits becomes open. Records carry their `template` (vlm/scoring/leakage.py audits by it). In a
@@ -33,12 +33,11 @@ import numpy as np
 
 from lanevil_train.perturbations import check_kind
 from lanevil_train.vlm.clips.qa import OPEN_KINDS, check_truth, clip_categories
-from lanevil_train.vlm.clips.qa_closed import CLOSED_KINDS, lettered, yes_no_answer
+from lanevil_train.vlm.clips.qa_closed import CLOSED_KINDS, distractors, lettered, yes_no_answer
 
 # truth keys a corruption-suite question must not read: the illusion is not drawn, weather and light are what the
 # weather and brightness corruptions change the look of
 CORRUPTION_UNSAFE_FACTS = frozenset(("illusion", "illusion_lane", "weather", "wet", "night"))
-CHOICE_OPTIONS = 4  # a choice question has this many options, or its domain's size where that is smaller
 SHARE_SLACK = 0.05  # a choice template's correct option text stays within this of 1 / its domain's size
 QA_PLAN = 2  # the QA construction a suite's build.json names: 2, planned per suite (1, before it: per case)
 OPEN_SHARE = 0.3  # the chance that a slot asks an open question (else a closed one, where one fits)
@@ -133,9 +132,8 @@ class _Balance:
             self.yes_minus_no[template] += 1 if candidate["yes"] else -1
             return {**record, "answer": yes_no_answer(candidate)}
         self.correct[template][candidate["correct"]] += 1
-        others = [d for d in candidate["domain"] if d != candidate["correct"]]
-        count = min(CHOICE_OPTIONS, len(candidate["domain"]))
-        texts = [others[i] for i in rng.choice(len(others), count - 1, replace=False)]
+        texts = distractors(candidate, rng)
+        count = len(texts) + 1
         deck = self.letters[count]
         if not deck:
             deck.extend(int(i) for i in self.deck_rng.permutation(count))
