@@ -70,9 +70,10 @@ def check_row_sampling(sampling: str, key: str = "model.row_sampling") -> str:
     return sampling
 
 
-def spline_x_at(lane: np.ndarray, ys: np.ndarray, height: float) -> np.ndarray:
-    """The official Lane's x at rows ys (see ROW_SAMPLINGS), truncated to whole pixels; INVALID_X outside its
-    span widened by SPLINE_MARGIN_FRAC * height, and where x < 0. Fewer than 2 points: INVALID_X everywhere."""
+def spline_x_at(lane: np.ndarray, ys: np.ndarray, height: float, truncate: bool = True) -> np.ndarray:
+    """The official Lane's x at rows ys (see ROW_SAMPLINGS), truncated to whole pixels (as the TuSimple writers;
+    not with truncate=False, as the CULane writers); INVALID_X outside its span widened by SPLINE_MARGIN_FRAC *
+    height, and where x < 0. Fewer than 2 points: INVALID_X everywhere."""
     from scipy.interpolate import InterpolatedUnivariateSpline
 
     ys = np.asarray(ys, dtype=np.float64)
@@ -88,7 +89,7 @@ def spline_x_at(lane: np.ndarray, ys: np.ndarray, height: float) -> np.ndarray:
     xs = InterpolatedUnivariateSpline(ly, lx, k=min(3, len(ly) - 1))(ys)
     margin = SPLINE_MARGIN_FRAC * float(height)
     valid = (ys >= ly[0] - margin) & (ys <= ly[-1] + margin) & (xs >= 0)
-    out[valid] = np.trunc(xs[valid])
+    out[valid] = np.trunc(xs[valid]) if truncate else xs[valid]
     return out
 
 
@@ -115,6 +116,42 @@ def sample_lane(lane: np.ndarray, ys: np.ndarray, sampling: str = "linear", heig
             raise ValueError("row sampling 'spline' needs the image height (its validity margin is 1 % of it)")
         return spline_x_at(lane, ys, height)
     return lane_x_at(lane, ys)
+
+
+def lane_at_rows(lane: np.ndarray, rows, sampling: str, height: float, width: float) -> np.ndarray:
+    """The lane's points at `rows` (original pixels), read as `sampling` says (the spline not truncated), where x
+    lies in [0, width): what the official CULane writers write for a spline lane (LaneATT lib/datasets/culane.py:
+    115-129, CLRNet clrnet/datasets/culane.py:96-110: ``(xs >= 0) & (xs < 1)`` in normalised x). y descending."""
+    ys = np.asarray(rows, dtype=np.float64)
+    if sampling == "spline":
+        xs = spline_x_at(lane, ys, height, truncate=False)
+    else:
+        xs = sample_lane(lane, ys, sampling)
+    keep = (xs >= 0) & (xs < width)
+    return as_lane(np.stack([xs[keep], ys[keep]], axis=1))
+
+
+def check_culane_rows(rows, key: str = "model.culane_rows") -> tuple[float, float, float] | None:
+    """None, or [start, stop, step] (numpy.arange's, original pixels, stop excluded) with step > 0 and a row in it."""
+    if rows is None:
+        return None
+    values = list(rows) if isinstance(rows, (list, tuple)) or hasattr(rows, "__len__") else [rows]
+    if (len(values) != 3 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)
+            or not values[2] > 0 or not values[1] > values[0]):
+        raise ValueError(f"{key}={rows!r}: expected null (each lane's own points) or [start, stop, step], the rows "
+                         f"numpy.arange(start, stop, step) gives, with step > 0 and stop > start")
+    return tuple(float(v) for v in values)
+
+
+def culane_lanes(lanes: list[np.ndarray], culane_rows, sampling: str, height: float, width: float) -> list[np.ndarray]:
+    """The lanes as a CULane .lines.txt gets them: each lane's own points (culane_rows None), or the lane read at
+    numpy.arange(*culane_rows) as `sampling` says, x within [0, width) (lane_at_rows); lanes left with no point
+    dropped, as the official writers drop an empty line."""
+    if culane_rows is None:
+        return list(lanes)
+    rows = np.arange(*culane_rows)
+    out = [lane_at_rows(lane, rows, sampling, height, width) for lane in lanes]
+    return [lane for lane in out if len(lane)]
 
 
 def lanes_to_rows(lanes: list[np.ndarray], ys: np.ndarray, sampling: str = "linear",

@@ -100,3 +100,40 @@ def test_a_detector_refuses_an_unknown_row_sampling():
 
     with pytest.raises(ValueError, match="model.row_sampling='nearest'"):
         LaneDetector(nn.Identity(), LaneHead([8], [32], (32, 64)), row_sampling="nearest")
+
+
+def test_culane_rows_read_a_spline_lane_untruncated_inside_the_image_as_the_official_culane_writers(tmp_path):
+    from lanevil_train.evaluation.prediction_files import write_prediction_files
+    from lanevil_train.lanes import culane_lanes
+    from lanevil_train.results_log import ResultsLog
+
+    height, width = 590, 1640
+    ys = np.linspace(280.0, 589.0, 10)
+    lane = np.stack([1500.25 + 0.9 * (ys - 280.0), ys], 1)[::-1]  # leaves the image (x = 1640) at y 435.8
+    (read,) = culane_lanes([lane], [270, 590, 8], "spline", height, width)
+    rows = np.arange(270, 590, 8.0)
+    inside = (rows >= 280 - 5.9) & (1500.25 + 0.9 * (rows - 280.0) < width)  # margin 0.01 * 590
+    np.testing.assert_allclose(read[:, 1], rows[inside][::-1])
+    np.testing.assert_allclose(read[:, 0], 1500.25 + 0.9 * (read[:, 1] - 280.0), atol=1e-6)  # not truncated
+    assert read[0, 1] == 430.0 and read[-1, 1] == 278.0  # bottom point first; 278 is inside the margin
+    assert culane_lanes([lane], None, "spline", height, width)[0] is lane
+    off = lane + np.array([width, 0.0])
+    assert culane_lanes([off], [270, 590, 8], "spline", height, width) == []  # no point in the image: no line
+
+    meta = {"case_id": "c", "key": "driver_1/a/00000.jpg", "h_samples": ROWS, "height": height, "width": width}
+    record = {"model": "m", "dataset": "d", "key": meta["key"],
+              **prediction_fields([lane], meta, 1.0, "spline", [270, 590, 8])}
+    ResultsLog(tmp_path / "per_image.jsonl").append([record])
+    files = write_prediction_files(tmp_path / "per_image.jsonl", tmp_path)
+    text = (files["culane"] / "driver_1/a/00000.lines.txt").read_text().split()
+    assert len(text) == 2 * len(read) and float(text[1]) == 430.0
+    assert float(text[0]) == pytest.approx(read[0, 0], abs=1e-3)  # records keep points to 1e-4 px
+
+
+def test_culane_rows_are_checked():
+    from lanevil_train.lanes import check_culane_rows
+
+    assert check_culane_rows([270, 590, 8]) == (270.0, 590.0, 8.0)
+    for bad in ([270, 590], [590, 270, 8], [0, 590, 0], ["a", 1, 2]):
+        with pytest.raises(ValueError, match=r"model.culane_rows=.*expected null .* \[start, stop, step\]"):
+            check_culane_rows(bad)

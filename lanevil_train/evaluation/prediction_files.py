@@ -27,7 +27,7 @@ import numpy as np
 
 from lanevil_train.data.formats.culane import write_culane_lanes
 from lanevil_train.files.atomic import atomic_write_text
-from lanevil_train.lanes import lanes_to_rows
+from lanevil_train.lanes import culane_lanes, lanes_to_rows
 from lanevil_train.results_log import ResultsLog
 
 PREDICTIONS_DIR = "predictions"
@@ -35,15 +35,19 @@ TUSIMPLE_FILE = "pred_tusimple.json"
 CULANE_DIR = "culane"
 CULANE_LIST = "list.txt"
 NO_POINT = -2  # TuSimple's x for a row a lane does not reach
+CULANE_DECIMALS = 5  # as the official LaneATT and CLRNet writers ("{:.5f}"), trailing zeros dropped
 FIELDS = ("pred_points", "h_samples", "run_time")
 
 
-def prediction_fields(pred: list[np.ndarray], meta: dict, run_time_ms: float, row_sampling: str = "linear") -> dict:
+def prediction_fields(pred: list[np.ndarray], meta: dict, run_time_ms: float, row_sampling: str = "linear",
+                      culane_rows=None) -> dict:
     """What a per-image record keeps for the prediction files: the predicted lanes (original-image pixels, x and y
-    to 1e-4 px), how they are read at rows (the model's row sampling, lanes.ROW_SAMPLINGS; named when not linear),
-    the image's height and h_samples and the run time (ms)."""
+    to 1e-4 px), how they are read at rows (the model's row sampling, lanes.ROW_SAMPLINGS, and CULane rows; named
+    when not the default), the image's size and h_samples and the run time (ms)."""
+    reading = {**({"row_sampling": row_sampling} if row_sampling != "linear" else {}),
+               **({"culane_rows": list(culane_rows)} if culane_rows is not None else {})}
     return {"pred_points": [np.round(np.asarray(lane, dtype=np.float64), 4).tolist() for lane in pred],
-            **({"row_sampling": row_sampling, "height": int(meta["height"])} if row_sampling != "linear" else {}),
+            **({**reading, "height": int(meta["height"]), "width": int(meta["width"])} if reading else {}),
             "h_samples": [float(y) for y in meta["h_samples"]], "run_time": round(float(run_time_ms), 3)}
 
 
@@ -92,7 +96,9 @@ def write_prediction_files(results: str | Path, out_dir: str | Path) -> dict[str
     for record in records:
         relative = _culane_relative(record["key"])
         lanes = [np.asarray(points, dtype=np.float64).reshape(-1, 2) for points in record["pred_points"]]
-        write_culane_lanes(lanes, partial / relative.with_suffix(".lines.txt"))
+        lanes = culane_lanes(lanes, record.get("culane_rows"), record.get("row_sampling", "linear"),
+                             record.get("height"), record.get("width"))
+        write_culane_lanes(lanes, partial / relative.with_suffix(".lines.txt"), decimals=CULANE_DECIMALS)
         names.append("/" + str(PurePosixPath(record["key"].lstrip("/"))))
     atomic_write_text(partial / CULANE_LIST, "".join(name + "\n" for name in names))
     shutil.rmtree(culane, ignore_errors=True)

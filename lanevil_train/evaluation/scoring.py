@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytorch_lightning as pl
 
-from lanevil_train.lanes import lanes_to_rows
+from lanevil_train.lanes import culane_lanes, lanes_to_rows
 from lanevil_train.metrics import culane_image_counts, llamas_image_counts, tusimple_lane_scores
 from lanevil_train.report.specs import LANE_SPEC
 from lanevil_train.results_log import ResultsLog
@@ -36,11 +36,12 @@ def _compact(lanes: list[np.ndarray], rows: np.ndarray, row_sampling: str = "lin
 
 
 def lane_record(pred: list[np.ndarray], gt: list[np.ndarray], meta: dict, keep_lanes: bool = True,
-                row_sampling: str = "linear") -> dict:
+                row_sampling: str = "linear", culane_rows=None) -> dict:
     """The per-image record of predicted vs ground-truth lanes (original-image pixels) of the sample `meta`
     describes: TuSimple accuracy/FP/FN and lane counts (F1_count's TP/FP/FN) at its h_samples (the predicted lanes
     read there as `row_sampling` says, the model's) and CULane TP/FP/FN (30 px lanes at 1640 px wide; a LLAMAS
-    image, meta "culane_metric" "llamas", by the official LLAMAS procedure: metrics/llamas.py)."""
+    image, meta "culane_metric" "llamas", by the official LLAMAS procedure: metrics/llamas.py), of the predicted
+    lanes as the CULane file has them (lanes.culane_lanes: at `culane_rows` when given)."""
     width, height = int(meta["width"]), int(meta["height"])
     acc, fp, fn, tp_count, fp_count, fn_count = tusimple_lane_scores(pred, gt, meta["h_samples"], with_counts=True,
                                                                      row_sampling=row_sampling, height=height)
@@ -51,7 +52,8 @@ def lane_record(pred: list[np.ndarray], gt: list[np.ndarray], meta: dict, keep_l
         tp, cfp, cfn = llamas_image_counts(pred, gt)  # its own 30 px on its 1276x717 images, rows >= 300
     else:
         lane_width = max(1, round(30 * width / 1640))  # CULane draws 30 px lanes on 1640 px wide images
-        tp, cfp, cfn = culane_image_counts(pred, gt, width=width, height=height, lane_width=lane_width)
+        written = culane_lanes(pred, culane_rows, row_sampling, height, width)
+        tp, cfp, cfn = culane_image_counts(written, gt, width=width, height=height, lane_width=lane_width)
     record = {"spec": LANE_SPEC.name, "key": meta.get("key", meta["case_id"]), "case_id": meta["case_id"],
               "image": meta.get("image_path"), "illusion": meta.get("illusion"), "category": meta.get("category"),
               "severity": int(meta.get("severity") or 0), "accuracy": acc, "fp": fp, "fn": fn,
@@ -92,8 +94,9 @@ class PerImageWriter(pl.Callback):
 
     def on_test_batch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule, outputs, batch, batch_idx: int,
                           dataloader_idx: int = 0) -> None:
-        row_sampling = getattr(pl_module, "row_sampling", "linear")
-        records = [{**self.label, **lane_record(pred, gt, meta, row_sampling=row_sampling)}
+        reading = {"row_sampling": getattr(pl_module, "row_sampling", "linear"),
+                   "culane_rows": getattr(pl_module, "culane_rows", None)}
+        records = [{**self.label, **lane_record(pred, gt, meta, **reading)}
                    for pred, gt, meta in zip(outputs, batch["lanes"], batch["meta"])]
         ResultsLog(self._part(trainer.global_rank)).append(records)
 

@@ -61,8 +61,9 @@ def stream_evaluate(model: LaneDetector, dataset: Dataset, out_path: str | Path,
             if images.is_cuda:
                 torch.cuda.synchronize(device)
             run_time_ms = (time.perf_counter() - start) * 1000 / len(preds)
-            log.append({**label, **lane_record(pred, gt, meta, keep_lanes, model.row_sampling),
-                        **(prediction_fields(pred, meta, run_time_ms, model.row_sampling) if predictions else {})}
+            log.append({**label, **lane_record(pred, gt, meta, keep_lanes, model.row_sampling, model.culane_rows),
+                        **(prediction_fields(pred, meta, run_time_ms, model.row_sampling, model.culane_rows)
+                           if predictions else {})}
                        for pred, gt, meta in zip(preds, batch["lanes"], batch["meta"]))
             bar.update(len(preds))
     bar.close()
@@ -89,6 +90,7 @@ def run_identity(model: LaneDetector, label: dict) -> dict:
             **({"normalize": normalize} if normalize != DEFAULT_NORMALIZATION else {}),
             **({"resize": resize} if resize != DEFAULT_RESIZE else {}),
             **({"row_sampling": model.row_sampling} if model.row_sampling != "linear" else {}),
+            **({"culane_rows": list(model.culane_rows)} if model.culane_rows is not None else {}),
             "decode": {k: v for k, v in sorted(model.decode_kwargs.items())}}
 
 

@@ -14,7 +14,7 @@ import pytorch_lightning as pl
 import torch
 from torch import nn
 
-from lanevil_train.lanes import check_row_sampling, default_h_samples, scale_lanes
+from lanevil_train.lanes import check_culane_rows, check_row_sampling, default_h_samples, scale_lanes
 from lanevil_train.metrics import TuSimpleMetric, tusimple_lane_scores
 from lanevil_train.models.head import check_decode_options, targets_to
 from lanevil_train.models.schedules import cosine, scaled_lr
@@ -42,7 +42,7 @@ class LaneDetector(pl.LightningModule):
     def __init__(self, backbone: nn.Module, head: nn.Module, neck: nn.Module | None = None, optimizer=None,
                  scheduler=cosine, reference_batch_size: int | None = None, lr_scaling: str = "none",
                  decode: dict | None = None, crop_top: float = 0.0, lr_multipliers: dict | None = None,
-                 gradient_clip_norm: float | None = None, row_sampling: str = "linear"):
+                 gradient_clip_norm: float | None = None, row_sampling: str = "linear", culane_rows=None):
         super().__init__()
         self.backbone = backbone
         self.neck = neck
@@ -61,6 +61,8 @@ class LaneDetector(pl.LightningModule):
         self.crop_top = crop_top  # fraction of the original height cut before resizing (data.crop_top)
         # how the decoded lanes are read at a dataset's rows, in scores and prediction files (lanes.ROW_SAMPLINGS)
         self.row_sampling = check_row_sampling(row_sampling)
+        # the rows a CULane .lines.txt reads each lane at (lanes.culane_lanes), None: its own points
+        self.culane_rows = check_culane_rows(culane_rows)
         self.val_metric = TuSimpleMetric(row_sampling=row_sampling)
         self.test_metric = TuSimpleMetric(row_sampling=row_sampling)
         # The config that built this model (set by the tasks); saved in checkpoints so that

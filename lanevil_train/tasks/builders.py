@@ -109,7 +109,7 @@ def build_model(spec: dict) -> LaneDetector:
                             lr_scaling=model.get("lr_scaling", "none"), decode=model.get("decode"),
                             crop_top=spec.get("crop_top", 0.0), lr_multipliers=model.get("lr_multipliers"),
                             gradient_clip_norm=model.get("gradient_clip_norm"),
-                            row_sampling=model.get("row_sampling", "linear"))
+                            row_sampling=model.get("row_sampling", "linear"), culane_rows=model.get("culane_rows"))
     detector.build_config = spec
     return detector
 

@@ -114,7 +114,8 @@ class OnnxLaneDetector(LaneDetector):
         network = OnnxNetwork(path, providers)
         built = build_model(network.build_config)
         super().__init__(nn.Identity(), built.head, decode=built.decode_kwargs,
-                         crop_top=network.build_config.get("crop_top", 0.0), row_sampling=built.row_sampling)
+                         crop_top=network.build_config.get("crop_top", 0.0), row_sampling=built.row_sampling,
+                         culane_rows=built.culane_rows)
         self.build_config = network.build_config
         self.network = network
         self.weights_sha256 = network.sha256  # what identifies the weights (tasks/streaming.run_identity)
