@@ -60,7 +60,7 @@ def lane_x_at(lane: np.ndarray, ys: np.ndarray) -> np.ndarray:
 #     row: row-wise decoders (UFLD's row anchors, SCNN's rows) whose official writers emit one value per row.
 ROW_SAMPLINGS = ("linear", "spline", "points")
 SPLINE_MARGIN_FRAC = 0.01   # the Lane's validity margin: 0.01 in y normalised by the image height
-POINT_ROW_TOLERANCE = 0.05  # px: a point "at" a row (records keep points to 1e-4 px)
+POINT_ROW_TOLERANCE = 0.05  # px: a point "at" a row (records keep points to 1e-6 px)
 
 
 def check_row_sampling(sampling: str, key: str = "model.row_sampling") -> str:

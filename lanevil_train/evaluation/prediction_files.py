@@ -42,11 +42,12 @@ FIELDS = ("pred_points", "h_samples", "run_time")
 def prediction_fields(pred: list[np.ndarray], meta: dict, run_time_ms: float, row_sampling: str = "linear",
                       culane_rows=None) -> dict:
     """What a per-image record keeps for the prediction files: the predicted lanes (original-image pixels, x and y
-    to 1e-4 px), how they are read at rows (the model's row sampling, lanes.ROW_SAMPLINGS, and CULane rows; named
-    when not the default), the image's size and h_samples and the run time (ms)."""
+    to 1e-6 px: the spline writers truncate x, so a coarser point could move it across a whole pixel), how they are
+    read at rows (the model's row sampling, lanes.ROW_SAMPLINGS, and CULane rows; named when not the default), the
+    image's size and h_samples and the run time (ms)."""
     reading = {**({"row_sampling": row_sampling} if row_sampling != "linear" else {}),
                **({"culane_rows": list(culane_rows)} if culane_rows is not None else {})}
-    return {"pred_points": [np.round(np.asarray(lane, dtype=np.float64), 4).tolist() for lane in pred],
+    return {"pred_points": [np.round(np.asarray(lane, dtype=np.float64), 6).tolist() for lane in pred],
             **({**reading, "height": int(meta["height"]), "width": int(meta["width"])} if reading else {}),
             "h_samples": [float(y) for y in meta["h_samples"]], "run_time": round(float(run_time_ms), 3)}
 

@@ -100,13 +100,9 @@ def test_the_converted_file_with_its_frequency_file_gives_the_official_outputs(r
         ours = model(x)
     torch.testing.assert_close(ours["cls_logits"], cls, rtol=1e-4, atol=1e-4)
     torch.testing.assert_close(ours["length"], length, rtol=1e-4, atol=1e-4)
-    # the regressed offsets are the official ones; the anchors they are added to differ only by the pixel convention
-    # (ours: a fraction of the width times W - 1, the official's times W): under 1 px wherever x is in the image
-    anchors = model.head.anchor_xs
-    torch.testing.assert_close(ours["xs"] - anchors, xs - official.anchor_xs, rtol=1e-4, atol=1e-3)
-    inside = (official.anchor_xs >= 0) & (official.anchor_xs <= W)
-    assert (anchors - official.anchor_xs)[inside].abs().max() <= 1.0
-    assert (anchors - official.anchor_xs * (W - 1) / W).abs().max() < 1e-3
+    # the anchors are the official ones (fraction_scale: size), so the proposals' x are the official's too
+    torch.testing.assert_close(model.head.anchor_xs, official.anchor_xs, rtol=0, atol=1e-3)
+    torch.testing.assert_close(ours["xs"], xs, rtol=1e-4, atol=1e-3)
 
 
 def test_without_the_frequency_file_the_load_is_refused_naming_the_setting(release):
@@ -146,8 +142,8 @@ def test_decoding_keeps_the_points_the_official_formula_keeps(case):
     """A constructed output with one confident proposal: our lane's points are the official formula's (as fractions
     of the image), except the official keeps the points right of the image, which we drop."""
     model = _ours("model.head.anchor_frequency_file=null", "model.head.anchor_selection=all",
-                  "model.head.topk_anchors=null")
-    head = model.head
+                  "model.head.topk_anchors=null", "model.head.fraction_scale=last_pixel")
+    head = model.head  # this project's own rule (fraction_scale last_pixel, proposal_points inside) beside the official
     anchors = head.anchor_xs.numpy().astype(np.float64)
     starts = head.anchor_starts.numpy()
     side = {"bottom": np.nonzero(starts == 0)[0][50], "side_extended": np.nonzero(starts == 20)[0][3],

@@ -3,8 +3,14 @@
 Geometry follows the official LaneATT (lucastabelini/LaneATT, lib/models/laneatt.py): straight-line
 anchors leave the left, bottom and right image borders (in that order) at Line-CNN's angles,
 measured in normalised image coordinates; a lane is x at ``n_offsets`` fixed rows from the bottom
-row (row 0, y = H-1) to the top row (y = 0). The anchors are pooled from a feature map of
+row (row 0) to the top row (y = 0). The anchors are pooled from a feature map of
 H // stride rows and W // stride columns, as the official.
+
+How a fraction f of the image becomes pixels (``model.head.fraction_scale``, FRACTION_SCALES):
+``last_pixel`` (this project's own configs) f x (W - 1) and f x (H - 1), so the bottom row is y = H - 1 and
+f = 1 the last pixel; ``size`` (the official_* experiments) f x W and f x H as the official
+(lib/models/laneatt.py l. 36 and 281: rows y = linspace(1, 0, S) x H, the bottom one at y = H, anchor x times
+img_w; lib/datasets/lane_dataset.py l. 54: the targets' rows y = H, H - H / (S - 1), ..., 0).
 """
 
 from __future__ import annotations
@@ -22,11 +28,27 @@ BOTTOM_ANGLES: tuple[float, ...] = (165.0, 150.0, 141.0, 131.0, 120.0, 108.0, 10
                                     60.0, 49.0, 39.0, 30.0, 15.0)
 UNDEFINED_X = -1e5  # target x on rows where the ground-truth lane does not exist
 TARGET_META = 3  # target row layout: [valid, start_row, length_rows, x_0 .. x_{S-1}]
+# A fraction f of the width (height) in pixels: f x (W - 1) ("last_pixel") or f x W ("size", the official's)
+FRACTION_SCALES = ("last_pixel", "size")
 
 
-def row_ys(height: int, n_offsets: int) -> np.ndarray:
-    """y (pixels) of the n_offsets anchor rows, bottom row (y = H-1) first, top row (y = 0) last."""
-    return np.linspace(height - 1, 0, n_offsets)
+def pixels_per_unit(size: int, scale: str = "last_pixel") -> float:
+    """The pixels a whole image side of `size` pixels spans as a fraction 1 (FRACTION_SCALES)."""
+    if scale not in FRACTION_SCALES:
+        raise ValueError(f"model.head.fraction_scale={scale!r}: expected one of {', '.join(FRACTION_SCALES)}")
+    return float(size - 1 if scale == "last_pixel" else size)
+
+
+def row_ys(height: int, n_offsets: int, scale: str = "last_pixel") -> np.ndarray:
+    """y (pixels) of the n_offsets anchor rows, bottom row first (y = H - 1, or y = H with scale "size"), top
+    row (y = 0) last."""
+    return np.linspace(pixels_per_unit(height, scale), 0, n_offsets)
+
+
+def inside_width(xs: np.ndarray, width: int, scale: str = "last_pixel") -> np.ndarray:
+    """Which x lie in the image: [0, W - 1] ("last_pixel"), or the official targets' [0, W) ("size",
+    lib/datasets/lane_dataset.py l. 155)."""
+    return (xs >= 0) & ((xs <= width - 1) if scale == "last_pixel" else (xs < width))
 
 
 def default_origin_counts(image_size: tuple[int, int]) -> tuple[int, int]:
@@ -52,13 +74,15 @@ class Anchors:
         return Anchors(self.xs[index], self.starts[index], self.origins[index], self.angles[index])
 
 
-def anchor_x_at(origins: np.ndarray, angles: np.ndarray, ys: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
-    """x (pixels) of each anchor line at rows ``ys`` (pixels): an (A, len(ys)) array."""
+def anchor_x_at(origins: np.ndarray, angles: np.ndarray, ys: np.ndarray, image_size: tuple[int, int],
+                scale: str = "last_pixel") -> np.ndarray:
+    """x (pixels) of each anchor line at rows ``ys`` (pixels): an (A, len(ys)) array; fractions of the image
+    mapped to pixels as `scale` says (FRACTION_SCALES)."""
     h, w = image_size
-    yn = np.asarray(ys, dtype=np.float64)[None, :] / (h - 1)
+    yn = np.asarray(ys, dtype=np.float64)[None, :] / pixels_per_unit(h, scale)
     sx, sy = origins[:, :1], origins[:, 1:]
     slope = 1.0 / np.tan(np.deg2rad(angles))[:, None]
-    return (sx + (sy - yn) * slope) * (w - 1)
+    return (sx + (sy - yn) * slope) * pixels_per_unit(w, scale)
 
 
 def generate_anchors(
@@ -69,11 +93,13 @@ def generate_anchors(
     left_angles: tuple[float, ...] = LEFT_ANGLES,
     right_angles: tuple[float, ...] = RIGHT_ANGLES,
     bottom_angles: tuple[float, ...] = BOTTOM_ANGLES,
+    scale: str = "last_pixel",
 ) -> Anchors:
     """All anchors for an (H, W) input, in the official order: left border origins, bottom, then right.
 
     Side origins run from the bottom (y = 1) up to the top (y = 0), bottom origins from the right
-    (x = 1) to the left (x = 0); each origin carries every angle of its border in turn.
+    (x = 1) to the left (x = 0); each origin carries every angle of its border in turn. `scale`: how
+    fractions of the image become pixels (FRACTION_SCALES).
     """
     h, w = image_size
     if h < 2 or w < 2 or n_offsets < 2:
@@ -97,7 +123,7 @@ def generate_anchors(
     angles_arr = np.asarray(angles, dtype=np.float64)
     n_strips = n_offsets - 1
     starts = np.clip(np.round((1.0 - origins_arr[:, 1]) * n_strips), 0, n_strips).astype(np.int64)
-    xs = anchor_x_at(origins_arr, angles_arr, row_ys(h, n_offsets), image_size)
+    xs = anchor_x_at(origins_arr, angles_arr, row_ys(h, n_offsets, scale), image_size, scale)
     return Anchors(xs, starts, origins_arr, angles_arr)
 
 
@@ -138,12 +164,14 @@ def _extrapolate(p0: np.ndarray, p1: np.ndarray, ys: np.ndarray) -> np.ndarray:
     return p0[0] + (ys - p0[1]) * (p1[0] - p0[0]) / (p1[1] - p0[1])
 
 
-def encode_lane(lane: np.ndarray, image_size: tuple[int, int], n_offsets: int) -> tuple[int, int, np.ndarray] | None:
+def encode_lane(lane: np.ndarray, image_size: tuple[int, int], n_offsets: int,
+                scale: str = "last_pixel") -> tuple[int, int, np.ndarray] | None:
     """One lane -> (start row, length in rows, x per row); None if it never enters the image.
 
     As in the official LaneATT, the lane is extended straight down to the image bottom from its
     two lowest points, and ``start`` is the first row (from the bottom) inside the image. It is
-    also extended one row up, so the top anchor row at or above the lane's end is covered.
+    also extended one row up, so the top anchor row at or above the lane's end is covered. The
+    rows, and which x are inside the image, follow `scale` (FRACTION_SCALES: row_ys, inside_width).
     """
     h, w = image_size
     lane = as_lane(lane)
@@ -151,9 +179,9 @@ def encode_lane(lane: np.ndarray, image_size: tuple[int, int], n_offsets: int) -
     lane = lane[np.sort(first)]  # drop repeated y, keep y descending
     if len(lane) < 2:
         return None
-    ys = row_ys(h, n_offsets)
+    ys = row_ys(h, n_offsets, scale)
     ymin, ymax = lane[-1, 1], lane[0, 1]
-    strip = (h - 1) / (n_offsets - 1)
+    strip = ys[0] / (n_offsets - 1)
     xs = np.full(n_offsets, UNDEFINED_X)
     span = (ys >= ymin) & (ys <= ymax)
     xs[span] = lane_x_at(lane, ys[span])
@@ -161,7 +189,7 @@ def encode_lane(lane: np.ndarray, image_size: tuple[int, int], n_offsets: int) -
     xs[below] = _extrapolate(lane[0], lane[1], ys[below])
     above = (ys < ymin) & (ys > ymin - strip)
     xs[above] = _extrapolate(lane[-1], lane[-2], ys[above])
-    inside = (xs > UNDEFINED_X / 2) & (xs >= 0) & (xs <= w - 1)
+    inside = (xs > UNDEFINED_X / 2) & inside_width(xs, w, scale)
     if not inside.any():
         return None
     start = int(np.argmax(inside))
@@ -171,13 +199,15 @@ def encode_lane(lane: np.ndarray, image_size: tuple[int, int], n_offsets: int) -
     return start, end - start + 1, xs
 
 
-def encode_lanes(lanes: list[np.ndarray], image_size: tuple[int, int], n_offsets: int, max_lanes: int) -> np.ndarray:
-    """Ground-truth lanes -> float32 (max_lanes, 3 + n_offsets) rows [valid, start, length, xs...]."""
+def encode_lanes(lanes: list[np.ndarray], image_size: tuple[int, int], n_offsets: int, max_lanes: int,
+                 scale: str = "last_pixel") -> np.ndarray:
+    """Ground-truth lanes -> float32 (max_lanes, 3 + n_offsets) rows [valid, start, length, xs...] (`scale`: the
+    rows' and the image's pixels, FRACTION_SCALES)."""
     out = np.zeros((max_lanes, TARGET_META + n_offsets), dtype=np.float32)
     out[:, TARGET_META:] = UNDEFINED_X
     encoded = []
     for lane in lanes:
-        enc = encode_lane(np.asarray(lane), image_size, n_offsets)
+        enc = encode_lane(np.asarray(lane), image_size, n_offsets, scale)
         if enc is not None:
             encoded.append(enc)
     if len(encoded) > max_lanes:

@@ -5,6 +5,13 @@ counts, over the train split's labels, how many images have each anchor matched 
 (a positive of lib/models/matching.py at t_pos = 30 px, in save_mask), and lib/models/laneatt.py keeps the
 `topk_anchors` most used, most used first (argsort of the counts, descending). Here the counts come from the
 train split the run actually uses (simulated scenes, TuSimple or CULane labels), before the first step.
+
+Anchors with equal counts (TIE_ORDERS): counted here, the lower anchor index first ("index", a stable sort); read
+from an official frequency file, in the order ``torch.argsort(counts, descending=True)`` gives on the torch that
+runs ("torch"), as the official model picks them (lib/models/laneatt.py l. 52). That sort is not stable and its
+tie order is the sort kernel's: the published weights were trained under torch 1.6, whose order no current torch
+reproduces, so on a file with ties in its top 1,000 (the published TuSimple file has them) the anchors kept can
+differ from the ones those weights were trained with.
 """
 
 from __future__ import annotations
@@ -37,15 +44,17 @@ def anchor_use_frequency(
     n_offsets: int,
     pos_threshold: float,
     total: int | None = None,
+    scale: str = "last_pixel",
 ) -> np.ndarray:
     """Per anchor, in how many images it is a positive (mean x distance to one of the image's lanes, over their
     common rows, below pos_threshold pixels): the official get_anchors_use_frequency. lane_sets yields each
-    image's lanes in input pixels; total (their number, if known) only paces the progress log."""
+    image's lanes in input pixels; total (their number, if known) only paces the progress log; scale: the anchors'
+    rows (anchors.FRACTION_SCALES)."""
     counts = np.zeros(len(anchor_starts), dtype=np.int64)
     started, next_report = time.monotonic(), 10.0
     for done, lanes in enumerate(lane_sets, start=1):
         if lanes:
-            t = torch.from_numpy(encode_lanes(lanes, image_size, n_offsets, max(1, len(lanes))))[None].float()
+            t = torch.from_numpy(encode_lanes(lanes, image_size, n_offsets, max(1, len(lanes)), scale))[None].float()
             dist = anchor_target_distances(anchor_xs, anchor_starts, t[..., 0], t[..., 1], t[..., 2],
                                            t[..., TARGET_META:])
             counts += (dist[0].min(dim=-1).values < pos_threshold).numpy()
@@ -55,10 +64,20 @@ def anchor_use_frequency(
     return counts
 
 
-def top_anchors(frequency: np.ndarray, topk: int) -> np.ndarray:
-    """Indices of the topk most used anchors, most used first (ties: the official order, left-bottom-right)."""
+TIE_ORDERS = ("index", "torch")
+
+
+def top_anchors(frequency: np.ndarray, topk: int, ties: str = "index") -> np.ndarray:
+    """Indices of the topk most used anchors, most used first; equal counts ordered as `ties` says (TIE_ORDERS:
+    "index" the lower anchor index first, "torch" as the official's torch.argsort(descending=True))."""
+    if ties not in TIE_ORDERS:
+        raise ValueError(f"top_anchors: ties={ties!r}, expected one of {', '.join(TIE_ORDERS)}")
     frequency = np.asarray(frequency)
-    return np.argsort(-frequency, kind="stable")[:topk].astype(np.int64)
+    if ties == "torch":
+        order = torch.argsort(torch.from_numpy(frequency), descending=True).numpy()
+    else:
+        order = np.argsort(-frequency, kind="stable")
+    return order[:topk].astype(np.int64)
 
 
 def train_lane_sets(dataset, input_size: tuple[int, int], crop_top: float = 0.0) -> Iterator[list[np.ndarray]]:

@@ -9,6 +9,10 @@ official input width) and scaled by W / reference_width, so the defaults fit any
 As the official (lucastabelini/LaneATT, lib/models/laneatt.py): the anchors can be the topk most
 used by the train split's lanes (anchor_selection=frequency, frequency.py), and the loss
 is computed on the proposals a lane NMS keeps (15 px, top 3,000, no score threshold).
+``fraction_scale`` (anchors.FRACTION_SCALES) says how the anchors' fractions of the image become pixels, and the
+decoding's ``proposal_points`` (decoding.PROPOSAL_POINTS) which points of a proposal make its lane: this
+project's own configs keep the defaults (f x (W - 1), the points inside the image), the official_* experiments set
+the official's (f x W, its proposals_to_pred).
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from torch import nn
 from lanevil_train.lanes import row_proposal_to_lane
 from lanevil_train.models.head import LaneHead
 from lanevil_train.models.laneatt.anchors import (
+    FRACTION_SCALES,
     TARGET_META,
     anchor_cut_indices,
     encode_lanes,
@@ -30,6 +35,7 @@ from lanevil_train.models.laneatt.anchors import (
     generate_anchors,
     row_ys,
 )
+from lanevil_train.models.laneatt.decoding import check_proposal_points, official_proposal_points
 from lanevil_train.models.laneatt.frequency import (
     anchor_use_frequency,
     cached_frequency,
@@ -55,7 +61,8 @@ def _anchors_from_loaded_index(head: "LaneATTHead", incompatible_keys) -> None:
 def _read_frequency_file(path: str, anchors: int, geometry: str) -> np.ndarray:
     """The counts per anchor saved in `path` (the official repository's data/<dataset>_anchors_freq.pt: a 1-D
     tensor over the full anchor set, left, bottom, right), read weights-only; one per anchor of the head's `anchors`
-    (its full set, which `geometry` says how it was made), else a ValueError naming the file."""
+    (its full set, which `geometry` says how it was made), in the file's own dtype; else a ValueError naming the
+    file."""
     from lanevil_train.checkpoints import load_checkpoint_file
 
     where = f"model.head.anchor_frequency_file={path}"
@@ -68,7 +75,7 @@ def _read_frequency_file(path: str, anchors: int, geometry: str) -> np.ndarray:
         raise ValueError(f"{where}: {len(counts)} counts, and this head has {anchors} anchors ({geometry}): the file "
                          f"was counted for another anchor set; the official files fit the official input size and "
                          f"anchor origins (lateral_n, bottom_n null)")
-    return counts.double().numpy()
+    return counts.numpy()
 
 
 class LaneATTHead(LaneHead):
@@ -92,6 +99,7 @@ class LaneATTHead(LaneHead):
         "focal_alpha": number(0, 1),
         "focal_gamma": number(0),
         "anchor_selection": one_of(*ANCHOR_SELECTIONS),
+        "fraction_scale": one_of(*FRACTION_SCALES),
         "frequency_threshold": number(0),
         "train_nms_threshold": null_or(number(0, low_open=True)),  # null: no NMS before the loss
         "train_nms_topk": integer(1),
@@ -107,6 +115,7 @@ class LaneATTHead(LaneHead):
         n_offsets: int = 72,
         anchor_feat_channels: int = 64,
         max_lanes: int = 6,
+        fraction_scale: str = "last_pixel",
         anchor_selection: str = "all",
         topk_anchors: int | None = None,
         lateral_n: int | None = None,
@@ -134,6 +143,7 @@ class LaneATTHead(LaneHead):
                              "set it (the official: 1000) or use anchor_selection=all")
         self.n_offsets = n_offsets
         self.max_lanes = max_lanes
+        self.fraction_scale = fraction_scale
         self.feature_stride = feature_stride
         self.threshold_scale = w / reference_width
         self.pos_threshold = pos_threshold * self.threshold_scale
@@ -144,7 +154,7 @@ class LaneATTHead(LaneHead):
         self.cls_loss_weight = cls_loss_weight
         self.focal_alpha, self.focal_gamma = focal_alpha, focal_gamma
 
-        self.all_anchors = generate_anchors(self.image_size, n_offsets, lateral_n, bottom_n)
+        self.all_anchors = generate_anchors(self.image_size, n_offsets, lateral_n, bottom_n, scale=fraction_scale)
         total = len(self.all_anchors)
         if anchor_selection == "all" and topk_anchors is not None and topk_anchors < total:
             raise ValueError(f"topk_anchors: {topk_anchors} of the {total} anchors with anchor_selection=all; "
@@ -170,11 +180,12 @@ class LaneATTHead(LaneHead):
                                  "anchor_selection=frequency and topk_anchors (the official: 1000)")
             geometry = (f"n_offsets {n_offsets}, lateral_n {lateral_n}, bottom_n {bottom_n} at {h}x{w}, "
                         f"data.input_size")
-            anchor_frequency = _read_frequency_file(anchor_frequency_file, len(self.all_anchors), geometry)
-        if anchor_frequency is not None:
+            # an official file: its tied counts ordered as the official orders them (frequency.TIE_ORDERS)
+            self.use_frequency(_read_frequency_file(anchor_frequency_file, len(self.all_anchors), geometry), "torch")
+        elif anchor_frequency is not None:
             self.use_frequency(anchor_frequency)
         self.register_load_state_dict_post_hook(_anchors_from_loaded_index)
-        self.row_ys = row_ys(h, n_offsets)
+        self.row_ys = row_ys(h, n_offsets, fraction_scale)
 
         hf, _ = self.fmap_size
         feat_dim = anchor_feat_channels * hf
@@ -208,15 +219,16 @@ class LaneATTHead(LaneHead):
             self.register_buffer(name, value.to(device), persistent=False)
         self.anchor_index.copy_(torch.from_numpy(index))
 
-    def use_frequency(self, frequency) -> None:
+    def use_frequency(self, frequency, ties: str = "index") -> None:
         """Keep the topk_anchors anchors the training lanes use most (frequency: a count per anchor of the full
-        set), most used first as the official orders them."""
+        set), most used first as the official orders them; equal counts ordered as `ties` says
+        (frequency.TIE_ORDERS)."""
         freq = np.asarray(frequency)
         if freq.shape != (len(self.all_anchors),):
             raise ValueError(f"LaneATTHead: anchor_frequency has shape {freq.shape}, "
                              f"expected ({len(self.all_anchors)},)")
         if self.anchor_selection == "frequency":
-            self._set_anchors(top_anchors(freq, self.n_anchors))
+            self._set_anchors(top_anchors(freq, self.n_anchors, ties))
         self.anchors_chosen.fill_(1)
 
     def choose_anchors(self, train_dataset, crop_top: float = 0.0, cache_dir=None) -> bool:
@@ -229,7 +241,7 @@ class LaneATTHead(LaneHead):
         xs, starts = torch.from_numpy(full.xs).float(), torch.from_numpy(full.starts)
         key = dataset_fingerprint(train_dataset, self.image_size, crop_top,
                                   {"anchors": len(full), "n_offsets": self.n_offsets,
-                                   "threshold": self.frequency_threshold,
+                                   "threshold": self.frequency_threshold, "scale": self.fraction_scale,
                                    "first_xs": full.xs[:, 0].round(3).tolist()[:8]})
 
         def count():
@@ -237,7 +249,7 @@ class LaneATTHead(LaneHead):
                      len(train_dataset), len(full))
             lanes = train_lane_sets(train_dataset, self.image_size, crop_top)
             return anchor_use_frequency(xs, starts, lanes, self.image_size, self.n_offsets, self.frequency_threshold,
-                                        total=len(train_dataset))
+                                        total=len(train_dataset), scale=self.fraction_scale)
 
         self.use_frequency(cached_frequency(cache_dir, key, count))
         return True
@@ -267,7 +279,7 @@ class LaneATTHead(LaneHead):
     # ------------------------------------------------------------------ targets
     def encode(self, lanes: list[np.ndarray], meta: dict | None = None) -> dict[str, np.ndarray]:
         """GT lanes (input pixels) -> {"lanes": float32 (max_lanes, 3 + n_offsets)}: [valid, start, length, xs]."""
-        return {"lanes": encode_lanes(lanes, self.image_size, self.n_offsets, self.max_lanes)}
+        return {"lanes": encode_lanes(lanes, self.image_size, self.n_offsets, self.max_lanes, self.fraction_scale)}
 
     def match(self, targets: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Anchor assignment: positives (B, A), negatives (B, A), index of the matched target (B, A)."""
@@ -326,8 +338,14 @@ class LaneATTHead(LaneHead):
         conf_threshold: float = 0.5,
         nms_threshold: float = 50.0,
         nms_topk: int | None = None,
+        proposal_points: str = "inside",
     ) -> list[list[np.ndarray]]:
-        """Per image: lanes as (N, 2) float arrays in input pixels, y descending, left to right."""
+        """Per image: lanes as (N, 2) float arrays in input pixels, y descending, left to right.
+
+        The proposals scoring above conf_threshold, lane NMS (nms_threshold px at 640 wide, at most nms_topk, or
+        max_lanes); of each, the points `proposal_points` says (decoding.PROPOSAL_POINTS): "inside" the image
+        (plus its border crossing), or "official", those the official proposals_to_pred keeps."""
+        check_proposal_points(proposal_points)
         scores = torch.softmax(raw["cls_logits"].detach().float(), dim=-1)[..., 1]
         lengths = raw["length"].detach().float()
         xs = raw["xs"].detach().float()
@@ -341,8 +359,12 @@ class LaneATTHead(LaneHead):
             ends = lane_ends(starts[keep], lengths[b, keep], self.n_offsets).cpu().numpy()
             lanes = []
             for k, end in zip(keep.cpu().numpy(), ends):
-                lane = row_proposal_to_lane(xs[b, k].cpu().numpy().astype(np.float64), self.row_ys, int(starts[k]),
-                                            int(end), self.image_size[1])
+                if proposal_points == "official":
+                    lane = official_proposal_points(xs[b, k].cpu().numpy(), self.row_ys, int(starts[k]),
+                                                    float(lengths[b, k]), self.image_size[1])
+                else:
+                    lane = row_proposal_to_lane(xs[b, k].cpu().numpy().astype(np.float64), self.row_ys,
+                                                int(starts[k]), int(end), self.image_size[1])
                 if lane is not None:
                     lanes.append(lane)
             lanes.sort(key=lambda ln: ln[0, 0])

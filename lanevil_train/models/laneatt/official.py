@@ -11,10 +11,34 @@ Facts of the official code this conversion rests on (``lib/models/laneatt.py`` u
   32 (l. 33). The anchors are not in the file (plain attributes): they are the full set (left, bottom, right: l.
   241-246) filtered by the repository's frequency file, ``torch.argsort(counts, descending=True)[:topk_anchors]``
   (l. 49-54), most used first; the attention layer's rows follow that order, so the same file must choose them here
-  (``model.head.anchor_frequency_file``). Anchors with equal counts are ordered by a stable sort here (the official
-  sort is not stable): a file whose top 1,000 hold ties may order those few anchors differently.
+  (``model.head.anchor_frequency_file``), with the same ``torch.argsort`` (frequency.py TIE_ORDERS "torch"): that
+  sort is not stable, and the order of equal counts is the kernel's (torch 1.6 for the published weights).
 - Every published release (TuSimple, CULane, LLAMAS) is 360x640, S = 72, 1,000 anchors (``cfgs/laneatt_*.yml``):
   the file's shapes cannot tell the dataset, only the backbone.
+
+How the official test turns proposals into the TuSimple file (what ``experiment=official_laneatt_*`` reproduces:
+``model.head.fraction_scale: size``, ``model.decode.proposal_points: official``, ``model.row_sampling: spline``):
+
+- Rows and anchors (l. 36, 279-281): ``anchor_ys = linspace(1, 0, S)`` (float32) are fractions of the height, 1 the
+  bottom (y = H); an anchor from border point (x0, y0) at ``angle`` has x = (x0 + (y0 - f) / tan(angle)) * img_w
+  at row fraction f, its start ``1 - y0`` (fraction of the strips), in float32. The proposal is the anchor plus the
+  regression (l. 102-105): class logits in 0-1, the length in 4, the offsets added to 5:.
+- Scores (l. 119-125): softmax, kept where > conf_threshold, then the lane NMS; decode (l. 346-347) softmaxes
+  and rounds the length with ``torch.round`` (halves to even).
+- proposals_to_pred (l. 309-340): x / img_w (float32); start = round(start fraction x n_strips); end = min(start +
+  length - 1, S - 1); the rows below the start are cleared (-2) unless every row from them up to the start has x /
+  img_w in [0, 1] (the mask is computed first, l. 322-323); ``lane_xs[end + 1:] = -2`` (a Python slice, so a
+  negative end + 1 counts from the top row); the points with x >= 0 are kept (right of the image too), flipped to
+  y ascending; fewer than 2: no lane. The points go to ``Lane`` (lib/lane.py l. 10-12) in fractions of the image.
+- lib/lane.py l. 10-23: ``InterpolatedUnivariateSpline(y, x, k=min(3, n - 1))``, valid within [min y - 0.01,
+  max y + 0.01] (fractions of the height), -2 elsewhere.
+- TuSimple writer (lib/datasets/tusimple.py l. 55-65, 99-105): the Lane at ``h_samples / 720``, ``(xs * 1280)
+  .astype(int)`` (truncated), -2 where xs < 0; one line per image, the lanes in NMS order.
+- CULane / LLAMAS writers (lib/datasets/culane.py l. 115-129, lib/datasets/llamas.py l. 98-112, 1276x717 at l. 26):
+  the Lane at every image row ``arange(img_h) / img_h``, kept where 0 <= x < 1, written bottom first as
+  ``'{:.5f} {:.5f}'`` of x * img_w, y * img_h (``model.culane_rows: [0, img_h, 1]``).
+- Targets (lib/datasets/lane_dataset.py l. 54, 155): rows y = img_h, img_h - img_h / (S - 1), ..., 0; x inside the
+  image where 0 <= x < img_w.
 
 This project's head keeps the layers (``head.conv1``, ``head.attention_layer``, ``head.cls_layer``,
 ``head.reg_layer``), the anchor cut (official quirks included) and the attention's order, and timm's ResNet the
