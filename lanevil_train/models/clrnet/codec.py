@@ -6,6 +6,10 @@ straight down to the bottom of the image from its two lowest points), the first 
 (the mean over its inside points of the angle from the start point, in units of pi). The rows and the
 extension are LaneATT's (``laneatt.anchors.encode_lane``: the same sampling, plus one row above the lane's
 top so the top evaluation row is covered).
+
+Decoding (``CLRNetHead.decode``) keeps, by default, a lane's points inside the image plus the exact border
+crossings (``lanes.row_proposal_to_lane``). ``lane_points: official`` gives instead the points of the official
+``Lane`` (``official_rows``, ``official_kept_rows``; the facts in models/clrnet/official.py, "Decoding").
 """
 
 from __future__ import annotations
@@ -20,7 +24,8 @@ from lanevil_train.models.nms import lane_nms
 
 # target row layout: [valid, start_y (fraction of the height), start_x (px), theta (pi units), length (rows), x_0..]
 TARGET_META = 5
-__all__ = ["TARGET_META", "UNDEFINED_X", "clrnet_nms", "encode_lanes", "lane_theta"]
+__all__ = ["TARGET_META", "UNDEFINED_X", "clrnet_nms", "encode_lanes", "lane_theta", "official_kept_rows",
+           "official_rows"]
 
 
 def lane_theta(xs_inside: np.ndarray, strip: float) -> float:
@@ -75,3 +80,30 @@ def clrnet_nms(xs: torch.Tensor, start_y: torch.Tensor, length: torch.Tensor, sc
     is dropped when its mean |x| distance (pixels, xs (N, S)) to a kept one over the rows both cover is below
     `threshold`. start_y and length are the head's normalised values (fractions of n_strips rows)."""
     return lane_nms(xs, start_rows(start_y, n_strips), length * n_strips, scores, threshold, top_k)
+
+
+def official_rows(start_y: float, length: float, n_strips: int) -> tuple[int, int]:
+    """The official decoding's first and last row of a prediction (clr_head.py:477, 288-292 at 7269e9d): the
+    length rounded in float32 (``torch.round(length x n_strips)``), the start as Python's ``round(start_y x
+    n_strips)`` in double, both half to even; the start clamped to [0, n_strips], the end = start + length - 1
+    clamped above at n_strips only (a length below 1 leaves it under the start, even negative)."""
+    rows = np.float32(np.float32(length) * np.float32(n_strips))
+    length_rows = int(np.rint(rows))
+    start = min(max(0, int(np.rint(float(np.float32(start_y)) * n_strips))), n_strips)
+    return start, min(start + length_rows - 1, n_strips)
+
+
+def official_kept_rows(xs: np.ndarray, start: int, end: int) -> np.ndarray:
+    """Which of a prediction's rows (bottom first) the official decoding turns into the Lane's points
+    (clr_head.py:296-301 at 7269e9d), xs its x as fractions of the input width: a row with x >= 0 (any x past
+    the right edge kept), not after `end` (the rows from end + 1 to the top dropped, counted from the top as a
+    Python slice when end + 1 is negative), and, below `start`, only while it and every row up to the start have
+    x in [0, 1] (the lane extended down until it first leaves the image; the test reads the rows as they were
+    before either rule)."""
+    xs = np.asarray(xs)
+    below = (xs[:start] >= 0) & (xs[:start] <= 1)
+    extended = np.flip(np.cumprod(np.flip(below))).astype(bool)  # inside, and so is every row up to the start
+    keep = xs >= 0
+    keep[end + 1:] = False
+    keep[:start] &= extended
+    return keep

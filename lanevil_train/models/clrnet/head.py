@@ -33,11 +33,13 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from lanevil_train.lanes import row_proposal_to_lane
+from lanevil_train.lanes import as_lane, row_proposal_to_lane
 from lanevil_train.models.clrnet.codec import (
     TARGET_META,
     clrnet_nms,
     encode_lanes,
+    official_kept_rows,
+    official_rows,
     start_rows,
 )
 from lanevil_train.models.clrnet.loss import clrnet_losses, segmentation_loss
@@ -54,6 +56,7 @@ from lanevil_train.models.scnn.codec import encode_lanes as encode_masks
 from lanevil_train.rules import check_settings, integer, null_or, number, one_of
 
 ROW_SPANS = ("last_pixel", "height")  # the bottom row at y = H-1 (ours) or y = H (the official's)
+LANE_POINTS = ("inside", "official")  # decode's lane points: this project's, or the official Lane's (decode)
 
 
 def _conv_bn_relu(c_in: int, c_out: int, kernel, padding) -> nn.Sequential:
@@ -172,6 +175,8 @@ class CLRNetHead(LaneHead):
         self.seg_lanes = max_lanes if seg_lanes is None else int(seg_lanes)  # lane slots of the masks
         self.row_span = float(h - 1 if row_span == "last_pixel" else h)  # pixels from the bottom row to the top one
         self.row_ys = row_ys(h, num_points, self.row_span).double().numpy()
+        # the official decoding's row heights (fractions of H, bottom first): its float32 prior_ys, read in double
+        self.official_row_heights = torch.linspace(1.0, 0.0, num_points, dtype=torch.float32).double().numpy()
 
         self.prior_embeddings = nn.Parameter(init_prior_embeddings(num_priors))  # validates num_priors
         self.register_buffer("fractions", row_fractions(num_points), persistent=False)
@@ -272,29 +277,62 @@ class CLRNetHead(LaneHead):
 
     # ------------------------------------------------------------------ decode
     def decode(self, raw: dict, conf_threshold: float = 0.4, nms_threshold: float = 50.0,
-               nms_topk: int | None = None) -> list[list[np.ndarray]]:
-        """Per image: the last stage's lanes scoring above conf_threshold, after NMS (nms_threshold: mean x
+               nms_topk: int | None = None, lane_points: str = "inside") -> list[list[np.ndarray]]:
+        """Per image: the last stage's lanes scoring at least conf_threshold, after NMS (nms_threshold: mean x
         distance in pixels at reference_width; at most nms_topk, default max_lanes), in input pixels, y
-        descending, left to right."""
+        descending, left to right.
+
+        `lane_points` (LANE_POINTS): which points a lane is given. ``inside`` (this project's): its rows inside the
+        image plus the exact border crossings, x in input pixels (the network's x x (W-1)). ``official``: the points
+        of the official ``Lane`` (models/clrnet/official.py, "Decoding"): every row from its start to its end with
+        x >= 0 (past the right edge too), the rows below its start while inside the image, no border points; x at
+        the official writers' scale (the network's fraction of W-1 read as a fraction of W) and the rows at the
+        official's heights, so that LaneDetector.decode_lanes maps them to the original pixels the official writes.
+        """
+        if lane_points not in LANE_POINTS:
+            raise ValueError(f"model.decode.lane_points={lane_points!r}: expected one of {', '.join(LANE_POINTS)}")
         scores = torch.softmax(raw["cls_logits"][:, -1].detach().float(), dim=-1)[..., 1]
         lines = raw["lines"][:, -1].detach().float()
         xs = raw["xs"][:, -1].detach().float()
         top_k = self.max_lanes if nms_topk is None else nms_topk
-        w = self.image_size[1]
         out = []
         for i in range(scores.shape[0]):
-            cand = torch.nonzero(scores[i] > conf_threshold).flatten()
+            cand = torch.nonzero(scores[i] >= conf_threshold).flatten()
             keep = cand[clrnet_nms(xs[i, cand], lines[i, cand, 0], lines[i, cand, 3], scores[i, cand],
                                    nms_threshold * self.width_scale, top_k, self.n_strips)]
-            starts = start_rows(lines[i, keep, 0], self.n_strips).cpu().numpy()
-            lengths = torch.floor(lines[i, keep, 3] * self.n_strips + 0.5).long().cpu().numpy()
-            lanes = []
-            for k, start, length in zip(keep.cpu().numpy(), starts, lengths):
-                end = min(int(start + length - 1), self.n_strips)
-                lane = row_proposal_to_lane(xs[i, k].cpu().numpy().astype(np.float64), self.row_ys, int(start),
-                                            end, w)
-                if lane is not None:
-                    lanes.append(lane)
+            if lane_points == "official":
+                lanes = self._official_lanes(xs[i, keep], lines[i, keep])
+            else:
+                lanes = self._inside_lanes(xs[i, keep], lines[i, keep])
             lanes.sort(key=lambda ln: ln[0, 0])
             out.append(lanes)
         return out
+
+    def _inside_lanes(self, xs: torch.Tensor, lines: torch.Tensor) -> list[np.ndarray]:
+        """This project's lanes of the kept predictions (xs (K, S) input pixels, lines (K, 4)): the rows inside
+        the image from the start row (extended down while inside) to the end, plus the border crossings."""
+        starts = start_rows(lines[:, 0], self.n_strips).cpu().numpy()
+        lengths = torch.floor(lines[:, 3] * self.n_strips + 0.5).long().cpu().numpy()
+        w = self.image_size[1]
+        lanes = []
+        for k, (start, length) in enumerate(zip(starts, lengths)):
+            end = min(int(start + length - 1), self.n_strips)
+            lane = row_proposal_to_lane(xs[k].cpu().numpy().astype(np.float64), self.row_ys, int(start), end, w)
+            if lane is not None:
+                lanes.append(lane)
+        return lanes
+
+    def _official_lanes(self, xs: torch.Tensor, lines: torch.Tensor) -> list[np.ndarray]:
+        """The official Lane's points of the kept predictions (xs (K, S) input pixels, lines (K, 4)), in the input
+        pixels that map to the official writers' original pixels: x = fraction x W, y = the official row height x H;
+        lanes of fewer than two points dropped (as the official)."""
+        h, w = self.image_size
+        fractions = (xs / (w - 1)).cpu().numpy()  # float32: the official's normalised x, as its forward keeps it
+        ys = self.official_row_heights * h
+        lanes = []
+        for k in range(len(fractions)):
+            start, end = official_rows(float(lines[k, 0]), float(lines[k, 3]), self.n_strips)
+            kept = official_kept_rows(fractions[k], start, end)
+            if kept.sum() >= 2:
+                lanes.append(as_lane(np.stack([fractions[k][kept].astype(np.float64) * w, ys[kept]], axis=1)))
+        return lanes

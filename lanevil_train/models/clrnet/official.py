@@ -55,6 +55,40 @@ Facts of the official code this conversion rests on (files under ``clrnet/`` unl
   (``clr_resnet101_*.py`` l. 29). The README publishes ResNet-18/34/101 for CULane and TuSimple, DLA-34 for
   CULane, ResNet-18 and DLA-34 for LLAMAS.
 
+Decoding, as the official test writes its prediction files (``CLRHead.get_lanes`` and ``predictions_to_pred`` in
+``models/heads/clr_head.py``, ``Lane`` in ``utils/lane.py``, the writers in ``datasets/``):
+
+- a prediction is kept when its softmax score is >= conf_threshold (clr_head.py:449-453); NMS reads the length x
+  n_strips and the x x (img_w - 1) (l. 458-470); the kept ones' length is rounded in float32,
+  ``torch.round(length x n_strips)`` (l. 477), half to even as Python's ``round`` of start_y x n_strips is (l. 288);
+  the start is clamped to [0, n_strips] (l. 288-289), the end = start + length - 1 only above, at n_strips (l. 290-292);
+- the x of the rows are the network's, fractions of img_w - 1 (the loss scales them by img_w - 1: l. 378-380);
+  the rows below the start are kept while they and every row up to the start have x in [0, 1] (l. 296-297, 299),
+  the rows from end + 1 on are dropped (l. 298: a Python slice, so a negative end + 1 counts from the top), and of the
+  rest every row with x >= 0 is kept, with no upper bound: x past the right edge stays (l. 300-301); no border point
+  is added;
+- the rows' heights are the float32 ``prior_ys`` = linspace(1, 0, num_points) (l. 49-52), in double (l. 283-284),
+  mapped to the original image as (prior_ys (ori_img_h - cut_height) + cut_height) / ori_img_h (l. 305-306): the
+  bottom row at y = ori_img_h; a lane of fewer than two points is dropped (l. 307-308); the ``Lane`` is built from
+  (x, y) normalised so (l. 309-312);
+- ``Lane`` (lane.py:11-16, 23-28): scipy's InterpolatedUnivariateSpline of x over y, k = min(3, points - 1), valid
+  from its lowest y - 0.01 to its highest + 0.01 (normalised: 1 % of the original height), -2 beyond;
+- TuSimple (datasets/tusimple.py:28, 63-71): the Lane at h_samples 160, 170, ..., 710 over ori_img_h, -2 where x < 0,
+  else ``(x x ori_img_w).astype(int)`` (truncated): x past the right edge written. The x the official writes is the
+  network's fraction of img_w - 1 times the original width (not x (img_w - 1) x ori_w / img_w): 1.6 px more at the
+  right edge of 1280, 2 px at 1640;
+- CULane (datasets/culane.py:96-112): the Lane at rows np.arange(270, 590, 8) over ori_img_h, only 0 <= x < 1 kept,
+  x x ori_img_w and y x ori_img_h written ``'{:.5f} {:.5f}'``, the bottom point first, lanes with no point left out;
+- LLAMAS (datasets/llamas.py:145-161) reads the same Lane at rows np.arange(300, 717) over ori_img_h - 1 and writes
+  x x (ori_img_w - 1), y x (ori_img_h - 1): official_clrnet_llamas reads it at those rows (model.culane_rows), not
+  with that scale (not matched: x up to ~1-2 px apart);
+- the TuSimple config cuts 160 of 720 rows and resizes to 320x800 (configs/clrnet/clr_resnet18_tusimple.py:47-51):
+  ``data.crop_top`` 0.2222222 gives the same 160 rows, and LaneDetector.decode_lanes maps input y as
+  y (720 - 160) / 320 + 160, so the decoding's y = prior_ys x 320 land on the official's rows exactly.
+
+``model.decode.lane_points: official`` decodes so (head.py, codec.py ``official_rows``, ``official_kept_rows``): x
+given as the fraction x img_w and y as prior_ys x img_h, which decode_lanes maps to the official writers' pixels.
+
 This project's CLRNet keeps the layers under other names (``head.roi_gather.{convs,catconvs}.<i>.{0,1}`` = the
 ConvModules' ``conv``/``bn``, ``head.cls_fc``/``reg_fc`` = ``cls_modules``/``reg_modules``, ``head.cls_layer``/
 ``reg_layer``, ``neck.lateral``/``output`` = ``lateral_convs``/``fpn_convs``, ``head.seg_decoder.1`` = its ``conv``),
