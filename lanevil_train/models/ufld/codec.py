@@ -9,11 +9,31 @@ same set fits any input size (y = fraction * H, clamped to the last pixel row).
 The cell geometry is the official one (cfzd/Ultra-Fast-Lane-Detection, data/dataset.py `_grid_pts`): the cell
 positions are ``linspace(0, W - 1, G)`` for G = num_cells, so a cell is (W - 1) / (G - 1) px wide and a lane x
 falls into cell floor(x / width); G - 1 cells cover [0, W - 1) and the last cell only x = W - 1 itself. The
-official TuSimple writer (evaluation/eval_wrapper.py `generate_tusimple_lines`) maps an expected cell index loc
-to x = (loc + 0.5) * W / (G - 1) in the original image's pixels; our lanes are resized proportionally (x * W_orig
-/ W), so the same formula in input pixels gives the same original x (`cell_to_x`). The official CULane writer
-(eval_wrapper.py `generate_lines`, and demo.py) maps differently, x = (loc + 1) * (800 - 1) / (G - 1) scaled to
-1640 px, minus 1: half a cell further right (2 px at 800 px, 200 cells); we use the TuSimple writer's for both.
+official writers (evaluation/eval_wrapper.py at 353df10) turn the classifier's output (griding_num + 1, rows,
+lanes) into points as follows; ``official_writer_points`` gives the same points (model.decode.official_writer):
+
+- Both: per row and lane, the arg-max over all griding_num + 1 classes; the last class means no point there
+  (l. 67 and 76 TuSimple, l. 27-28 CULane). The location is the expectation of the cell index under a softmax over
+  the griding_num cells only, the no-lane class left out (scipy.special.softmax of ``out[:-1]`` in float32, times
+  an int64 index, summed in float64; l. 70-74, l. 23-26).
+- TuSimple (``generate_tusimple_lines``, l. 64-83, called by ``run_test_tusimple`` l. 98): cells indexed from 0;
+  x = int(round((loc + 0.5) * 1280.0 / (griding_num - 1))) (l. 81): whole pixels of a 1280-wide image, rounded
+  half to even, never clipped (the last cell's x is 1,286 on a 1280-wide image); -2 on no-lane rows. One value per
+  row anchor, written at the h_samples 160, 170, ..., 710 (l. 99-102), which are the row anchors 64, ..., 284 of
+  the 288-row input at 720 rows. Every one of the 4 lanes is written, also one with no point at all (all -2).
+- CULane (``generate_lines``, l. 9-45, called by ``run_test`` l. 63 with ``localization_type='rel'``,
+  ``flip_updown=True`` and ``shape`` the 288x800 input): cells indexed from 1 (l. 24), rows taken bottom first
+  (l. 16-17); a lane is written only with more than 2 points (l. 40); each point is x = int(loc * col_sample_w *
+  1640 / 800) - 1 with col_sample_w = (800 - 1) / (griding_num - 1) (l. 11-12, 44): truncated toward zero, then
+  one pixel left, never clipped; y = int(590 - k * 20) - 1 for the k-th row from the bottom (l. 44): 589, 569,
+  ..., 249 for the 18 rows, not the row anchors' own heights (121..287 of 288 rows are 247.9..588.0 of 590; the
+  official demo.py l. 89 uses those, the test writer does not).
+
+``cell_to_x`` is the TuSimple writer's mapping, in the input's pixels: our lanes are resized proportionally
+(x * W_orig / W), so the same formula gives the same original x. Our own decoding (official_writer null) uses it on
+both datasets, as floats clipped to the image, at the row anchors' heights; the official CULane writer's x lies
+0-3 px right of it (2.05 / 199 * (399 - loc) - 1 px before its truncation, loc from 0: half a cell at the left
+edge, less the -1).
 One more small difference: the official encodes in the original image's pixels (cells of (W_orig - 1) / (G - 1)),
 we in the input's, which moves a cell boundary by at most a pixel.
 """
@@ -79,6 +99,35 @@ def cell_to_x(locations, width: int, num_cells: int):
     writer's mapping (evaluation/eval_wrapper.py `generate_tusimple_lines`, with W its 1280). It is the cell's
     centre stretched by W / (W - 1): at most one pixel right of it."""
     return (locations + 0.5) * (width / (num_cells - 1.0))
+
+
+OFFICIAL_WRITERS = ("tusimple", "culane")
+TUSIMPLE_WRITER_WIDTH = 1280.0    # eval_wrapper.py l. 81: the x scale of generate_tusimple_lines
+CULANE_WRITER_SIZE = (590, 1640)  # eval_wrapper.py l. 44: (height, width) of generate_lines' points
+CULANE_WRITER_ROW_STEP = 20       # ... and its rows, 590 - 1 - 20 k, k from the bottom
+
+
+def official_writer_points(locations, num_rows: int, image_size: tuple[int, int], num_cells: int,
+                           writer: str) -> tuple[np.ndarray, np.ndarray | None]:
+    """The official writer's (x of each location, y of each row) in the input's pixels (see the module docstring).
+
+    `locations`: expected cell indices from 0 (any shape); `image_size`: the input's (H, W). The x are the
+    writer's whole pixels (TuSimple: of a 1280-wide image; CULane: of a 1640x590 one) scaled to the input, so that
+    the proportional resize back to the original image gives them again. y: None for "tusimple" (its values sit at
+    the row anchors, which its h_samples are), else the CULane writer's rows, top row first, in input pixels
+    (the whole image resized to the input, data.crop_top 0, as the official test loader)."""
+    h, w = image_size
+    locations = np.asarray(locations, dtype=np.float64)
+    if writer == "tusimple":
+        xs = np.round((locations + 0.5) * TUSIMPLE_WRITER_WIDTH / (num_cells - 1))  # half to even, as round()
+        return xs * (w / TUSIMPLE_WRITER_WIDTH), None
+    if writer == "culane":
+        out_h, out_w = CULANE_WRITER_SIZE
+        step = (w - 1.0) / (num_cells - 1)  # col_sample_w: the spacing of linspace(0, W - 1, G)
+        xs = np.trunc((locations + 1.0) * step * out_w / w) - 1.0
+        ys = out_h - 1.0 - CULANE_WRITER_ROW_STEP * np.arange(num_rows)[::-1]
+        return xs * (w / out_w), ys * (h / out_h)
+    raise ValueError(f"official_writer={writer!r}: expected null or one of {', '.join(OFFICIAL_WRITERS)}")
 
 
 def x_to_cell(xs: np.ndarray, width: int, num_cells: int) -> np.ndarray:

@@ -12,13 +12,16 @@ Losses: focal classification over the cells, the structural similarity and shape
 the aux segmentation (losses.py). Decoding takes the expectation of the location under the softmax over the
 cells, on the rows where the arg-max is not "no lane", mapped to x as the official TuSimple writer does
 (codec.cell_to_x), and keeps a lane with at least ``min_points`` points. The cells are the official ones
-(positions linspace(0, W - 1, num_cells), codec.py).
+(positions linspace(0, W - 1, num_cells), codec.py). ``decode(official_writer="tusimple" | "culane")`` gives
+exactly the points the official test writers write (codec.official_writer_points; the official_ufld_*
+experiments set it, with the end extension off and ``model.row_sampling: points``, so that no row between two
+points is filled in).
 
 Where we chose: lanes fill the slots by their x at the image bottom, in left-to-right order and centred on the
 camera (lanes.assign_slots; the paper's datasets give fixed lane indices); row anchors are fractions of the
 height; the shape loss counts only rows holding the ground-truth lane (losses.py); decoding extends each
-lane's ends to the neighbouring row anchors (decode's extend_ends) and clips x to the image (the official writer
-leaves the last cell's centre, past the right edge, as it is). The loss weights default to the official TuSimple
+lane's ends to the neighbouring row anchors (decode's extend_ends) and clips x to the image (the official writers
+leave the last cell's x, past the right edge, as it is). The loss weights default to the official TuSimple
 config (similarity 1, shape 0, aux 1; its CULane config sets similarity 0): a shape loss weighted 1 (in cell
 units) slowed the classification's start a lot in our small runs, which fits the official configs leaving it off.
 """
@@ -36,10 +39,12 @@ from torch import nn
 from lanevil_train.lanes import SLOT_ASSIGNMENTS, as_lane
 from lanevil_train.models.head import LaneHead
 from lanevil_train.models.ufld.codec import (
+    OFFICIAL_WRITERS,
     cell_to_x,
     cell_width,
     draw_seg_mask,
     encode_cls_labels,
+    official_writer_points,
     row_anchor_fractions,
     row_ys,
 )
@@ -240,23 +245,36 @@ class UFLDHead(LaneHead):
         return {"loss": per_sample.mean(), "per_sample": per_sample, **{k: v.mean() for k, v in parts.items()}}
 
     # ------------------------------------------------------------------ decode
-    def decode(self, raw: dict, min_points: int = 3, extend_ends: bool = True,
-               local_width: int | None = None) -> list[list[np.ndarray]]:
+    def decode(self, raw: dict, min_points: int = 3, extend_ends: bool = True, local_width: int | None = None,
+               official_writer: str | None = None) -> list[list[np.ndarray]]:
         """Per image: lanes as (N, 2) float arrays in input pixels, y descending, left to right.
 
         A slot has a point on each row whose arg-max over the num_cells + 1 classes is not "no lane"; its x is
         the expected cell index under the softmax over the cells (`local_width` None, v1's writer; an int k: over
-        the arg-max cell +- k only, UFLD v2's), mapped as the official TuSimple writer (codec.cell_to_x) and
-        clipped to [0, W - 1]. A slot with fewer than `min_points` points
-        is dropped (the official keeps lanes with more than 2). `extend_ends`: a lane's true ends lie between
-        its end rows and the next row anchors (or the image bottom below the last row), so each end is extended
-        straight to that neighbouring row, stopping where it leaves the image (our choice; the official stops
-        at the end rows).
+        the arg-max cell +- k only, UFLD v2's). `official_writer` None (ours): x mapped as the official TuSimple
+        writer (codec.cell_to_x) and clipped to [0, W - 1], y the row anchors'; "tusimple" / "culane": exactly the
+        points the official writer of that dataset writes (codec.official_writer_points: its x scale and whole
+        pixels, unclipped; on CULane its rows), in input pixels. A slot with fewer than `min_points` points is
+        dropped (the official CULane writer keeps lanes with more than 2, its TuSimple writer every lane).
+        `extend_ends`: a lane's true ends lie between its end rows and the next row anchors (or the image bottom
+        below the last row), so each end is extended straight to that neighbouring row, stopping where it leaves
+        the image (our choice; the official writers stop at the end rows).
         """
+        if official_writer is not None and official_writer not in OFFICIAL_WRITERS:
+            raise ValueError(f"model.decode.official_writer={official_writer!r}: expected null or one of "
+                             f"{', '.join(OFFICIAL_WRITERS)}")
         logits = raw["cls_logits"].detach().float()
         present = (logits.argmax(dim=1) != self.num_cells).cpu().numpy()  # (B, R, L)
-        w = self.image_size[1]
-        xs = cell_to_x(expected_locations(logits, local_width), w, self.num_cells).clamp(0.0, w - 1.0).cpu().numpy()
+        h, w = self.image_size
+        ys = self.row_ys
+        if official_writer is None:
+            xs = cell_to_x(expected_locations(logits, local_width), w, self.num_cells).clamp(0.0, w - 1.0)
+            xs = xs.cpu().numpy()
+        else:
+            locations = expected_locations(logits, local_width, torch.float64).cpu().numpy()
+            xs, writer_ys = official_writer_points(locations, self.num_rows, self.image_size, self.num_cells,
+                                                   official_writer)
+            ys = ys if writer_ys is None else writer_ys
         out: list[list[np.ndarray]] = []
         for b in range(logits.shape[0]):
             lanes = []
@@ -264,11 +282,10 @@ class UFLDHead(LaneHead):
                 rows = np.flatnonzero(present[b, :, k])
                 if len(rows) < max(int(min_points), 1):
                     continue
-                pts = np.stack([xs[b, rows, k], self.row_ys[rows]], axis=1)  # top first
+                pts = np.stack([xs[b, rows, k], ys[rows]], axis=1)  # top first
                 if extend_ends and len(rows) >= 2:
-                    h = self.image_size[0]
-                    top_y = self.row_ys[rows[0] - 1] if rows[0] > 0 else None
-                    bottom_y = self.row_ys[rows[-1] + 1] if rows[-1] + 1 < self.num_rows else h - 1.0
+                    top_y = ys[rows[0] - 1] if rows[0] > 0 else None
+                    bottom_y = ys[rows[-1] + 1] if rows[-1] + 1 < self.num_rows else h - 1.0
                     ends = [self._extend(pts[1], pts[0], top_y), self._extend(pts[-2], pts[-1], bottom_y)]
                     pts = np.concatenate([e for e in (ends[0], pts, ends[1]) if e is not None])
                 lanes.append(as_lane(pts))

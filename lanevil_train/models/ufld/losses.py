@@ -35,21 +35,25 @@ def similarity_loss(logits: torch.Tensor) -> torch.Tensor:
     return F.smooth_l1_loss(diff, torch.zeros_like(diff), reduction="none", beta=1.0).flatten(1).mean(dim=1)
 
 
-def expected_locations(logits: torch.Tensor, local_width: int | None = None) -> torch.Tensor:
+def expected_locations(logits: torch.Tensor, local_width: int | None = None,
+                       dtype: torch.dtype = torch.float32) -> torch.Tensor:
     """The expected cell index (B, R, L): softmax over the num_cells cells (the "no lane" class left out), then
     sum_k k * prob_k, k from 0 (the paper's Loc, in cell units; as the official TuSimple writer,
     evaluation/eval_wrapper.py `generate_tusimple_lines`; codec.cell_to_x maps it to pixels).
 
     `local_width` k: the softmax is taken over the cells within k of the arg-max cell only, UFLD v2's decoding
     (evaluation/eval_wrapper.py `generate_lines_local`, local_width = 1), so a flat distribution no longer pulls
-    the position towards the image centre as the expectation over all cells does."""
+    the position towards the image centre as the expectation over all cells does.
+
+    The softmax is taken in float32; `dtype` float64 sums the weighted indices in double precision, as the
+    official writers (codec.py), whose whole-pixel x a float32 sum could move across a rounding boundary."""
     cells = logits[:, :-1].float()
     index = torch.arange(cells.shape[1], device=cells.device).view(1, -1, 1, 1)
     if local_width is not None:
         outside = (index - cells.argmax(dim=1, keepdim=True)).abs() > int(local_width)
         cells = cells.masked_fill(outside, float("-inf"))
-    prob = torch.softmax(cells, dim=1)
-    return (prob * index.to(prob.dtype)).sum(dim=1)
+    prob = torch.softmax(cells, dim=1).to(dtype)
+    return (prob * index.to(dtype)).sum(dim=1)
 
 
 def shape_loss(logits: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
