@@ -137,3 +137,12 @@ def test_culane_rows_are_checked():
     for bad in ([270, 590], [590, 270, 8], [0, 590, 0], ["a", 1, 2]):
         with pytest.raises(ValueError, match=r"model.culane_rows=.*expected null .* \[start, stop, step\]"):
             check_culane_rows(bad)
+
+
+def test_a_one_point_lane_is_written_under_points_and_left_out_under_linear():
+    meta = {"case_id": "c", "key": "k", "h_samples": ROWS, "height": H, "width": W}
+    one = [np.array([[321.5, 700.0]])]
+    line = tusimple_line({"key": "k", **prediction_fields(one, meta, 1.0, "points")})
+    assert len(line["lanes"]) == 1 and line["lanes"][0][ROWS.tolist().index(700.0)] == 321.5
+    assert sum(x >= 0 for x in line["lanes"][0]) == 1
+    assert tusimple_line({"key": "k", **prediction_fields(one, meta, 1.0)})["lanes"] == []

@@ -22,8 +22,8 @@ nothing is copied and nothing is written into the repository) and copies the ``t
 to --out. Its own TuSimple score runs after that file is written and may fail on random lanes (0 / 0): that is
 ignored once the file exists.
 
-The CULane release the same way, from Python (not the command line): ``checkpoint(..., dataset="culane")`` (the
-official clr_<backbone>_culane.py) and ``predict(..., dataset="culane")`` on a CULane-layout DATA (``list/test.txt``,
+The CULane release the same way, with ``--dataset culane``: ``checkpoint`` (the official clr_<backbone>_culane.py)
+and ``predict`` on a CULane-layout DATA (``list/test.txt``,
 an ``.lines.txt`` beside each image), which copies the tree of ``.lines.txt`` files the official test wrote
 (clrnet/datasets/culane.py:114-128) to the folder --out.
 """
@@ -40,6 +40,7 @@ import sys
 
 OFFICIAL = "Turoad/CLRNet@7269e9d1c1c650343b6c7febb8e764be538b1aed"
 OURS = ["experiment=official_clrnet_tusimple", "backbone=resnet18"]
+OURS_CULANE = ["experiment=official_clrnet_culane", "backbone=resnet18"]
 
 BASE_CONFIG = "configs/clrnet/clr_{backbone}_{dataset}.py"
 PREDICTIONS = "tusimple_predictions.json"  # clrnet/datasets/tusimple.py:94-96, in the run's work_dir
@@ -248,6 +249,7 @@ def main(argv: list[str] | None = None) -> int:
     make.add_argument("--out", required=True)
     make.add_argument("--seed", type=int, default=0)
     make.add_argument("--backbone", default="resnet18")
+    make.add_argument("--dataset", default="tusimple", choices=["tusimple", "culane"])
     run = sub.add_parser("predict", help="the official test entry's TuSimple prediction file")
     run.add_argument("--repo", required=True)
     run.add_argument("--ckpt", required=True)
@@ -255,11 +257,12 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument("--work", required=True)
     run.add_argument("--out", required=True)
     run.add_argument("--launch", default=None)
+    run.add_argument("--dataset", default="tusimple", choices=["tusimple", "culane"])
     args = parser.parse_args(argv)
     if args.command == "checkpoint":
-        print(checkpoint(args.repo, args.out, args.seed, args.backbone))
+        print(checkpoint(args.repo, args.out, args.seed, args.backbone, args.dataset))
     else:
-        print(predict(args.repo, args.ckpt, args.data_root, args.work, args.out, args.launch))
+        print(predict(args.repo, args.ckpt, args.data_root, args.work, args.out, args.launch, dataset=args.dataset))
     return 0
 
 

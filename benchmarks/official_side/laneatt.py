@@ -4,7 +4,7 @@ inside the functions, after --repo is put on sys.path).
 
     python laneatt.py checkpoint --repo LaneATT --out CKPT [--seed 0] [--backbone resnet18]
     python laneatt.py predict --repo LaneATT --ckpt CKPT --data-root DATA --work WORK --out PRED.json \
-        [--launch LAUNCHER.py]
+        [--launch LAUNCHER.py] [--dataset culane]
 
 ``checkpoint`` builds the network with the official code (lib/config.py Config on a copy of
 cfgs/laneatt_tusimple_<backbone>.yml, ``pretrained_backbone: false``), saves it with the official training's own
@@ -21,6 +21,11 @@ root) and ``experiments/<name>/models/model_<epoch>.pt``; runs ``main.py test --
 WORK as the current directory (the experiment folders are relative to it, lib/experiment.py l. 12-17) and copies the
 TuSimple prediction file it writes (``experiments/<name>/results/epoch_<epoch>/test_predictions/
 tusimple_predictions.json``, lib/experiment.py l. 134-140, lib/datasets/tusimple.py l. 117-119) to PRED.
+
+With ``--dataset culane``, ``predict`` runs the same file under a copy of cfgs/laneatt_culane_<backbone>.yml (the
+same network; the same frequency file; its test threshold set to TEST_THRESHOLD, as OURS_CULANE sets ours, since the
+random weights are drawn for it) on a CULane-layout DATA and copies the tree of ``.lines.txt`` files it writes
+(lib/datasets/culane.py l. 131-139, in the same test_predictions folder) to the folder PRED.
 """
 
 from __future__ import annotations
@@ -37,6 +42,8 @@ from pathlib import Path
 # What the orchestrator runs on our side for this family's checkpoint ({work}: the WORK folder given to predict)
 OURS = ["experiment=official_laneatt_tusimple", "backbone=resnet18",
         "model.head.anchor_frequency_file={work}/tusimple_anchors_freq.pt"]
+OURS_CULANE = ["experiment=official_laneatt_culane", "backbone=resnet18",
+               "model.head.anchor_frequency_file={work}/tusimple_anchors_freq.pt", "model.decode.conf_threshold=0.2"]
 OFFICIAL = "lucastabelini/LaneATT@2f8583ba14eccba05e6779668bc3a38bc751984a"
 
 EXPERIMENT = "parity_laneatt"
@@ -86,13 +93,16 @@ def write_frequency_file(path: Path) -> Path:
     return path
 
 
-def write_config(repo: str, backbone: str, frequency: Path, data_root: str, path: Path) -> Path:
-    """A copy of cfgs/laneatt_tusimple_<backbone>.yml: no ImageNet weights, the given frequency file, every
-    dataset root at data_root."""
+def write_config(repo: str, backbone: str, frequency: Path, data_root: str, path: Path,
+                 dataset: str = "tusimple") -> Path:
+    """A copy of cfgs/laneatt_<dataset>_<backbone>.yml: no ImageNet weights, the given frequency file, every
+    dataset root at data_root (CULane: the test threshold TEST_THRESHOLD)."""
     import yaml
 
-    source = Path(repo) / "cfgs" / f"laneatt_tusimple_{backbone}.yml"
+    source = Path(repo) / "cfgs" / f"laneatt_{dataset}_{backbone}.yml"
     cfg = yaml.load(source.read_text(), Loader=yaml.FullLoader)
+    if dataset == "culane":
+        cfg["test_parameters"]["conf_threshold"] = TEST_THRESHOLD
     params = cfg["model"]["parameters"]
     params["pretrained_backbone"] = False
     params["anchors_freq_path"] = str(frequency.resolve())
@@ -218,8 +228,10 @@ def _backbone_of(state: dict) -> str:
     return "resnet34" if any(k.startswith("feature_extractor.4.2.") for k in state) else "resnet18"
 
 
-def predict(repo: str, ckpt: str, data_root: str, work: str, out: str, launch: str | None = None) -> Path:
-    """Run the official test entry point on data_root with ckpt; copy its TuSimple prediction file to out."""
+def predict(repo: str, ckpt: str, data_root: str, work: str, out: str, launch: str | None = None,
+            dataset: str = "tusimple") -> Path:
+    """Run the official test entry point on data_root with ckpt; copy its TuSimple prediction file (CULane: its
+    folder of .lines.txt) to out."""
     import torch
 
     repo, work = os.path.abspath(repo), Path(work).resolve()
@@ -227,7 +239,8 @@ def predict(repo: str, ckpt: str, data_root: str, work: str, out: str, launch: s
     saved = torch.load(ckpt, map_location="cpu")
     epoch = int(saved["epoch"])
     frequency = write_frequency_file(work / FREQUENCY_FILE)
-    config = write_config(repo, _backbone_of(saved["model"]), frequency, data_root, work / "laneatt_tusimple.yml")
+    config = write_config(repo, _backbone_of(saved["model"]), frequency, data_root, work / f"laneatt_{dataset}.yml",
+                          dataset)
     experiment = work / "experiments" / EXPERIMENT
     shutil.rmtree(experiment, ignore_errors=True)  # a previous run's results (this folder is ours)
     (experiment / "models").mkdir(parents=True)
@@ -239,13 +252,19 @@ def predict(repo: str, ckpt: str, data_root: str, work: str, out: str, launch: s
     else:
         command = [sys.executable, os.path.join(repo, args[0]), *args[1:]]
     done = subprocess.run(command, cwd=work)
-    written = experiment / "results" / f"epoch_{epoch:04d}" / "test_predictions" / "tusimple_predictions.json"
-    if not written.is_file():
+    written = experiment / "results" / f"epoch_{epoch:04d}" / "test_predictions"
+    if dataset == "tusimple":
+        written = written / "tusimple_predictions.json"
+    if not written.exists():
         raise SystemExit(f"the official test wrote no {written} (exit status {done.returncode})")
     if done.returncode:  # its TuSimple score runs after the file is written
         print(f"note: the official test exited with {done.returncode} after writing {written}", file=sys.stderr)
     Path(out).parent.mkdir(parents=True, exist_ok=True)
-    shutil.copyfile(written, out)
+    if dataset == "tusimple":
+        shutil.copyfile(written, out)
+    else:
+        shutil.rmtree(out, ignore_errors=True)
+        shutil.copytree(written, out, ignore=lambda folder, names: [n for n in names if n.endswith(".json")])
     return Path(out)
 
 
@@ -257,6 +276,7 @@ def main(argv: list[str] | None = None) -> int:
     ck.add_argument("--out", required=True)
     ck.add_argument("--seed", type=int, default=0)
     ck.add_argument("--backbone", default="resnet18", choices=["resnet18", "resnet34"])
+    ck.add_argument("--dataset", default="tusimple", choices=["tusimple", "culane"], help="the same network")
     pr = sub.add_parser("predict", help="the official test entry point's TuSimple prediction file")
     pr.add_argument("--repo", required=True)
     pr.add_argument("--ckpt", required=True)
@@ -264,11 +284,12 @@ def main(argv: list[str] | None = None) -> int:
     pr.add_argument("--work", required=True)
     pr.add_argument("--out", required=True)
     pr.add_argument("--launch")
+    pr.add_argument("--dataset", default="tusimple", choices=["tusimple", "culane"])
     args = parser.parse_args(argv)
     if args.command == "checkpoint":
         print(checkpoint(args.repo, args.out, args.seed, args.backbone))
     else:
-        print(predict(args.repo, args.ckpt, args.data_root, args.work, args.out, args.launch))
+        print(predict(args.repo, args.ckpt, args.data_root, args.work, args.out, args.launch, args.dataset))
     return 0
 
 

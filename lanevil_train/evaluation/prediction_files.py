@@ -59,7 +59,8 @@ def tusimple_line(record: dict) -> dict:
     rows = np.asarray(record["h_samples"], dtype=np.float64)
     lanes = [np.asarray(points, dtype=np.float64).reshape(-1, 2) for points in record["pred_points"]]
     sampling = record.get("row_sampling", "linear")
-    xs = lanes_to_rows([lane for lane in lanes if len(lane) >= 2], rows, sampling, record.get("height"))
+    fewest = 1 if sampling == "points" else 2  # a row-wise writer writes a lane of one row (UFLD's), a line needs 2
+    xs = lanes_to_rows([lane for lane in lanes if len(lane) >= fewest], rows, sampling, record.get("height"))
     number = int if sampling == "spline" else (lambda x: round(x, 2))
     return {"raw_file": record["key"],
             "lanes": [[number(float(x)) if x >= 0 else NO_POINT for x in lane] for lane in xs],

@@ -131,14 +131,14 @@ CASES = {
 
 def test_the_experiment_sets_the_official_geometry_decoding_and_writer(official_cfg):
     assert official_cfg.model.head.fraction_scale == "size"
-    assert official_cfg.model.decode.proposal_points == "official"
+    assert official_cfg.model.decode.lane_points == "official"
     assert official_cfg.model.row_sampling == "spline"
     for dataset, rows in (("culane", [0, 590, 1]), ("llamas", [0, 717, 1])):
         cfg = composed([f"experiment=official_laneatt_{dataset}", "data.root=/unused"])
         assert list(cfg.model.culane_rows) == rows and cfg.model.row_sampling == "spline"
     own = composed(["model=laneatt"])  # this project's own: the documented defaults
     assert own.model.head.get("fraction_scale", "last_pixel") == "last_pixel"
-    assert own.model.decode.get("proposal_points", "inside") == "inside"
+    assert own.model.decode.get("lane_points", "inside") == "inside"
 
 
 def test_anchors_and_rows_are_the_officials(detector):

@@ -143,7 +143,7 @@ def test_decoding_keeps_the_points_the_official_formula_keeps(case):
     of the image), except the official keeps the points right of the image, which we drop."""
     model = _ours("model.head.anchor_frequency_file=null", "model.head.anchor_selection=all",
                   "model.head.topk_anchors=null", "model.head.fraction_scale=last_pixel")
-    head = model.head  # this project's own rule (fraction_scale last_pixel, proposal_points inside) beside the official
+    head = model.head  # this project's own rule (fraction_scale last_pixel, lane_points inside) beside the official
     anchors = head.anchor_xs.numpy().astype(np.float64)
     starts = head.anchor_starts.numpy()
     side = {"bottom": np.nonzero(starts == 0)[0][50], "side_extended": np.nonzero(starts == 20)[0][3],

@@ -1,4 +1,4 @@
-"""Which points of a LaneATT proposal make its lane (``model.decode.proposal_points``, PROPOSAL_POINTS).
+"""Which points of a LaneATT proposal make its lane (``model.decode.lane_points``, LANE_POINTS).
 
 A proposal is an x per anchor row (bottom row first, input pixels), the anchor's start row and a predicted length in
 rows. Two rules:
@@ -20,18 +20,18 @@ import numpy as np
 
 from lanevil_train.lanes import as_lane
 
-PROPOSAL_POINTS = ("inside", "official")
+LANE_POINTS = ("inside", "official")
 _CLEARED = -2.0  # what the official writes over the x of a row it drops
 
 
-def check_proposal_points(rule: str) -> str:
-    """`rule` if it is one of PROPOSAL_POINTS, else a ValueError naming model.decode.proposal_points."""
-    if rule not in PROPOSAL_POINTS:
-        raise ValueError(f"model.decode.proposal_points={rule!r}: expected one of {', '.join(PROPOSAL_POINTS)}")
+def check_lane_points(rule: str) -> str:
+    """`rule` if it is one of LANE_POINTS, else a ValueError naming model.decode.lane_points."""
+    if rule not in LANE_POINTS:
+        raise ValueError(f"model.decode.lane_points={rule!r}: expected one of {', '.join(LANE_POINTS)}")
     return rule
 
 
-def official_proposal_points(xs: np.ndarray, ys: np.ndarray, start: int, length: float,
+def official_lane_points(xs: np.ndarray, ys: np.ndarray, start: int, length: float,
                              width: int) -> np.ndarray | None:
     """The points the official proposals_to_pred keeps of one proposal (see the module docstring), as a lane
     (N, 2) in input pixels, y descending; None when it keeps fewer than 2.

@@ -10,7 +10,7 @@ As the official (lucastabelini/LaneATT, lib/models/laneatt.py): the anchors can 
 used by the train split's lanes (anchor_selection=frequency, frequency.py), and the loss
 is computed on the proposals a lane NMS keeps (15 px, top 3,000, no score threshold).
 ``fraction_scale`` (anchors.FRACTION_SCALES) says how the anchors' fractions of the image become pixels, and the
-decoding's ``proposal_points`` (decoding.PROPOSAL_POINTS) which points of a proposal make its lane: this
+decoding's ``lane_points`` (decoding.LANE_POINTS) which points of a proposal make its lane: this
 project's own configs keep the defaults (f x (W - 1), the points inside the image), the official_* experiments set
 the official's (f x W, its proposals_to_pred).
 """
@@ -35,7 +35,7 @@ from lanevil_train.models.laneatt.anchors import (
     generate_anchors,
     row_ys,
 )
-from lanevil_train.models.laneatt.decoding import check_proposal_points, official_proposal_points
+from lanevil_train.models.laneatt.decoding import check_lane_points, official_lane_points
 from lanevil_train.models.laneatt.frequency import (
     anchor_use_frequency,
     cached_frequency,
@@ -338,14 +338,14 @@ class LaneATTHead(LaneHead):
         conf_threshold: float = 0.5,
         nms_threshold: float = 50.0,
         nms_topk: int | None = None,
-        proposal_points: str = "inside",
+        lane_points: str = "inside",
     ) -> list[list[np.ndarray]]:
         """Per image: lanes as (N, 2) float arrays in input pixels, y descending, left to right.
 
         The proposals scoring above conf_threshold, lane NMS (nms_threshold px at 640 wide, at most nms_topk, or
-        max_lanes); of each, the points `proposal_points` says (decoding.PROPOSAL_POINTS): "inside" the image
+        max_lanes); of each, the points `lane_points` says (decoding.LANE_POINTS): "inside" the image
         (plus its border crossing), or "official", those the official proposals_to_pred keeps."""
-        check_proposal_points(proposal_points)
+        check_lane_points(lane_points)
         scores = torch.softmax(raw["cls_logits"].detach().float(), dim=-1)[..., 1]
         lengths = raw["length"].detach().float()
         xs = raw["xs"].detach().float()
@@ -359,8 +359,8 @@ class LaneATTHead(LaneHead):
             ends = lane_ends(starts[keep], lengths[b, keep], self.n_offsets).cpu().numpy()
             lanes = []
             for k, end in zip(keep.cpu().numpy(), ends):
-                if proposal_points == "official":
-                    lane = official_proposal_points(xs[b, k].cpu().numpy(), self.row_ys, int(starts[k]),
+                if lane_points == "official":
+                    lane = official_lane_points(xs[b, k].cpu().numpy(), self.row_ys, int(starts[k]),
                                                     float(lengths[b, k]), self.image_size[1])
                 else:
                     lane = row_proposal_to_lane(xs[b, k].cpu().numpy().astype(np.float64), self.row_ys,

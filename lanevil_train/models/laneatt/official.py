@@ -17,7 +17,7 @@ Facts of the official code this conversion rests on (``lib/models/laneatt.py`` u
   the file's shapes cannot tell the dataset, only the backbone.
 
 How the official test turns proposals into the TuSimple file (what ``experiment=official_laneatt_*`` reproduces:
-``model.head.fraction_scale: size``, ``model.decode.proposal_points: official``, ``model.row_sampling: spline``):
+``model.head.fraction_scale: size``, ``model.decode.lane_points: official``, ``model.row_sampling: spline``):
 
 - Rows and anchors (l. 36, 279-281): ``anchor_ys = linspace(1, 0, S)`` (float32) are fractions of the height, 1 the
   bottom (y = H); an anchor from border point (x0, y0) at ``angle`` has x = (x0 + (y0 - f) / tan(angle)) * img_w

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from lanevil_train.checkpoints import archive_path
 from lanevil_train.illusions import ILLUSIONS
+from lanevil_train.lanes import check_culane_rows
 from lanevil_train.rules import (
     Rule,
     existing_file,
@@ -181,6 +182,18 @@ def rate_factors() -> Rule:
         bad = [f"{k}: {f!r}" for k, f in v.items() if isinstance(f, bool) or not isinstance(f, (int, float)) or f < 0]
         return f"factors must be numbers >= 0 ({', '.join(bad)})" if bad else None
     return Rule("a mapping {parameter name pattern: rate factor >= 0}, e.g. {'backbone.*': 0.1}", test)
+
+
+def culane_rows() -> Rule:
+    """model.culane_rows: null or [start, stop, step] (lanes.check_culane_rows)."""
+    def test(v):
+        try:
+            check_culane_rows(v)
+        except ValueError:
+            return ""
+        return None
+    return Rule("null (each lane's own points) or [start, stop, step], numbers with step > 0 and stop > start "
+                "(the rows numpy.arange gives)", test)
 
 
 def _for_splits(key: str, rule: Rule) -> dict[str, Rule]:

@@ -19,6 +19,7 @@ from lanevil_train.data.illusion_set import Plan
 from lanevil_train.data.normalization import NORMALIZATIONS
 from lanevil_train.data.resize import RESIZE_FILTERS
 from lanevil_train.illusions import SEVERITIES
+from lanevil_train.lanes import ROW_SAMPLINGS
 from lanevil_train.models.backbones import OUTPUT_STRIDES
 from lanevil_train.models.schedules import LR_SCALINGS
 from lanevil_train.perturbations import SUITE_KINDS
@@ -46,6 +47,7 @@ from lanevil_train.tasks.config_check.config_rules import (
     api_key_variable,
     checkpoint_file,
     checkpoint_mapping,
+    culane_rows,
     defense_keys,
     defense_names,
     http_url,
@@ -114,6 +116,10 @@ RULES: dict[str, Rule] = {
     "model.decode.exist_threshold": number(0, 1),
     "model.decode.prob_threshold": number(0, 1),
     "model.decode.row_step": integer(1),
+    "model.decode.lane_points": one_of("inside", "official"),
+    "model.decode.official_writer": null_or(one_of("tusimple", "culane")),
+    "model.row_sampling": one_of(*ROW_SAMPLINGS),
+    "model.culane_rows": culane_rows(),
     "model.neck": null_or(target_node()),
     "model.feature_strides": int_list(1),
     "model.output_stride": null_or(integer_in(OUTPUT_STRIDES)),
