@@ -346,7 +346,8 @@ def test_builds_from_its_config_on_dilated_vgg16():
     with torch.no_grad():
         raw = model(torch.rand(1, 3, 64, 128))
     assert raw["seg"].shape == (1, 5, 64, 128) and raw["exist"].shape == (1, 4)
-    assert model.decode_kwargs == {"exist_threshold": 0.5, "prob_threshold": 0.3, "row_step": 1, "min_points": 4}
+    assert model.decode_kwargs == {"exist_threshold": 0.5, "prob_threshold": 0.3, "row_step": 1, "min_points": 4,
+                                   "blur": 0, "max_lanes": None, "official_writer": None}
 
 
 def test_vgg16_bn_builds_offline_as_pytorch_auto_drives_encoder(tmp_path, monkeypatch):

@@ -35,9 +35,13 @@ from torch import nn
 from lanevil_train.lanes import SLOT_ASSIGNMENTS, as_lane
 from lanevil_train.models.head import LaneHead
 from lanevil_train.models.scnn.codec import (
+    OFFICIAL_WRITERS,
+    box_blur,
     draw_width,
     encode_lanes,
     lane_points,
+    official_lane_points,
+    prune_lanes,
 )
 from lanevil_train.rules import boolean, check_settings, integer, number, one_of
 
@@ -213,15 +217,33 @@ class SCNNHead(LaneHead):
         prob_threshold: float = 0.3,
         row_step: int = 1,
         min_points: int = 4,
+        blur: int = 0,
+        max_lanes: int | None = None,
+        official_writer: str | None = None,
     ) -> list[list[np.ndarray]]:
         """Per image: lanes as (N, 2) float arrays in input pixels, y descending, left to right.
 
-        A slot whose existence probability is above `exist_threshold` gives a lane; on every `row_step`-th
-        row from the bottom its point is the (refined) argmax column of the slot's probability map where
-        that maximum is above `prob_threshold`; a lane needs `min_points` points."""
+        A slot whose existence probability is above `exist_threshold` gives a lane (at most `max_lanes` per image,
+        the least confident dropped as the official lane_pruning; None: all). Its probability map is box-blurred
+        `blur` x `blur` first (0: not; the official: 9). `official_writer` None (ours): on every `row_step`-th row
+        from the bottom its point is the refined argmax column where the map's maximum is above `prob_threshold`;
+        "tusimple" / "culane": the official decoding's rows and whole-pixel x of that dataset's writer, x = 0 no
+        point (codec.official_lane_points; `row_step` unused). A lane needs `min_points` points."""
         if int(row_step) < 1:
             raise ValueError(f"SCNNHead.decode: row_step must be >= 1, got {row_step}")
+        if official_writer is not None and official_writer not in OFFICIAL_WRITERS:
+            raise ValueError(f"model.decode.official_writer={official_writer!r}: expected null or one of "
+                             f"{', '.join(OFFICIAL_WRITERS)}")
+        if int(blur) < 0 or (int(blur) > 1 and int(blur) % 2 == 0):
+            raise ValueError(f"model.decode.blur: expected 0 or an odd kernel size, got {blur}")
         probs = torch.softmax(raw["seg"].detach().float(), dim=1)[:, 1:]
-        lanes = lane_points(probs, raw["exist"].detach().float(), exist_threshold, prob_threshold, int(row_step),
-                            int(min_points))
+        exist = raw["exist"].detach().float().cpu().numpy()
+        present = prune_lanes(exist, exist > exist_threshold, max_lanes)
+        if official_writer is not None:
+            lanes = official_lane_points(probs.cpu().numpy(), present, OFFICIAL_WRITERS[official_writer],
+                                         prob_threshold, int(blur), int(min_points))
+        else:
+            if int(blur) > 1:
+                probs = torch.from_numpy(box_blur(probs.cpu().numpy(), int(blur))).to(probs.device)
+            lanes = lane_points(probs, torch.from_numpy(present), prob_threshold, int(row_step), int(min_points))
         return [[as_lane(lane) for lane in per_image] for per_image in lanes]
