@@ -7,6 +7,21 @@ As the official code, a lane is fitted with t the normalised chord length along 
 distance between consecutive points over the total), by least squares (the pseudo-inverse of the Bernstein matrix).
 Functions take numpy arrays or torch tensors (``bernstein`` and ``sample_bezier`` keep the type of their input;
 the others are numpy, for the target encoder in data workers and for decoding).
+
+``official_tusimple_points``: the points pytorch-auto-drive's TuSimple writer gives a curve (voldemortX/
+pytorch-auto-drive at 137e63a, ``utils/models/lane_detection/bezier_base.py`` l. 18-42 and 83-91,
+``utils/curve_utils.py`` l. 49-103, the test dict of ``configs/lane_detection/bezierlanenet/
+resnet{18,34}_tusimple_aug1b.py`` l. 46-52: gap=10, ppl=56, original_size=(720, 1280)): the curve (control points
+normalised by the input's width and height, float64) sampled at H = 720 values of t, ``numpy.linspace(0, 1, H)``
+(``BezierCurve(order=3, num_sample_points=H)``, the Bernstein row of t being ``t ** k * (1 - t) ** (3 - k) *
+comb(3, k)``, the sample the matrix product with the control points); the rows ``1 - (ppl - i) * gap / H`` as
+float32; per row the sample nearest in y (the first of equals), no point where it is more than 5 / H away in y or
+its x is outside [0, 1]; else x = its x times W, written at y = H - (ppl - i) * gap (160, 170, ..., 710).
+
+``official_culane_points``: the points its CULane writer gives a curve (bezier_base.py l. 43-47 and 84-85:
+``BezierCurve(order=3, num_sample_points=n)`` with n = 50 for CULane, l. 54; utils/runners/lane_det_tester.py
+l. 59-69): the curve sampled at ``numpy.linspace(0, 1, 50)`` values of t, x times W and y times H of the original
+1640x590 image, every sample written, inside the image or not.
 """
 
 from __future__ import annotations
@@ -17,6 +32,10 @@ import numpy as np
 import torch
 
 ORDER = 3  # the paper's cubic curves: 4 control points
+# The official TuSimple writer's image (its test config's original_size), row spacing, rows and y tolerance in pixels
+OFFICIAL_TUSIMPLE_SIZE = (720, 1280)
+OFFICIAL_CULANE_SIZE, OFFICIAL_CULANE_SAMPLES = (590, 1640), 50
+OFFICIAL_TUSIMPLE_GAP, OFFICIAL_TUSIMPLE_ROWS, OFFICIAL_TUSIMPLE_TOLERANCE = 10, 56, 5.0
 
 
 def bernstein(ts, order: int = ORDER):
@@ -93,3 +112,32 @@ def x_at_rows(control_points: np.ndarray, ys: np.ndarray, num_samples: int = 200
     inside = (ys >= py[0] - tolerance) & (ys <= py[-1] + tolerance)
     out[inside] = np.interp(ys[inside], py, px)
     return out
+
+
+def _official_samples(control_points: np.ndarray, count: int) -> np.ndarray:
+    """The curve at numpy.linspace(0, 1, count) values of t, as the official BezierCurve.quick_sample_point."""
+    ts = np.linspace(0.0, 1.0, count)
+    basis = np.array([[t ** k * (1 - t) ** (ORDER - k) * comb(ORDER, k) for k in range(ORDER + 1)] for t in ts])
+    return basis.dot(np.asarray(control_points, dtype=np.float64))
+
+
+def official_culane_points(control_points: np.ndarray) -> np.ndarray:
+    """The points (50, 2) the official CULane writer gives a curve (control points (4, 2) normalised by the input's
+    width and height), in its 1640x590 image, in the order of t (module docstring)."""
+    big_h, big_w = OFFICIAL_CULANE_SIZE
+    return _official_samples(control_points, OFFICIAL_CULANE_SAMPLES) * np.array([big_w, big_h])
+
+
+def official_tusimple_points(control_points: np.ndarray) -> np.ndarray:
+    """The points (N, 2) the official TuSimple writer gives a curve (control points (4, 2) normalised by the input's
+    width and height), in its 1280x720 image: its rows with a point, top first (module docstring)."""
+    big_h, big_w = OFFICIAL_TUSIMPLE_SIZE
+    gap, ppl = OFFICIAL_TUSIMPLE_GAP, OFFICIAL_TUSIMPLE_ROWS
+    samples = _official_samples(control_points, big_h)
+    rows = np.array([1.0 - (ppl - i) * gap / big_h for i in range(ppl)], dtype=np.float32)
+    distance = np.abs(rows[:, None] - samples[:, 1])
+    nearest = distance.argmin(axis=1)
+    xs = samples[nearest, 0]
+    valid = ~(distance[np.arange(ppl), nearest] > OFFICIAL_TUSIMPLE_TOLERANCE / big_h) & ~(xs > 1) & ~(xs < 0)
+    ys = np.array([big_h - (ppl - i) * gap for i in range(ppl)], dtype=np.float64)
+    return np.stack([xs[valid] * big_w, ys[valid]], axis=1)

@@ -34,7 +34,13 @@ import torch.nn.functional as F
 from torch import nn
 
 from lanevil_train.lanes import as_lane
-from lanevil_train.models.bezierlanenet.bezier import x_at_rows
+from lanevil_train.models.bezierlanenet.bezier import (
+    OFFICIAL_CULANE_SIZE,
+    OFFICIAL_TUSIMPLE_SIZE,
+    official_culane_points,
+    official_tusimple_points,
+    x_at_rows,
+)
 from lanevil_train.models.bezierlanenet.loss import (
     AUTO,
     bezier_losses,
@@ -44,6 +50,7 @@ from lanevil_train.models.bezierlanenet.loss import (
 )
 from lanevil_train.models.head import LaneHead
 from lanevil_train.models.sampling import sample_at
+from lanevil_train.models.scnn.codec import prune_lanes
 from lanevil_train.rules import any_of, check_settings, int_list, integer, number, one_of
 
 # A curve's end read as covering a row up to this many pixels beyond it: the least-squares fit moves a lane's ends
@@ -226,17 +233,35 @@ class BezierLaneNetHead(LaneHead):
 
     # ------------------------------------------------------------------ decode
     def decode(self, raw: dict, conf_threshold: float = 0.5, local_maximum_window: int | str = AUTO,
-               max_lanes: int | None = None) -> list[list[np.ndarray]]:
+               max_lanes: int | None = None, official_writer: str | None = None) -> list[list[np.ndarray]]:
         """Per image: the queries whose existence probability exceeds conf_threshold and is the maximum of its
         local_maximum_window queries (0: off; "auto": the official 9 scaled to the query count, as the matching's),
-        at most max_lanes of them (the most confident; None: all), each
-        curve read at every pixel row it spans (ROW_TOLERANCE), inside the image; lanes y descending, left to
-        right."""
+        at most max_lanes of them (None: all), as lanes y descending, left to right. `official_writer` None (ours):
+        the most confident kept, each curve read at every pixel row it spans (ROW_TOLERANCE), inside the image;
+        "tusimple": the official pruning (the least confident dropped, equal confidences together) and the points
+        the official TuSimple writer gives each curve (bezier.official_tusimple_points: the nearest of 720 samples
+        in t at its rows 160, 170, ..., 710, x in [0, 1] of the width), in input pixels; "culane": the same
+        pruning and the 50 points in t the official CULane writer gives each curve, inside the image or not
+        (bezier.official_culane_points)."""
+        writers = {"tusimple": (official_tusimple_points, OFFICIAL_TUSIMPLE_SIZE),
+                   "culane": (official_culane_points, OFFICIAL_CULANE_SIZE)}
+        if official_writer is not None and official_writer not in writers:
+            raise ValueError(f"model.decode.official_writer={official_writer!r}: expected null, tusimple or culane")
         prob = raw["logits"].detach().float().sigmoid()
         window = resolve_window(local_maximum_window, prob.shape[1], "decode: local_maximum_window")
         keep = (prob > conf_threshold) & local_maximum(prob, window)
         curves = raw["curves"].detach().double().cpu().numpy()
         h, w = self.image_size
+        if official_writer is not None:
+            kept = prune_lanes(prob.cpu().numpy(), keep.cpu().numpy(), max_lanes)
+            points, (big_h, big_w) = writers[official_writer]
+            to_input = np.array([w / big_w, h / big_h])
+            out = []
+            for i in range(prob.shape[0]):
+                lanes = [points(curves[i, q]) * to_input for q in np.flatnonzero(kept[i])]
+                lanes = [as_lane(lane) for lane in lanes if len(lane)]
+                out.append(sorted(lanes, key=lambda lane: lane[0, 0]))
+            return out
         scale = np.array([w, h], dtype=np.float64)
         rows = np.arange(h - 1, -1, -1, dtype=np.float64)
         out = []

@@ -184,6 +184,13 @@ def rate_factors() -> Rule:
     return Rule("a mapping {parameter name pattern: rate factor >= 0}, e.g. {'backbone.*': 0.1}", test)
 
 
+def odd_box() -> Rule:
+    """model.decode.blur: 0 (no blur) or an odd box side."""
+    return Rule("0 (no blur) or an odd integer >= 1 (the blur box's side)",
+                lambda v: None if isinstance(v, int) and not isinstance(v, bool) and (v == 0 or (v > 0 and v % 2))
+                else "")
+
+
 def culane_rows() -> Rule:
     """model.culane_rows: null or [start, stop, step] (lanes.check_culane_rows)."""
     def test(v):
