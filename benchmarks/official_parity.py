@@ -280,7 +280,7 @@ def _run(argv: list[str], log: Path) -> None:
 
 
 def run_family(family: str, dataset: str, repos: Path, official_python: str, work: Path,
-               launch: Path | None) -> dict | None:
+               launch: Path | None, seed: int = 0) -> dict | None:
     """Steps 2-5 of the module docstring for one family on one dataset (tusimple, culane); its figures, or None
     where the family's side has no overrides for that dataset (OURS_CULANE)."""
     import shutil
@@ -293,13 +293,13 @@ def run_family(family: str, dataset: str, repos: Path, official_python: str, wor
     if not repo.is_dir():
         raise SystemExit(f"--repos {repos}: no {REPOSITORIES[family]}/ (the official code of {family}, "
                          f"{side.OFFICIAL})")
-    data, here = work / dataset, work / family / dataset
+    data, here = work / dataset, work / family / f"{dataset}_seed{seed}"
     checkpoint = here / "checkpoint.pth"
     official = here / ("official.json" if dataset == "tusimple" else "official_lines")
     side_script = str(SIDE / f"{family}.py")
     dataset_args = ["--dataset", dataset] if dataset != "tusimple" else []
     _run([official_python, side_script, "checkpoint", "--repo", str(repo), "--out", str(checkpoint),
-          *dataset_args], here / "checkpoint.log")
+          "--seed", str(seed), *dataset_args], here / "checkpoint.log")
     _run([official_python, side_script, "predict", "--repo", str(repo), "--ckpt", str(checkpoint),
           "--data-root", str(data), "--work", str(here / "official"), "--out", str(official), *dataset_args,
           *(["--launch", str(launch)] if launch else [])], here / "official.log")
@@ -313,7 +313,8 @@ def run_family(family: str, dataset: str, repos: Path, official_python: str, wor
         figures = compare(ours_dir / "predictions" / "pred_tusimple.json", official)
     else:
         figures = compare_culane(ours_dir / "predictions" / "culane", official)
-    return {"family": family, "dataset": dataset, "official": side.OFFICIAL, "ours": overrides, **figures}
+    return {"family": family, "dataset": dataset, "seed": seed, "official": side.OFFICIAL, "ours": overrides,
+            **figures}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -335,6 +336,8 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument("--launch", type=Path, help="launcher script standing in for CUDA (see the docstring)")
     run.add_argument("--dataset", action="append", choices=["tusimple", "culane"],
                      help="the layouts to compare (repeatable; default both)")
+    run.add_argument("--seed", type=int, action="append",
+                     help="the random official checkpoint's seed (repeatable; default 0)")
     args = parser.parse_args(argv)
     if args.command == "images":
         print(write_images(args.out / "tusimple", args.count), write_culane_images(args.out / "culane", args.count))
@@ -347,11 +350,13 @@ def main(argv: list[str] | None = None) -> int:
         results = []
         for family in args.family or sorted(REPOSITORIES):
             for dataset in args.dataset or ["tusimple", "culane"]:
-                print(f"{family} {dataset}: ...", flush=True)
-                result = run_family(family, dataset, args.repos, args.official_python, args.work, args.launch)
-                if result is not None:
-                    results.append(result)
-                    print(json.dumps(result, indent=1), flush=True)
+                for seed in args.seed or [0]:
+                    print(f"{family} {dataset} seed {seed}: ...", flush=True)
+                    result = run_family(family, dataset, args.repos, args.official_python, args.work, args.launch,
+                                        seed)
+                    if result is not None:
+                        results.append(result)
+                        print(json.dumps(result, indent=1), flush=True)
         (args.work / "parity.json").write_text(json.dumps(results, indent=1) + "\n")
         print(results_table(results))
     return 0
@@ -359,13 +364,13 @@ def main(argv: list[str] | None = None) -> int:
 
 def results_table(results: list[dict]) -> str:
     """The figures of every run as a markdown table (benchmarks/RESULTS.md's)."""
-    lines = ["| family | dataset | official code | lanes matched | unmatched | largest abs dx (px) | "
+    lines = ["| family | dataset | seed | official code | lanes matched | unmatched | largest abs dx (px) | "
              "TuSimple: samples > 0.5 px / -2 samples differing; CULane: lanes with another point count |",
-             "|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|"]
     for r in results:
         other = (f"{r['samples_over_0.5px']} / {r['minus2_differ']}" if r["dataset"] == "tusimple"
                  else str(r["point_counts_differ"]))
-        lines.append(f"| {r['family']} | {r['dataset']} | {r['official']} | {r['lanes_matched']} | "
+        lines.append(f"| {r['family']} | {r['dataset']} | {r['seed']} | {r['official']} | {r['lanes_matched']} | "
                      f"{r['lanes_unmatched']} | {r['largest_dx']} | {other} |")
     return "\n".join(lines)
 
