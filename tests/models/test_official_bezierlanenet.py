@@ -474,9 +474,8 @@ def _constructed_output(queries, rng):
 
 def test_decoding_keeps_the_official_tusimple_lanes_at_the_official_points():
     """The release's 40 queries (640 px): the same lanes kept as the official local-maximum filter, threshold 0.5 and
-    pruning to 5; at the TuSimple rows of the 1280x720 image the same x within 1.5 px (the official takes the
-    nearest of its 720 sampled points in y, ours interpolates at the row), the same rows but for one at a lane's
-    end (the official accepts a sampled point within 5 px of the row, ours within 1 input row = 2 px)."""
+    pruning to 5; in the 1280x720 image each lane's points are the official writer's, at the same TuSimple rows
+    (official_writer tusimple: the nearest of its 720 sampled points in y, within 5 px of the row, x in the image)."""
     cfg = composed(["experiment=official_bezierlanenet_tusimple", "data.root=/unused"])
     model = _ours("official_bezierlanenet_tusimple")
     raw = _constructed_output(40, np.random.default_rng(0))
@@ -488,18 +487,14 @@ def test_decoding_keeps_the_official_tusimple_lanes_at_the_official_points():
     assert cfg.model.decode.max_lanes == 5 and len(ours) == len(theirs) == 5
     for mine, xs in zip(ours, sorted(theirs, key=lambda xs: xs[xs > -2][-1])):  # left to right at the bottom
         defined = xs > -2
-        order = np.argsort(mine[:, 1])
-        inside = (rows >= mine[:, 1].min()) & (rows <= mine[:, 1].max())
-        assert not (inside & ~defined).any()
-        assert (defined & ~inside).sum() <= 2 and defined[inside].sum() >= 20
-        at_rows = np.interp(rows[inside], mine[order, 1], mine[order, 0])
-        assert np.abs(at_rows - xs[inside]).max() <= 1.5
+        assert defined.sum() >= 20
+        official = np.stack([xs[defined], rows[defined]], 1)
+        np.testing.assert_allclose(mine[np.argsort(mine[:, 1])], official[np.argsort(official[:, 1])], atol=1e-6)
 
 
 def test_decoding_keeps_the_official_culane_lanes_on_the_official_curves():
-    """The release's 50 queries (800 px), threshold 0.95, window 9, 4 lanes: the same lanes as the official; each of
-    its 50 sampled points inside the 1640x590 image lies on our lane within 1 px (the official also writes the
-    points outside the image, which ours leaves out)."""
+    """The release's 50 queries (800 px), threshold 0.95, window 9, 4 lanes: the same lanes as the official, each with
+    its 50 sampled points in the 1640x590 image, those outside the image included (official_writer culane)."""
     cfg = composed(["experiment=official_bezierlanenet_culane", "data.root=/unused"])
     model = _ours("official_bezierlanenet_culane")
     raw = _constructed_output(50, np.random.default_rng(1))
@@ -510,13 +505,8 @@ def test_decoding_keeps_the_official_culane_lanes_on_the_official_curves():
     ours = model.decode_lanes(raw, tuple(cfg.data.input_size), [(590, 1640)])[0]
     assert len(ours) == len(theirs) == 4
     for mine, pts in zip(ours, sorted(theirs, key=lambda p: p[np.argmax(p[:, 1]), 0])):
-        inside = (pts[:, 0] >= 0) & (pts[:, 0] <= 1640 - 1640 / 800) & (pts[:, 1] >= 0) & (pts[:, 1] <= 589)
-        assert inside.sum() >= 20
-        order = np.argsort(mine[:, 1])
-        assert mine[:, 1].min() <= pts[inside, 1].min() + 2.1 and mine[:, 1].max() >= pts[inside, 1].max() - 2.1
-        covered = inside & (pts[:, 1] >= mine[:, 1].min()) & (pts[:, 1] <= mine[:, 1].max())
-        at_rows = np.interp(pts[covered, 1], mine[order, 1], mine[order, 0])
-        assert np.abs(at_rows - pts[covered, 0]).max() <= 1.0
+        assert len(mine) == 50
+        np.testing.assert_allclose(mine[np.argsort(mine[:, 1])], pts[np.argsort(pts[:, 1])], atol=1e-6)
 
 
 @pytest.mark.slow
