@@ -30,12 +30,12 @@ DATA, ``list/test.txt``).
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from pad_common import COMMIT, build_model, road_probe, run_test, save  # noqa: E402
+from side_cli import parse  # noqa: E402
 
 OFFICIAL = f"voldemortX/pytorch-auto-drive@{COMMIT}"
 OURS = ["experiment=official_bezierlanenet_tusimple", "backbone=resnet18"]
@@ -111,32 +111,13 @@ def _head_features(net, x):
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    sub = parser.add_subparsers(dest="command", required=True)
-    ckpt = sub.add_parser("checkpoint", help="an official-layout checkpoint with random weights that draw lanes")
-    ckpt.add_argument("--repo", type=Path, required=True)
-    ckpt.add_argument("--out", type=Path, required=True)
-    ckpt.add_argument("--seed", type=int, default=0)
-    ckpt.add_argument("--backbone", choices=BACKBONES, default="resnet18")
-    ckpt.add_argument("--dataset", choices=sorted(INPUT_SIZE), default="tusimple")
-    pred = sub.add_parser("predict", help="the official test entry's prediction file")
-    pred.add_argument("--repo", type=Path, required=True)
-    pred.add_argument("--ckpt", type=Path, required=True)
-    pred.add_argument("--data-root", type=Path, required=True)
-    pred.add_argument("--work", type=Path, required=True)
-    pred.add_argument("--out", type=Path, required=True)
-    pred.add_argument("--launch", type=Path, default=None)
-    pred.add_argument("--backbone", choices=BACKBONES, default="resnet18")
-    pred.add_argument("--dataset", choices=sorted(INPUT_SIZE), default="tusimple")
-    args = parser.parse_args(argv)
-    repo = args.repo.resolve()
+    args = parse(argv, __doc__, BACKBONES, "resnet18")
     if args.command == "checkpoint":
-        make_checkpoint(repo, args.out.resolve(), args.seed, args.backbone, args.dataset)
+        make_checkpoint(args.repo, args.out, args.seed, args.backbone, args.dataset)
     else:
-        run_test(repo, CONFIG.format(backbone=args.backbone, dataset=args.dataset), args.ckpt, args.data_root,
+        run_test(args.repo, CONFIG.format(backbone=args.backbone, dataset=args.dataset), args.ckpt, args.data_root,
                  args.work, args.out, args.launch, EXP_NAME.format(dataset=args.dataset), args.dataset)
     return 0
-
 
 if __name__ == "__main__":
     sys.exit(main())

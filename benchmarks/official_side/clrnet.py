@@ -30,13 +30,15 @@ an ``.lines.txt`` beside each image), which copies the tree of ``.lines.txt`` fi
 
 from __future__ import annotations
 
-import argparse
 import glob
 import json
 import os
 import shutil
 import subprocess
 import sys
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from side_cli import parse  # noqa: E402
 
 OFFICIAL = "Turoad/CLRNet@7269e9d1c1c650343b6c7febb8e764be538b1aed"
 OURS = ["experiment=official_clrnet_tusimple", "backbone=resnet18"]
@@ -242,29 +244,14 @@ def _report_audit(audit: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    sub = parser.add_subparsers(dest="command", required=True)
-    make = sub.add_parser("checkpoint", help="an official-layout file with random weights that draws lanes")
-    make.add_argument("--repo", required=True)
-    make.add_argument("--out", required=True)
-    make.add_argument("--seed", type=int, default=0)
-    make.add_argument("--backbone", default="resnet18")
-    make.add_argument("--dataset", default="tusimple", choices=["tusimple", "culane"])
-    run = sub.add_parser("predict", help="the official test entry's TuSimple prediction file")
-    run.add_argument("--repo", required=True)
-    run.add_argument("--ckpt", required=True)
-    run.add_argument("--data-root", required=True)
-    run.add_argument("--work", required=True)
-    run.add_argument("--out", required=True)
-    run.add_argument("--launch", default=None)
-    run.add_argument("--dataset", default="tusimple", choices=["tusimple", "culane"])
-    args = parser.parse_args(argv)
+    args = parse(argv, __doc__, ("resnet18", "resnet34", "resnet101", "dla34"), "resnet18")
     if args.command == "checkpoint":
-        print(checkpoint(args.repo, args.out, args.seed, args.backbone, args.dataset))
+        print(checkpoint(str(args.repo), str(args.out), args.seed, args.backbone, args.dataset))
     else:
-        print(predict(args.repo, args.ckpt, args.data_root, args.work, args.out, args.launch, dataset=args.dataset))
+        print(predict(str(args.repo), str(args.ckpt), str(args.data_root), str(args.work), str(args.out),
+                      None if args.launch is None else str(args.launch), backbone=args.backbone,
+                      dataset=args.dataset))
     return 0
-
 
 if __name__ == "__main__":
     sys.exit(main())

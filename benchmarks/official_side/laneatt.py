@@ -30,7 +30,6 @@ random weights are drawn for it) on a CULane-layout DATA and copies the tree of 
 
 from __future__ import annotations
 
-import argparse
 import os
 import shutil
 import subprocess
@@ -38,6 +37,9 @@ import sys
 import tempfile
 import types
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from side_cli import parse  # noqa: E402
 
 # What the orchestrator runs on our side for this family's checkpoint ({work}: the WORK folder given to predict)
 OURS = ["experiment=official_laneatt_tusimple", "backbone=resnet18",
@@ -269,29 +271,13 @@ def predict(repo: str, ckpt: str, data_root: str, work: str, out: str, launch: s
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    sub = parser.add_subparsers(dest="command", required=True)
-    ck = sub.add_parser("checkpoint", help="an official-layout checkpoint with random weights that draw lanes")
-    ck.add_argument("--repo", required=True)
-    ck.add_argument("--out", required=True)
-    ck.add_argument("--seed", type=int, default=0)
-    ck.add_argument("--backbone", default="resnet18", choices=["resnet18", "resnet34"])
-    ck.add_argument("--dataset", default="tusimple", choices=["tusimple", "culane"], help="the same network")
-    pr = sub.add_parser("predict", help="the official test entry point's TuSimple prediction file")
-    pr.add_argument("--repo", required=True)
-    pr.add_argument("--ckpt", required=True)
-    pr.add_argument("--data-root", required=True)
-    pr.add_argument("--work", required=True)
-    pr.add_argument("--out", required=True)
-    pr.add_argument("--launch")
-    pr.add_argument("--dataset", default="tusimple", choices=["tusimple", "culane"])
-    args = parser.parse_args(argv)
+    args = parse(argv, __doc__, ("resnet18", "resnet34"), "resnet18")  # CULane: the same network
     if args.command == "checkpoint":
-        print(checkpoint(args.repo, args.out, args.seed, args.backbone))
+        print(checkpoint(str(args.repo), str(args.out), args.seed, args.backbone))
     else:
-        print(predict(args.repo, args.ckpt, args.data_root, args.work, args.out, args.launch, args.dataset))
+        print(predict(str(args.repo), str(args.ckpt), str(args.data_root), str(args.work), str(args.out),
+                      None if args.launch is None else str(args.launch), args.dataset))
     return 0
-
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -29,12 +29,14 @@ written is expected and reported).
 
 from __future__ import annotations
 
-import argparse
 import os
 import shutil
 import subprocess
 import sys
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from side_cli import parse  # noqa: E402
 
 OFFICIAL = "cfzd/Ultra-Fast-Lane-Detection@353df107756b8c03c22c27201e33fc63d84ecfe6"
 OURS = ["experiment=official_ufld_tusimple", "backbone=resnet18"]
@@ -188,30 +190,12 @@ def predict(repo: Path, ckpt: Path, data_root: Path, work: Path, out: Path, laun
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    sub = parser.add_subparsers(dest="command", required=True)
-    ckpt = sub.add_parser("checkpoint", help="an official-layout checkpoint with random weights that draw lanes")
-    ckpt.add_argument("--repo", type=Path, required=True)
-    ckpt.add_argument("--out", type=Path, required=True)
-    ckpt.add_argument("--seed", type=int, default=0)
-    ckpt.add_argument("--backbone", choices=sorted(BACKBONES), default="resnet18")
-    ckpt.add_argument("--dataset", choices=sorted(DATASETS), default="tusimple")
-    pred = sub.add_parser("predict", help="the official test entry's prediction file")
-    pred.add_argument("--repo", type=Path, required=True)
-    pred.add_argument("--ckpt", type=Path, required=True)
-    pred.add_argument("--data-root", type=Path, required=True)
-    pred.add_argument("--work", type=Path, required=True)
-    pred.add_argument("--out", type=Path, required=True)
-    pred.add_argument("--launch", type=Path, default=None)
-    pred.add_argument("--dataset", choices=sorted(DATASETS), default="tusimple")
-    args = parser.parse_args(argv)
-    repo = args.repo.resolve()
+    args = parse(argv, __doc__, BACKBONES, "resnet18")
     if args.command == "checkpoint":
-        make_checkpoint(repo, args.out.resolve(), args.seed, args.backbone, args.dataset)
+        make_checkpoint(args.repo, args.out, args.seed, args.backbone, args.dataset)
     else:
-        predict(repo, args.ckpt, args.data_root, args.work, args.out, args.launch, args.dataset)
+        predict(args.repo, args.ckpt, args.data_root, args.work, args.out, args.launch, args.dataset)
     return 0
-
 
 if __name__ == "__main__":
     sys.exit(main())

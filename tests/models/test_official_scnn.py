@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import math
 
-import cv2
 import numpy as np
 import pytest
 import torch
@@ -19,6 +18,7 @@ from lanevil_train.checkpoints import CheckpointError
 from lanevil_train.models.official import load_detector_weights, official_state_dict, recognise
 from lanevil_train.tasks.builders import build_model, checkpoint_model, model_config
 from tests.models.official_layouts import randomise_batch_norm, ufld_culane_file_keys
+from tests.models.test_official_decoding_scnn import official_points
 from tests.tasks.cli_helpers import composed
 
 SMALL = (64, 160)  # a small input for the forward checks: a stride-8 map of 8 x 20, 5 x 4 x 10 = 200 exist inputs
@@ -269,34 +269,11 @@ def test_a_resnet_scnn_file_is_refused_saying_why_no_config_computes_it(depth, t
     assert ("dilates only the first 3x3 convolution" in message) == (depth == 18)
 
 
-def official_prob_to_lines(seg, exist, gap, ppl, thresh, size):
-    """lane_det_utils.py l. 14-90 for CULane: per existing lane, the probability map box-blurred 9x9, on ppl rows gap
-    px apart (original image) from the bottom the argmax column above thresh, x = int(column / w * W); a lane needs 2
-    points; points (x, y) in the original image."""
-    _, h, w = seg.shape
-    big_h, big_w = size
-    lanes = []
-    for k in range(1, seg.shape[0]):
-        if not exist[k - 1]:
-            continue
-        prob = cv2.blur(seg[k], (9, 9), borderType=cv2.BORDER_REPLICATE)
-        coords = np.zeros(ppl)
-        for i in range(ppl):
-            y = int(h - i * gap / big_h * h - 1)
-            if y < 0:
-                break
-            col = int(np.argmax(prob[y]))
-            if prob[y, col] > thresh:
-                coords[i] = int(col / w * big_w)
-        if (coords > 0).sum() >= 2:
-            lanes.append(np.array([[coords[j], big_h - j * gap - 1] for j in range(ppl) if coords[j] > 0]))
-    return lanes
-
-
 def test_decoding_finds_the_official_points():
     """Constructed CULane logits with two lanes (bands along straight lines, up to row 120 of 288): our
     decoding (the config's decode settings) against the official prob_to_lines, at the official rows of the 1640x590
-    image: the same points (official_writer culane: the blurred map's first argmax column, floored to whole pixels)."""
+    image: the same points (official_writer culane: the blurred map's first argmax column, floored to whole pixels;
+    the official formula as test_official_decoding_scnn.py writes it out)."""
     cfg = composed(["experiment=official_scnn_culane", "data.root=/unused"])
     model = _ours("official_scnn_culane")
     h, w = cfg.data.input_size
@@ -311,8 +288,8 @@ def test_decoding_finds_the_official_points():
            "exist": torch.tensor([[0.1, 0.9, 0.2, 0.8]])}
     ours = model.head.decode(raw, **cfg.model.decode)[0]
     probs = torch.softmax(raw["seg"][0], dim=0).numpy()
-    official = official_prob_to_lines(probs, raw["exist"][0].numpy() > 0.5, gap=20, ppl=18, thresh=0.3,
-                                      size=(590, 1640))
+    official = [np.array([(x, y) for x, y in lane if x >= 0])  # the CULane writer keeps the points only
+                for lane in official_points(probs, raw["exist"][0].numpy() > 0.5, "culane")]
     assert len(ours) == len(official) == 2
     for mine, theirs in zip(ours, sorted(official, key=lambda lane: lane[0, 0])):
         mine = np.asarray(mine, dtype=np.float64) * [1640 / w, 590 / h]  # input px -> the 1640x590 image
