@@ -80,11 +80,12 @@ def test_encode_rejects_too_many_lanes():
 @pytest.mark.usefixtures("hydra_conf")
 @pytest.mark.parametrize("overrides,want", [
     # cfgs/laneatt_tusimple_resnet18.yml test_parameters: conf 0.2, nms_thres 45, nms_topk = max_lanes 5
-    (["model=laneatt"], {"conf_threshold": 0.2, "nms_threshold": 45.0, "nms_topk": 5}),
+    (["model=laneatt"], {"conf_threshold": 0.2, "nms_threshold": 45.0, "nms_topk": 5, "lane_points": "inside"}),
     # cfgs/laneatt_culane_resnet18.yml: conf 0.5, nms_thres 50, nms_topk = max_lanes 4
-    (["experiment=paper_laneatt"], {"conf_threshold": 0.5, "nms_threshold": 50.0, "nms_topk": 4}),
+    (["experiment=paper_laneatt"],
+     {"conf_threshold": 0.5, "nms_threshold": 50.0, "nms_topk": 4, "lane_points": "inside"}),
     # the quickstart keeps the values it was tuned with
-    (["experiment=quickstart"], {"conf_threshold": 0.3, "nms_threshold": 50.0, "nms_topk": 6}),
+    (["experiment=quickstart"], {"conf_threshold": 0.3, "nms_threshold": 50.0, "nms_topk": 6, "lane_points": "inside"}),
 ])
 def test_decoding_values_per_dataset_in_the_configs(overrides, want):
     from hydra import compose
