@@ -14,8 +14,12 @@ backbone stages from them.
 - ``loss(raw, targets) -> dict``: ``loss`` (the total, a scalar), ``per_sample`` (B,) (the total of each
   image: hard-example defenses rank by it) and any number of named scalar parts, every one of which is logged
   as ``train/<name>``.
-- ``decode(raw, **options) -> lanes``: per image, lanes as (N, 2) float arrays in input pixels, y descending,
-  sorted left to right. Its keyword options are the family's ``model.decode`` keys (and ``task.decode.*``).
+- ``decode(raw, **options, with_scores=False) -> lanes``: per image, lanes as (N, 2) float arrays in input pixels,
+  y descending, sorted left to right. Its keyword options are the family's ``model.decode`` keys (and
+  ``task.decode.*``). With the keyword-only ``with_scores=True`` (not a config key: ``decode_options`` leaves it
+  out) each image's list holds ``(lane, score)`` pairs instead, the same lanes in the same order, the score a float
+  in [0, 1], the family's own confidence of that lane (each family's decode says which); which lanes and points are
+  decoded does not change.
 """
 
 from __future__ import annotations
@@ -49,15 +53,34 @@ class LaneHead(nn.Module):
     def loss(self, raw: dict[str, torch.Tensor], targets: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         raise NotImplementedError
 
-    def decode(self, raw: dict[str, torch.Tensor], **options) -> list[list[np.ndarray]]:
+    def decode(self, raw: dict[str, torch.Tensor], *, with_scores: bool = False,
+               **options) -> list[list[np.ndarray]] | list[list[tuple[np.ndarray, float]]]:
         raise NotImplementedError
 
     @classmethod
     def decode_options(cls) -> tuple[str, ...]:
-        """The keyword options decode takes (the keys model.decode and task.decode may set)."""
+        """The keyword options decode takes (the keys model.decode and task.decode may set); `with_scores`, which
+        asks for each lane's confidence beside it, is not one of them."""
         named = (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
         parameters = list(inspect.signature(cls.decode).parameters.values())[2:]  # after self, raw
-        return tuple(p.name for p in parameters if p.kind in named)
+        return tuple(p.name for p in parameters if p.kind in named and p.name not in NOT_DECODE_OPTIONS)
+
+
+# decode's keywords that are not decoding options (no config key sets them): the caller's choice of what comes back
+NOT_DECODE_OPTIONS = ("with_scores",)
+
+
+def lanes_with_scores(lanes: list[np.ndarray], scores, with_scores: bool):
+    """The lanes of one image sorted left to right by their first (bottom) point's x, as every decode sorts them;
+    with_scores: as (lane, float score) pairs, each lane's score beside it (`scores` one per lane, same order).
+    The sort is stable, so the lanes come in the same order either way."""
+    scores = [float(s) for s in scores]
+    if len(scores) != len(lanes):
+        raise ValueError(f"lanes_with_scores: {len(lanes)} lanes but {len(scores)} scores")
+    order = sorted(range(len(lanes)), key=lambda i: lanes[i][0, 0])
+    if with_scores:
+        return [(lanes[i], min(max(scores[i], 0.0), 1.0)) for i in order]
+    return [lanes[i] for i in order]
 
 
 def decode_option_problems(head, options, key: str) -> list[str]:

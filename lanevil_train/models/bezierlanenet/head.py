@@ -48,7 +48,7 @@ from lanevil_train.models.bezierlanenet.loss import (
     local_maximum,
     resolve_window,
 )
-from lanevil_train.models.head import LaneHead
+from lanevil_train.models.head import LaneHead, lanes_with_scores
 from lanevil_train.models.sampling import sample_at
 from lanevil_train.models.scnn.codec import prune_lanes
 from lanevil_train.rules import any_of, check_settings, int_list, integer, number, one_of
@@ -233,7 +233,8 @@ class BezierLaneNetHead(LaneHead):
 
     # ------------------------------------------------------------------ decode
     def decode(self, raw: dict, conf_threshold: float = 0.5, local_maximum_window: int | str = AUTO,
-               max_lanes: int | None = None, official_writer: str | None = None) -> list[list[np.ndarray]]:
+               max_lanes: int | None = None, official_writer: str | None = None, *,
+               with_scores: bool = False) -> list[list[np.ndarray]] | list[list[tuple[np.ndarray, float]]]:
         """Per image: the queries whose existence probability exceeds conf_threshold and is the maximum of its
         local_maximum_window queries (0: off; "auto": the official 9 scaled to the query count, as the matching's),
         at most max_lanes of them (None: all), as lanes y descending, left to right. `official_writer` None (ours):
@@ -242,7 +243,8 @@ class BezierLaneNetHead(LaneHead):
         the official TuSimple writer gives each curve (bezier.official_tusimple_points: the nearest of 720 samples
         in t at its rows 160, 170, ..., 710, x in [0, 1] of the width), in input pixels; "culane": the same
         pruning and the 50 points in t the official CULane writer gives each curve, inside the image or not
-        (bezier.official_culane_points)."""
+        (bezier.official_culane_points). `with_scores`: (lane, score) pairs, the score the query's existence
+        probability (the sigmoid of its logit, the value conf_threshold reads)."""
         writers = {"tusimple": (official_tusimple_points, OFFICIAL_TUSIMPLE_SIZE),
                    "culane": (official_culane_points, OFFICIAL_CULANE_SIZE)}
         if official_writer is not None and official_writer not in writers:
@@ -257,10 +259,12 @@ class BezierLaneNetHead(LaneHead):
             points, (big_h, big_w) = writers[official_writer]
             to_input = np.array([w / big_w, h / big_h])
             out = []
+            probs = prob.cpu().numpy()
             for i in range(prob.shape[0]):
-                lanes = [points(curves[i, q]) * to_input for q in np.flatnonzero(kept[i])]
-                lanes = [as_lane(lane) for lane in lanes if len(lane)]
-                out.append(sorted(lanes, key=lambda lane: lane[0, 0]))
+                queries = np.flatnonzero(kept[i])
+                lanes = [points(curves[i, q]) * to_input for q in queries]
+                pairs = [(as_lane(lane), probs[i, q]) for lane, q in zip(lanes, queries) if len(lane)]
+                out.append(lanes_with_scores([lane for lane, _ in pairs], [p for _, p in pairs], with_scores))
             return out
         scale = np.array([w, h], dtype=np.float64)
         rows = np.arange(h - 1, -1, -1, dtype=np.float64)
@@ -270,12 +274,12 @@ class BezierLaneNetHead(LaneHead):
             idx = idx[torch.argsort(prob[i, idx], descending=True, stable=True)]
             if max_lanes is not None:
                 idx = idx[:max_lanes]
-            lanes = []
+            lanes, lane_scores = [], []
             for q in idx.tolist():
                 xs = x_at_rows(curves[i, q] * scale, rows, tolerance=ROW_TOLERANCE)
                 ok = np.isfinite(xs) & (xs >= 0) & (xs <= w - 1)
                 if ok.sum() >= 2:
                     lanes.append(as_lane(np.stack([xs[ok], rows[ok]], axis=1)))
-            lanes.sort(key=lambda lane: lane[0, 0])
-            out.append(lanes)
+                    lane_scores.append(prob[i, q].item())
+            out.append(lanes_with_scores(lanes, lane_scores, with_scores))
         return out

@@ -50,7 +50,7 @@ from lanevil_train.models.clrnet.priors import (
     row_ys,
     sample_indices,
 )
-from lanevil_train.models.head import LaneHead
+from lanevil_train.models.head import LaneHead, lanes_with_scores
 from lanevil_train.models.scnn.codec import draw_width
 from lanevil_train.models.scnn.codec import encode_lanes as encode_masks
 from lanevil_train.rules import check_settings, integer, null_or, number, one_of
@@ -277,7 +277,8 @@ class CLRNetHead(LaneHead):
 
     # ------------------------------------------------------------------ decode
     def decode(self, raw: dict, conf_threshold: float = 0.4, nms_threshold: float = 50.0,
-               nms_topk: int | None = None, lane_points: str = "inside") -> list[list[np.ndarray]]:
+               nms_topk: int | None = None, lane_points: str = "inside", *,
+               with_scores: bool = False) -> list[list[np.ndarray]] | list[list[tuple[np.ndarray, float]]]:
         """Per image: the last stage's lanes scoring at least conf_threshold, after NMS (nms_threshold: mean x
         distance in pixels at reference_width; at most nms_topk, default max_lanes), in input pixels, y
         descending, left to right.
@@ -288,6 +289,9 @@ class CLRNetHead(LaneHead):
         x >= 0 (past the right edge too), the rows below its start while inside the image, no border points; x at
         the official writers' scale (the network's fraction of W-1 read as a fraction of W) and the rows at the
         official's heights, so that LaneDetector.decode_lanes maps them to the original pixels the official writes.
+
+        `with_scores`: (lane, score) pairs, the score the kept prior's softmax class score at the last refinement
+        stage (the one conf_threshold and the NMS read).
         """
         if lane_points not in LANE_POINTS:
             raise ValueError(f"model.decode.lane_points={lane_points!r}: expected one of {', '.join(LANE_POINTS)}")
@@ -301,16 +305,17 @@ class CLRNetHead(LaneHead):
             keep = cand[clrnet_nms(xs[i, cand], lines[i, cand, 0], lines[i, cand, 3], scores[i, cand],
                                    nms_threshold * self.width_scale, top_k, self.n_strips)]
             if lane_points == "official":
-                lanes = self._official_lanes(xs[i, keep], lines[i, keep])
+                kept = self._official_lanes(xs[i, keep], lines[i, keep])
             else:
-                lanes = self._inside_lanes(xs[i, keep], lines[i, keep])
-            lanes.sort(key=lambda ln: ln[0, 0])
-            out.append(lanes)
+                kept = self._inside_lanes(xs[i, keep], lines[i, keep])
+            kept_scores = scores[i, keep].cpu().numpy()
+            out.append(lanes_with_scores([lane for _, lane in kept], [kept_scores[k] for k, _ in kept], with_scores))
         return out
 
-    def _inside_lanes(self, xs: torch.Tensor, lines: torch.Tensor) -> list[np.ndarray]:
+    def _inside_lanes(self, xs: torch.Tensor, lines: torch.Tensor) -> list[tuple[int, np.ndarray]]:
         """This project's lanes of the kept predictions (xs (K, S) input pixels, lines (K, 4)): the rows inside
-        the image from the start row (extended down while inside) to the end, plus the border crossings."""
+        the image from the start row (extended down while inside) to the end, plus the border crossings; each as
+        (its prediction's index in the K, lane)."""
         starts = start_rows(lines[:, 0], self.n_strips).cpu().numpy()
         lengths = torch.floor(lines[:, 3] * self.n_strips + 0.5).long().cpu().numpy()
         w = self.image_size[1]
@@ -319,13 +324,13 @@ class CLRNetHead(LaneHead):
             end = min(int(start + length - 1), self.n_strips)
             lane = row_proposal_to_lane(xs[k].cpu().numpy().astype(np.float64), self.row_ys, int(start), end, w)
             if lane is not None:
-                lanes.append(lane)
+                lanes.append((k, lane))
         return lanes
 
-    def _official_lanes(self, xs: torch.Tensor, lines: torch.Tensor) -> list[np.ndarray]:
+    def _official_lanes(self, xs: torch.Tensor, lines: torch.Tensor) -> list[tuple[int, np.ndarray]]:
         """The official Lane's points of the kept predictions (xs (K, S) input pixels, lines (K, 4)), in the input
         pixels that map to the official writers' original pixels: x = fraction x W, y = the official row height x H;
-        lanes of fewer than two points dropped (as the official)."""
+        lanes of fewer than two points dropped (as the official); each as (its prediction's index in the K, lane)."""
         h, w = self.image_size
         fractions = (xs / (w - 1)).cpu().numpy()  # float32: the official's normalised x, as its forward keeps it
         ys = self.official_row_heights * h
@@ -334,5 +339,5 @@ class CLRNetHead(LaneHead):
             start, end = official_rows(float(lines[k, 0]), float(lines[k, 3]), self.n_strips)
             kept = official_kept_rows(fractions[k], start, end)
             if kept.sum() >= 2:
-                lanes.append(as_lane(np.stack([fractions[k][kept].astype(np.float64) * w, ys[kept]], axis=1)))
+                lanes.append((k, as_lane(np.stack([fractions[k][kept].astype(np.float64) * w, ys[kept]], axis=1))))
         return lanes

@@ -146,20 +146,24 @@ def _greedy_groups(points: np.ndarray, threshold: float) -> list[list[int]]:
     return groups
 
 
-def group_keypoints(points: np.ndarray, roots: np.ndarray, is_start: np.ndarray, cluster_threshold: float
-                    ) -> tuple[list[np.ndarray], np.ndarray]:
+def group_keypoints(points: np.ndarray, roots: np.ndarray, is_start: np.ndarray, cluster_threshold: float,
+                    with_seeds: bool = False) -> tuple:
     """Keypoints (N, 2), their predicted start points (N, 2) and which are start candidates (N,) -> the keypoint
     indices of each lane, and the lane centres (L, 2): the start candidates' predicted starts grouped greedily and
-    averaged; each keypoint joins the nearest centre within cluster_threshold of its predicted start."""
+    averaged; each keypoint joins the nearest centre within cluster_threshold of its predicted start.
+    `with_seeds`: also (L,) the keypoint index of each group's first start candidate, the one that founded it."""
     starts = np.flatnonzero(is_start)
     groups = _greedy_groups(roots[starts], cluster_threshold)
     if not groups:
-        return [], np.zeros((0, 2))
+        return ([], np.zeros((0, 2)), np.zeros(0, np.int64)) if with_seeds else ([], np.zeros((0, 2)))
     centres = np.stack([roots[starts[g]].mean(axis=0) for g in groups])
     dist = np.hypot(roots[:, None, 0] - centres[None, :, 0], roots[:, None, 1] - centres[None, :, 1])
     nearest = dist.argmin(axis=1)
     ok = dist[np.arange(len(roots)), nearest] <= cluster_threshold
-    return [np.flatnonzero(ok & (nearest == k)) for k in range(len(centres))], centres
+    members = [np.flatnonzero(ok & (nearest == k)) for k in range(len(centres))]
+    if with_seeds:
+        return members, centres, np.array([starts[g[0]] for g in groups], dtype=np.int64)
+    return members, centres
 
 
 def assemble_lane(points_px: np.ndarray, image_size: tuple[int, int]) -> np.ndarray | None:
@@ -179,8 +183,13 @@ def assemble_lane(points_px: np.ndarray, image_size: tuple[int, int]) -> np.ndar
 
 def decode_lanes(heatmap: torch.Tensor, offsets: torch.Tensor, error: torch.Tensor, stride: int,
                  image_size: tuple[int, int], kpt_threshold: float, root_threshold: float, cluster_threshold: float,
-                 min_points: int) -> list[list[np.ndarray]]:
-    """Raw maps (B, 1, h, w), (B, 2, h, w), (B, 2, h, w) -> per image, lanes in input pixels, left to right."""
+                 min_points: int, with_scores: bool = False) -> list[list]:
+    """Raw maps (B, 1, h, w), (B, 2, h, w), (B, 2, h, w) -> per image, lanes in input pixels, left to right.
+
+    `with_scores`: (lane, score) pairs in the same order, the score the heatmap value of the lane's start keypoint:
+    of the start candidates whose grouped start points made the lane, the first (the keypoints are taken strongest
+    first, so the strongest), the one that founded its group. Its value passed kpt_threshold, as every keypoint's;
+    a lane exists because it did."""
     heatmap = heatmap.detach().float()
     keep = row_peaks(heatmap) & (heatmap > kpt_threshold)
     out = []
@@ -190,16 +199,18 @@ def decode_lanes(heatmap: torch.Tensor, offsets: torch.Tensor, error: torch.Tens
         iy, ix = iy[order], ix[order]
         err = error[b].detach().float().cpu().numpy()[:, iy, ix].T
         off = offsets[b].detach().float().cpu().numpy()[:, iy, ix].T
+        values = heatmap[b, 0, iy, ix].cpu().numpy()  # each keypoint's heatmap value, strongest first
         points = np.stack([ix, iy], axis=1) + err
         roots = points + off
-        groups, _ = group_keypoints(points, roots, off[:, 1] < root_threshold, cluster_threshold)
+        groups, _, seeds = group_keypoints(points, roots, off[:, 1] < root_threshold, cluster_threshold,
+                                           with_seeds=True)
         lanes = []
-        for index in groups:
+        for index, seed in zip(groups, seeds):
             if len(index) < min_points:
                 continue
             lane = assemble_lane(points[index].astype(np.float64) * stride, image_size)
             if lane is not None:
-                lanes.append(lane)
-        lanes.sort(key=lambda lane: lane[0, 0])
-        out.append(lanes)
+                lanes.append((lane, float(min(max(values[seed], 0.0), 1.0))))
+        lanes.sort(key=lambda pair: pair[0][0, 0])
+        out.append(lanes if with_scores else [lane for lane, _ in lanes])
     return out

@@ -178,12 +178,16 @@ class GANetHead(LaneHead):
         root_threshold: float = 1.0,
         cluster_threshold: float = 5.0,
         min_points: int = 11,
-    ) -> list[list[np.ndarray]]:
+        *,
+        with_scores: bool = False,
+    ) -> list[list[np.ndarray]] | list[list[tuple[np.ndarray, float]]]:
         """Per image: lanes as (N, 2) arrays in input pixels, y descending, left to right (codec.py).
         The defaults are the official CULane ones (stride 8, 320x800): root_threshold in heatmap cells;
         cluster_threshold in heatmap cells at reference_width, scaled to the input width (5 cells = 40 px at
         800 px wide); min_points keypoints per lane (the official "more than 10", for a 40-row heatmap: lower
-        it for a smaller input)."""
+        it for a smaller input). `with_scores`: (lane, score) pairs, the score the heatmap value of the lane's start
+        keypoint (the strongest of the start candidates whose start points made it: codec.decode_lanes); GANet
+        gives a lane no score of its own, and that keypoint's value is what its decoding thresholds on."""
         return decode_lanes(raw["heatmap"], raw["offsets"], raw["error"], self.stride, self.image_size,
                             kpt_threshold, root_threshold, cluster_threshold * self.threshold_scale,
-                            int(min_points))
+                            int(min_points), with_scores=with_scores)

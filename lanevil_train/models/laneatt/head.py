@@ -25,7 +25,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from lanevil_train.lanes import row_proposal_to_lane
-from lanevil_train.models.head import LaneHead
+from lanevil_train.models.head import LaneHead, lanes_with_scores
 from lanevil_train.models.laneatt.anchors import (
     FRACTION_SCALES,
     TARGET_META,
@@ -339,12 +339,16 @@ class LaneATTHead(LaneHead):
         nms_threshold: float = 50.0,
         nms_topk: int | None = None,
         lane_points: str = "inside",
-    ) -> list[list[np.ndarray]]:
+        *,
+        with_scores: bool = False,
+    ) -> list[list[np.ndarray]] | list[list[tuple[np.ndarray, float]]]:
         """Per image: lanes as (N, 2) float arrays in input pixels, y descending, left to right.
 
         The proposals scoring above conf_threshold, lane NMS (nms_threshold px at 640 wide, at most nms_topk, or
         max_lanes); of each, the points `lane_points` says (decoding.LANE_POINTS): "inside" the image
-        (plus its border crossing), or "official", those the official proposals_to_pred keeps."""
+        (plus its border crossing), or "official", those the official proposals_to_pred keeps.
+        `with_scores`: (lane, score) pairs, the score the kept proposal's softmax class score (the one
+        conf_threshold and the NMS read)."""
         check_lane_points(lane_points)
         scores = torch.softmax(raw["cls_logits"].detach().float(), dim=-1)[..., 1]
         lengths = raw["length"].detach().float()
@@ -357,7 +361,7 @@ class LaneATTHead(LaneHead):
             keep = cand[lane_nms(xs[b, cand], starts[cand], lengths[b, cand], scores[b, cand],
                                  nms_threshold * self.threshold_scale, top_k)]
             ends = lane_ends(starts[keep], lengths[b, keep], self.n_offsets).cpu().numpy()
-            lanes = []
+            lanes, lane_scores = [], []
             for k, end in zip(keep.cpu().numpy(), ends):
                 if lane_points == "official":
                     lane = official_lane_points(xs[b, k].cpu().numpy(), self.row_ys, int(starts[k]),
@@ -367,6 +371,6 @@ class LaneATTHead(LaneHead):
                                                 int(starts[k]), int(end), self.image_size[1])
                 if lane is not None:
                     lanes.append(lane)
-            lanes.sort(key=lambda ln: ln[0, 0])
-            out.append(lanes)
+                    lane_scores.append(scores[b, k].item())
+            out.append(lanes_with_scores(lanes, lane_scores, with_scores))
         return out

@@ -49,7 +49,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from lanevil_train.models.head import LaneHead
+from lanevil_train.models.head import LaneHead, lanes_with_scores
 from lanevil_train.models.laneatt.anchors import row_ys
 from lanevil_train.models.laneformer.loss import assemble_lane, encode_lanes, set_loss
 from lanevil_train.rules import boolean, check_settings, integer, number, one_of
@@ -341,10 +341,12 @@ class LaneFormerHead(LaneHead):
                 "y_loss": main["y"].mean(), "aux_loss": aux_b.mean(), "per_sample": per_sample}
 
     # ------------------------------------------------------------------ decode
-    def decode(self, raw: dict, conf_threshold: float = 0.5) -> list[list[np.ndarray]]:
+    def decode(self, raw: dict, conf_threshold: float = 0.5, *,
+               with_scores: bool = False) -> list[list[np.ndarray]] | list[list[tuple[np.ndarray, float]]]:
         """Per image: the lanes of the queries whose lane probability exceeds conf_threshold (no NMS: the set
         loss makes the queries one per lane), each the rows between its end y and start y, in input pixels,
-        y descending, only points inside the image; sorted left to right by their bottom x."""
+        y descending, only points inside the image; sorted left to right by their bottom x. `with_scores`:
+        (lane, score) pairs, the score the query's lane probability (the softmax of its class logits, last layer)."""
         h, w = self.image_size
         scores = torch.softmax(raw["cls_logits"].detach().float(), dim=-1)[..., 1].cpu().numpy()
         start = raw["start_y"].detach().float().cpu().numpy() * (h - 1)
@@ -352,11 +354,11 @@ class LaneFormerHead(LaneHead):
         xs = raw["xs"].detach().float().cpu().numpy().astype(np.float64) * (w - 1)
         out: list[list[np.ndarray]] = []
         for b in range(scores.shape[0]):
-            lanes = []
+            lanes, lane_scores = [], []
             for q in np.nonzero(scores[b] > conf_threshold)[0]:
                 lane = assemble_lane(xs[b, q], start[b, q], end[b, q], self.row_ys, self.image_size)
                 if lane is not None:
                     lanes.append(lane)
-            lanes.sort(key=lambda ln: ln[0, 0])
-            out.append(lanes)
+                    lane_scores.append(scores[b, q])
+            out.append(lanes_with_scores(lanes, lane_scores, with_scores))
         return out

@@ -172,9 +172,10 @@ def official_rows(writer: OfficialWriter, height: int) -> tuple[np.ndarray, np.n
 
 
 def official_lane_points(prob_maps: np.ndarray, present: np.ndarray, writer: OfficialWriter, prob_threshold: float,
-                         blur: int, min_points: int) -> list[list[np.ndarray]]:
+                         blur: int, min_points: int, with_slots: bool = False) -> list[list]:
     """Probability maps (B, L, h, w) float32 and present slots (B, L) -> per image, the official decoding's lanes as
-    (N, 2) arrays of (x, y) input pixels, bottom first, sorted left to right by their bottom x (module docstring)."""
+    (N, 2) arrays of (x, y) input pixels, bottom first, sorted left to right by their bottom x (module docstring).
+    `with_slots`: (lane, slot) pairs in the same order, slot the lane's index in L."""
     _, _, h, w = prob_maps.shape
     big_h, big_w = writer.size
     rows, ys = official_rows(writer, h)
@@ -189,16 +190,17 @@ def official_lane_points(prob_maps: np.ndarray, present: np.ndarray, writer: Off
             valid = xs > 0
             if valid.sum() >= max(int(min_points), 1):
                 lane = np.stack([xs[valid] * (w / big_w), ys[valid] * (h / big_h)], axis=1)
-                lanes.append(lane[np.argsort(-lane[:, 1], kind="stable")])
-        lanes.sort(key=lambda lane: lane[0, 0])
-        out.append(lanes)
+                lanes.append((lane[np.argsort(-lane[:, 1], kind="stable")], int(k)))
+        lanes.sort(key=lambda pair: pair[0][0, 0])
+        out.append(lanes if with_slots else [lane for lane, _ in lanes])
     return out
 
 
 def lane_points(lane_probs: torch.Tensor, present: torch.Tensor, prob_threshold: float, row_step: int,
-                min_points: int) -> list[list[np.ndarray]]:
+                min_points: int, with_slots: bool = False) -> list[list]:
     """Probability maps (B, L, H, W) and the slots to decode (B, L) bool -> per image, lanes as (N, 2) float64
-    arrays of (x, y) input pixels, y descending (bottom first), sorted left to right by their bottom x."""
+    arrays of (x, y) input pixels, y descending (bottom first), sorted left to right by their bottom x.
+    `with_slots`: (lane, slot) pairs in the same order, slot the lane's index in L."""
     b, n_lanes, h, w = lane_probs.shape
     rows = torch.arange(h - 1, -1, -row_step, device=lane_probs.device)
     p = lane_probs[:, :, rows, :]  # (B, L, R, W)
@@ -218,7 +220,7 @@ def lane_points(lane_probs: torch.Tensor, present: torch.Tensor, prob_threshold:
         for k in range(n_lanes):
             keep = hit[i, k]
             if keep.sum() >= max(min_points, 2):
-                lanes.append(np.stack([xs[i, k, keep], ys[keep]], axis=1))  # rows already bottom first
-        lanes.sort(key=lambda lane: lane[0, 0])
-        out.append(lanes)
+                lanes.append((np.stack([xs[i, k, keep], ys[keep]], axis=1), k))  # rows already bottom first
+        lanes.sort(key=lambda pair: pair[0][0, 0])
+        out.append(lanes if with_slots else [lane for lane, _ in lanes])
     return out

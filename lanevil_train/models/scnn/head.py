@@ -220,7 +220,9 @@ class SCNNHead(LaneHead):
         blur: int = 0,
         max_lanes: int | None = None,
         official_writer: str | None = None,
-    ) -> list[list[np.ndarray]]:
+        *,
+        with_scores: bool = False,
+    ) -> list[list[np.ndarray]] | list[list[tuple[np.ndarray, float]]]:
         """Per image: lanes as (N, 2) float arrays in input pixels, y descending, left to right.
 
         A slot whose existence probability is above `exist_threshold` gives a lane (at most `max_lanes` per image,
@@ -228,7 +230,9 @@ class SCNNHead(LaneHead):
         `blur` x `blur` first (0: not; the official: 9). `official_writer` None (ours): on every `row_step`-th row
         from the bottom its point is the refined argmax column where the map's maximum is above `prob_threshold`;
         "tusimple" / "culane": the official decoding's rows and whole-pixel x of that dataset's writer, x = 0 no
-        point (codec.official_lane_points; `row_step` unused). A lane needs `min_points` points."""
+        point (codec.official_lane_points; `row_step` unused). A lane needs `min_points` points.
+        `with_scores`: (lane, score) pairs, the score its slot's existence probability (what exist_threshold
+        reads)."""
         if int(row_step) < 1:
             raise ValueError(f"SCNNHead.decode: row_step must be >= 1, got {row_step}")
         if official_writer is not None and official_writer not in OFFICIAL_WRITERS:
@@ -241,9 +245,13 @@ class SCNNHead(LaneHead):
         present = prune_lanes(exist, exist > exist_threshold, max_lanes)
         if official_writer is not None:
             lanes = official_lane_points(probs.cpu().numpy(), present, OFFICIAL_WRITERS[official_writer],
-                                         prob_threshold, int(blur), int(min_points))
+                                         prob_threshold, int(blur), int(min_points), with_slots=True)
         else:
             if int(blur) > 1:
                 probs = torch.from_numpy(box_blur(probs.cpu().numpy(), int(blur))).to(probs.device)
-            lanes = lane_points(probs, torch.from_numpy(present), prob_threshold, int(row_step), int(min_points))
-        return [[as_lane(lane) for lane in per_image] for per_image in lanes]
+            lanes = lane_points(probs, torch.from_numpy(present), prob_threshold, int(row_step), int(min_points),
+                                with_slots=True)
+        if with_scores:
+            return [[(as_lane(lane), float(min(max(exist[b, slot], 0.0), 1.0))) for lane, slot in per_image]
+                    for b, per_image in enumerate(lanes)]
+        return [[as_lane(lane) for lane, _ in per_image] for per_image in lanes]

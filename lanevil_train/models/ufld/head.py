@@ -37,7 +37,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from lanevil_train.lanes import SLOT_ASSIGNMENTS, as_lane
-from lanevil_train.models.head import LaneHead
+from lanevil_train.models.head import LaneHead, lanes_with_scores
 from lanevil_train.models.ufld.codec import (
     OFFICIAL_WRITERS,
     cell_to_x,
@@ -246,7 +246,8 @@ class UFLDHead(LaneHead):
 
     # ------------------------------------------------------------------ decode
     def decode(self, raw: dict, min_points: int = 3, extend_ends: bool = True, local_width: int | None = None,
-               official_writer: str | None = None) -> list[list[np.ndarray]]:
+               official_writer: str | None = None, *,
+               with_scores: bool = False) -> list[list[np.ndarray]] | list[list[tuple[np.ndarray, float]]]:
         """Per image: lanes as (N, 2) float arrays in input pixels, y descending, left to right.
 
         A slot has a point on each row whose arg-max over the num_cells + 1 classes is not "no lane"; its x is
@@ -259,12 +260,17 @@ class UFLDHead(LaneHead):
         `extend_ends`: a lane's true ends lie between its end rows and the next row anchors (or the image bottom
         below the last row), so each end is extended straight to that neighbouring row, stopping where it leaves
         the image (our choice; the official writers stop at the end rows).
+        `with_scores`: (lane, score) pairs. UFLD gives a lane no score of its own; its score here is the mean, over
+        the rows where the slot has a point, of the probability of the cell chosen there (the arg-max class, under
+        the softmax over the num_cells cells and "no lane").
         """
         if official_writer is not None and official_writer not in OFFICIAL_WRITERS:
             raise ValueError(f"model.decode.official_writer={official_writer!r}: expected null or one of "
                              f"{', '.join(OFFICIAL_WRITERS)}")
         logits = raw["cls_logits"].detach().float()
         present = (logits.argmax(dim=1) != self.num_cells).cpu().numpy()  # (B, R, L)
+        # the chosen class's probability (softmax over cells and no-lane) at each row and slot: each lane's score
+        chosen = torch.softmax(logits, dim=1).amax(dim=1).cpu().numpy() if with_scores else None
         h, w = self.image_size
         ys = self.row_ys
         if official_writer is None:
@@ -277,7 +283,7 @@ class UFLDHead(LaneHead):
             ys = ys if writer_ys is None else writer_ys
         out: list[list[np.ndarray]] = []
         for b in range(logits.shape[0]):
-            lanes = []
+            lanes, lane_scores = [], []
             for k in range(self.max_lanes):
                 rows = np.flatnonzero(present[b, :, k])
                 if len(rows) < max(int(min_points), 1):
@@ -289,8 +295,8 @@ class UFLDHead(LaneHead):
                     ends = [self._extend(pts[1], pts[0], top_y), self._extend(pts[-2], pts[-1], bottom_y)]
                     pts = np.concatenate([e for e in (ends[0], pts, ends[1]) if e is not None])
                 lanes.append(as_lane(pts))
-            lanes.sort(key=lambda ln: ln[0, 0])
-            out.append(lanes)
+                lane_scores.append(float(chosen[b, rows, k].mean()) if with_scores else 0.0)
+            out.append(lanes_with_scores(lanes, lane_scores, with_scores))
         return out
 
     def _extend(self, inner: np.ndarray, end: np.ndarray, y: float | None) -> np.ndarray | None:
