@@ -76,18 +76,10 @@ class DetectorPolicy:
     """A lane detector's lanes, through a LaneKeeper. `model` is a LaneDetector (eval mode, on its device)."""
 
     def __init__(self, model, controller: LaneKeeper | None = None, name: str = "detector"):
-        from lanevil_train.data.normalization import spec_normalization
-        from lanevil_train.data.resize import spec_resize
-        from lanevil_train.data.transforms import LaneSampleProcessor
-
         self.model = model.eval()
-        spec = model.build_config or {}
-        if "input_size" not in spec:
-            raise ValueError(f"{name}: the checkpoint records no input_size (build config {sorted(spec)}); "
-                             f"it was not written by this project's task=train")
-        self.processor = LaneSampleProcessor(tuple(spec["input_size"]), augment=False,
-                                             crop_top=spec.get("crop_top", 0.0), normalize=spec_normalization(spec),
-                                             resize=spec_resize(spec))
+        if "input_size" not in (model.build_config or {}):
+            raise ValueError(f"{name}: the checkpoint records no input_size (build config "
+                             f"{sorted(model.build_config or {})}); it was not written by this project's task=train")
         self.controller = controller or LaneKeeper()
         self.name = name
 
@@ -95,14 +87,8 @@ class DetectorPolicy:
         self.controller.reset()
 
     def lanes(self, image: np.ndarray) -> list[np.ndarray]:
-        """The detector's lanes in the image's pixels."""
-        import torch
-
-        item = self.processor({"image": image, "lanes": [], "meta": {}})
-        device = next(self.model.parameters()).device
-        with torch.inference_mode():
-            batch = torch.from_numpy(item["image"])[None].to(device)
-            return self.model.predict_lanes(batch, [image.shape[:2]])[0]
+        """The detector's lanes in the image's pixels (the simulator's frames are RGB)."""
+        return [lane.points for lane in self.model.predict(image, color="rgb")]
 
     def act(self, observation: Observation) -> tuple[float, dict]:
         return self.controller.steer(self.lanes(observation.image), observation.camera, observation.speed_mps,

@@ -17,7 +17,6 @@ from torch.utils.data import DataLoader, Dataset, Subset
 from lanevil_train.data.datamodule import ProcessedDataset, collate_lanes
 from lanevil_train.data.normalization import DEFAULT_NORMALIZATION, spec_normalization
 from lanevil_train.data.resize import DEFAULT_RESIZE, spec_resize
-from lanevil_train.data.transforms import LaneSampleProcessor
 from lanevil_train.evaluation.prediction_files import prediction_fields
 from lanevil_train.evaluation.scoring import lane_record
 from lanevil_train.files.atomic import atomic_write_text
@@ -42,10 +41,7 @@ def stream_evaluate(model: LaneDetector, dataset: Dataset, out_path: str | Path,
     done = log.resume()
     claim_results(log.path, run_identity(model, label), resuming=bool(done))
     todo = [i for i in range(len(dataset)) if dataset.item_key(i) not in done]
-    spec = model.build_config or {}
-    processor = LaneSampleProcessor(tuple(spec.get("input_size", dataset[0]["image"].shape[:2])), augment=False,
-                                    crop_top=spec.get("crop_top", 0.0), normalize=spec_normalization(spec),
-                                    resize=spec_resize(spec))
+    processor = model.preprocessor.sample_processor()
     loader = DataLoader(ProcessedDataset(Subset(dataset, todo), processor), batch_size=batch_size,
                         shuffle=False, num_workers=num_workers, collate_fn=collate_lanes)
     bar = progress_counter(len(dataset), len(dataset) - len(todo), "evaluate", "img", progress)

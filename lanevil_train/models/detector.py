@@ -7,6 +7,7 @@ by the same TuSimple metric for every family. The head contract is models/head.p
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from fnmatch import fnmatchcase
 
 import numpy as np
@@ -14,7 +15,10 @@ import pytorch_lightning as pl
 import torch
 from torch import nn
 
-from lanevil_train.lanes import check_culane_rows, check_row_sampling, default_h_samples, scale_lanes
+from lanevil_train.data.normalization import DEFAULT_NORMALIZATION
+from lanevil_train.data.preprocessor import Preprocessor, lanes_to_original
+from lanevil_train.data.resize import DEFAULT_RESIZE
+from lanevil_train.lanes import check_culane_rows, check_row_sampling, default_h_samples
 from lanevil_train.metrics import TuSimpleMetric, tusimple_lane_scores
 from lanevil_train.models.head import check_decode_options, targets_to
 from lanevil_train.models.schedules import cosine, scaled_lr
@@ -22,6 +26,15 @@ from lanevil_train.models.schedules import cosine, scaled_lr
 TUSIMPLE_WIDTH = 1280  # the TuSimple 20 px threshold is for images this wide
 # What the head's loss returns besides its named parts (which are logged one by one).
 _LOSS_KEYS = ("loss", "per_sample")
+
+
+@dataclass(frozen=True)
+class PredictedLane:
+    """One predicted lane: its points (N, 2) in the image's own pixels, y descending, and the family's confidence
+    in [0, 1] (its head's decode with_scores: a class score, an existence probability)."""
+
+    points: np.ndarray
+    score: float
 
 
 def adam(params, lr: float = 3e-4, weight_decay: float = 0.0) -> torch.optim.Optimizer:
@@ -89,15 +102,50 @@ class LaneDetector(pl.LightningModule):
         return self.decode_lanes(self(images), tuple(images.shape[-2:]), original_sizes)
 
     def decode_lanes(self, raw: dict[str, torch.Tensor], input_size: tuple[int, int],
-                     original_sizes: list[tuple[int, int]]) -> list[list[np.ndarray]]:
-        """The lanes of the network's outputs `raw` for inputs of `input_size` (H, W), in original pixels."""
-        lanes = self.head.decode(raw, **self.decode_kwargs)
-        in_h, in_w = input_size
+                     original_sizes: list[tuple[int, int]], with_scores: bool = False) -> list[list]:
+        """The lanes of the network's outputs `raw` for inputs of `input_size` (H, W), in original pixels; with
+        `with_scores`, each a PredictedLane (its points and the family's confidence)."""
+        if not with_scores:
+            lanes = self.head.decode(raw, **self.decode_kwargs)
+            return [lanes_to_original(per_image, input_size, size, self.crop_top)
+                    for per_image, size in zip(lanes, original_sizes)]
+        decoded = self.head.decode(raw, **self.decode_kwargs, with_scores=True)
         out = []
-        for per_image, (h, w) in zip(lanes, original_sizes):
-            cut = int(round(self.crop_top * h))
-            out.append([lane + np.array([0.0, cut]) for lane in scale_lanes(per_image, w / in_w, (h - cut) / in_h)])
+        for per_image, size in zip(decoded, original_sizes):
+            points = lanes_to_original([lane for lane, _ in per_image], input_size, size, self.crop_top)
+            out.append([PredictedLane(lane, float(score)) for lane, (_, score) in zip(points, per_image)])
         return out
+
+    @property
+    def preprocessor(self) -> Preprocessor:
+        """The input geometry and pixel conventions this network was built for (its build config)."""
+        spec = self.build_config or {}
+        if "input_size" not in spec:
+            raise ValueError("this detector has no build config (input size, crop, normalisation, resize): build it "
+                             "with models.factory.create_detector or load it with load_detector")
+        return Preprocessor(tuple(spec["input_size"]), float(spec.get("crop_top") or 0.0),
+                            spec.get("normalize") or DEFAULT_NORMALIZATION, spec.get("resize") or DEFAULT_RESIZE)
+
+    @torch.inference_mode()
+    def predict(self, images, color: str = "bgr", batch_size: int = 8) -> list:
+        """Lanes of one image (a uint8 HxWx3 array, `color` "bgr" as cv2.imread gives it or "rgb") or of a list of
+        images of any sizes: per image a list of PredictedLane (points (N, 2) in that image's own pixels, y
+        descending, left to right, and the family's confidence), in batches of `batch_size`, on the network's
+        device."""
+        single = isinstance(images, np.ndarray) and images.ndim == 3
+        images = [images] if single else list(images)
+        preprocessor = self.preprocessor
+        device = next(self.parameters()).device
+        was_training = self.training
+        self.eval()
+        out = []
+        for start in range(0, len(images), max(1, int(batch_size))):
+            chunk = images[start:start + batch_size]
+            inputs = preprocessor.batch(chunk, color).to(device)
+            sizes = [tuple(int(v) for v in image.shape[:2]) for image in chunk]
+            out.extend(self.decode_lanes(self(inputs), preprocessor.input_size, sizes, with_scores=True))
+        self.train(was_training)
+        return out[0] if single else out
 
     def batch_loss(self, batch: dict) -> dict[str, torch.Tensor]:
         """The head's losses on a batch (total, parts and the per-sample vector), and the raw outputs."""

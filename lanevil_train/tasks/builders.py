@@ -14,18 +14,14 @@ from omegaconf import DictConfig, OmegaConf
 
 from lanevil_train.checkpoints import (
     AtomicCheckpointIO,
-    check_detector_checkpoint,
-    fit_weights,
-    load_checkpoint_file,
 )
 from lanevil_train.data.datamodule import LaneDataModule
 from lanevil_train.data.datasets import EmptySplitError
 from lanevil_train.data.normalization import DEFAULT_NORMALIZATION, Normalization, normalization, spec_normalization
 from lanevil_train.data.resize import DEFAULT_RESIZE, resize_filter, spec_resize
 from lanevil_train.errors import prefixed
-from lanevil_train.models.backbones import indices_for_strides
 from lanevil_train.models.detector import LaneDetector
-from lanevil_train.models.official import check_layout, load_official, official_state_dict
+from lanevil_train.models.factory import DetectorSpec, create_detector, read_detector
 
 log = logging.getLogger(__name__)
 
@@ -82,51 +78,9 @@ def build_split(cfg: DictConfig, split: str):
 
 
 def build_model(spec: dict) -> LaneDetector:
-    """A LaneDetector from a model_config() dict: the backbone stages the family reads (model.feature_strides,
-    unless backbone.out_indices names them), dilated by model.output_stride; the neck, if any; the head built
-    from the channels and strides of the maps it gets; the optimizer and schedule of the family's config."""
-    model = spec["model"]
-    backbone_node = dict(spec["backbone"])
-    output_stride = backbone_node.get("output_stride") or model.get("output_stride")
-    if backbone_node.get("out_indices") is None:
-        wanted = model.get("feature_strides") or [32]
-        try:
-            backbone_node["out_indices"] = list(indices_for_strides(backbone_node.get("name"), wanted, output_stride))
-        except ValueError as error:
-            raise ValueError(f"backbone={backbone_node.get('name')}: {error}") from None
-    backbone_node["output_stride"] = output_stride
-    backbone = instantiate_at(backbone_node, "backbone")
-    channels, strides = backbone.channels, backbone.strides
-    neck = None
-    if model.get("neck") is not None:
-        neck = instantiate_at(model["neck"], "model.neck", in_channels=channels, in_strides=strides)
-        channels, strides = neck.channels, neck.strides
-    head = instantiate_at(model["head"], "model.head", in_channels=list(channels), in_strides=list(strides),
-                          image_size=tuple(spec["input_size"]))
-    optimizer, scheduler = _optimizer_and_schedule(model)
-    detector = LaneDetector(backbone, head, neck=neck, optimizer=optimizer, scheduler=scheduler,
-                            reference_batch_size=model.get("reference_batch_size"),
-                            lr_scaling=model.get("lr_scaling", "none"), decode=model.get("decode"),
-                            crop_top=spec.get("crop_top", 0.0), lr_multipliers=model.get("lr_multipliers"),
-                            gradient_clip_norm=model.get("gradient_clip_norm"),
-                            row_sampling=model.get("row_sampling", "linear"), culane_rows=model.get("culane_rows"))
-    detector.build_config = spec
-    return detector
-
-
-def _optimizer_and_schedule(model: dict):
-    """model.optimizer and model.scheduler as callables (their `_partial_` targets). Checkpoints written before
-    these were targets hold {lr, weight_decay} (Adam) and "cosine" / "none"; they load as they trained."""
-    optimizer = model.get("optimizer") or {}
-    if "_target_" not in optimizer:
-        optimizer = {"_target_": "lanevil_train.models.detector.adam", "_partial_": True, **optimizer}
-    scheduler = model.get("scheduler", "cosine")
-    if scheduler == "cosine":
-        scheduler = {"_target_": "lanevil_train.models.schedules.cosine", "_partial_": True}
-    elif scheduler == "none":
-        scheduler = None
-    return (instantiate_at(optimizer, "model.optimizer"),
-            None if scheduler is None else instantiate_at(scheduler, "model.scheduler"))
+    """A LaneDetector from a model_config() dict (models/factory.py create_detector, which builds it without
+    Hydra)."""
+    return create_detector(DetectorSpec.from_build_config(spec))
 
 
 def build_defense(cfg: DictConfig) -> dict:
@@ -274,16 +228,7 @@ def output_dir(cfg: DictConfig) -> Path:
 
 def checkpoint_model(cfg: DictConfig) -> LaneDetector:
     """The network of the checkpoint at ckpt_path (its stored build config; the command line's for checkpoints
-    without one, and for an official repository's checkpoint, converted: models/official.py) with its weights."""
-    where = f"ckpt_path={cfg.ckpt_path}"
-    checkpoint = load_checkpoint_file(cfg.ckpt_path, "ckpt_path")
-    official = official_state_dict(checkpoint)
-    if official is not None:
-        model = build_model(model_config(cfg))
-        log.info(load_official(model, official, where))
-        return model
-    check_layout(checkpoint, where)
-    check_detector_checkpoint(checkpoint, where)  # a VLM's names the model= it needs
-    model = build_model(checkpoint.get("lanevil_model") or model_config(cfg))
-    fit_weights(model, checkpoint["state_dict"], f"ckpt_path={cfg.ckpt_path}")
-    return model
+    without one, and for an official repository's checkpoint, converted: models/official.py) with its weights
+    (models/factory.py read_detector)."""
+    return read_detector(cfg.ckpt_path, default=lambda: DetectorSpec.from_build_config(model_config(cfg)),
+                         where=f"ckpt_path={cfg.ckpt_path}")

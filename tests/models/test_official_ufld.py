@@ -4,6 +4,7 @@ file, compute the same outputs; files of another family or release are refused n
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 import torchvision
@@ -217,3 +218,31 @@ def test_task_train_starts_from_an_official_file_with_init_from(culane_file, tmp
                        tmp_path / "run")
     assert f"task.init_from={path}: official UFLD v1 (cfzd/Ultra-Fast-Lane-Detection) checkpoint (the culane " \
            f"release, resnet18" in caplog.text
+
+
+def test_load_detector_recognises_an_official_file_and_predicts_as_the_evaluation(culane_file):
+    """`load_detector(path)` with no settings: the file is recognised (the CULane release, ResNet-18), its
+    experiment's network built and the weights converted; its lanes on a 1640x590 frame are those of the network
+    task=evaluate builds for the file, fed as the evaluation feeds it (its sample processor, predict_lanes)."""
+    import cv2
+
+    from lanevil_train.models.factory import load_detector
+
+    official, path = culane_file
+    det = load_detector(path)
+    assert det.build_config["model"]["name"] == "ufld" and det.build_config["input_size"] == [288, 800]
+    x = torch.randn(1, 3, 288, 800)
+    with torch.no_grad():
+        torch.testing.assert_close(det(x)["cls_logits"], official(x), rtol=1e-4, atol=1e-4)
+    cfg = composed(["task=evaluate", "experiment=official_ufld_culane", "data.root=/unused", f"ckpt_path={path}"])
+    evaluated = checkpoint_model(cfg).eval()
+    frame = np.full((590, 1640, 3), 90, np.uint8)
+    cv2.line(frame, (400, 589), (780, 250), (235, 235, 235), 12)
+    cv2.line(frame, (1300, 589), (880, 250), (235, 235, 235), 12)
+    item = evaluated.preprocessor.sample_processor()({"image": frame[:, :, ::-1].copy(), "lanes": [], "meta": {}})
+    with torch.no_grad():
+        expected = evaluated.predict_lanes(torch.from_numpy(item["image"])[None], [(590, 1640)])[0]
+    predicted = det.predict(frame)
+    assert len(predicted) == len(expected) > 0
+    for lane, points in zip(predicted, expected):
+        np.testing.assert_allclose(lane.points, points)

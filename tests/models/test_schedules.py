@@ -10,9 +10,9 @@ import pytest
 import torch
 
 from lanevil_train.models.detector import LaneDetector
+from lanevil_train.models.factory import _optimizer_and_schedule
 from lanevil_train.models.laneatt import LaneATTHead
 from lanevil_train.models.schedules import cosine, poly, scaled_lr
-from lanevil_train.tasks.builders import _optimizer_and_schedule
 
 
 def test_scaled_lr_rules():

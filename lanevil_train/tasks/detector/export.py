@@ -26,6 +26,7 @@ from torch import nn
 
 from lanevil_train.files.atomic import atomic_write_bytes
 from lanevil_train.models.detector import LaneDetector
+from lanevil_train.models.factory import DetectorSpec, create_detector
 from lanevil_train.tasks.builders import build_model, checkpoint_model, model_config, output_dir
 
 log = logging.getLogger(__name__)
@@ -112,7 +113,7 @@ class OnnxLaneDetector(LaneDetector):
 
     def __init__(self, path: str | Path, providers: list[str] | None = None):
         network = OnnxNetwork(path, providers)
-        built = build_model(network.build_config)
+        built = create_detector(DetectorSpec.from_build_config(network.build_config))
         super().__init__(nn.Identity(), built.head, decode=built.decode_kwargs,
                          crop_top=network.build_config.get("crop_top", 0.0), row_sampling=built.row_sampling,
                          culane_rows=built.culane_rows)
