@@ -12,12 +12,10 @@ import argparse
 import time
 from collections import defaultdict
 
-from omegaconf import OmegaConf
-
 import lanevil_train.closed_loop.episode as episode
 from lanevil_train.closed_loop import DetectorPolicy, LoopSettings, Run
 from lanevil_train.closed_loop.episode import drive, illusion_region
-from lanevil_train.tasks.builders import checkpoint_model
+from lanevil_train.models.factory import load_detector
 
 
 def timed(totals: dict, name: str, function):
@@ -39,7 +37,7 @@ def main() -> None:
     parser.add_argument("--illusion", default="rail_shadow")
     args = parser.parse_args()
     settings = LoopSettings(size=tuple(args.size))
-    policy = DetectorPolicy(checkpoint_model(OmegaConf.create({"ckpt_path": args.ckpt, "model": None})))
+    policy = DetectorPolicy(load_detector(args.ckpt))
     totals: dict[str, float] = defaultdict(float)
     episode.shade_scene = timed(totals, "render", episode.shade_scene)
     episode.get_illusion = lambda name, _get=episode.get_illusion: timed(totals, "illusion", _get(name))

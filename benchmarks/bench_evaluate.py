@@ -33,10 +33,10 @@ def run_one(cases: int, batch: int, workers: int) -> dict:
 
     from lanevil_train.data.suites import SyntheticIllusionSuite
     from lanevil_train.evaluation.streaming import stream_evaluate
-    from lanevil_train.tasks.builders import build_model
+    from lanevil_train.models.factory import DetectorSpec, create_detector
 
     torch.set_num_threads(2)
-    model = build_model(SPEC)
+    model = create_detector(DetectorSpec.from_build_config(SPEC))
     suite = SyntheticIllusionSuite(cases, 1000000)
     with tempfile.TemporaryDirectory() as out:
         t0 = time.perf_counter()

@@ -30,14 +30,13 @@ import argparse
 import math
 
 import numpy as np
-from omegaconf import OmegaConf
 
 from lanevil_train.closed_loop import DetectorPolicy, LoopSettings, Run, drive, lane_keeper
 from lanevil_train.closed_loop.episode import illusion_region
 from lanevil_train.closed_loop.ground import NEAR_M, ground_lanes
+from lanevil_train.models.factory import load_detector
 from lanevil_train.sim import build_scene, sample_scene_params, shade_scene
 from lanevil_train.sim.scene import road_geometry
-from lanevil_train.tasks.builders import checkpoint_model
 
 DISTANCES = np.arange(5.0, 45.0, 5.0)
 PAIR_M = 1.0
@@ -121,8 +120,7 @@ def main() -> None:
     parser.add_argument("--memories", type=float, nargs="+", default=[0.2, 0.3, 0.5, 1.0])
     parser.add_argument("--controllers", nargs="+", default=["pure_pursuit", "mpc"])
     args = parser.parse_args()
-    cfg = OmegaConf.create({"ckpt_path": args.ckpt, "trainer": {"accelerator": "cpu"}})
-    policy = DetectorPolicy(checkpoint_model(cfg), name="detector")
+    policy = DetectorPolicy(load_detector(args.ckpt), name="detector")
     errors, total, missed = [], 0, 0
     for seed in range(args.first_seed, args.first_seed + args.scenes):
         found, n, m = boundary_errors(policy, seed, tuple(args.size))
