@@ -118,3 +118,15 @@ def _greedy_keep(xs: torch.Tensor, starts: torch.Tensor, lengths: torch.Tensor, 
             break
         removed |= close[i]
     return order[torch.as_tensor(kept, dtype=torch.long, device=xs.device)]
+
+
+def prune_lanes(confidence: np.ndarray, present: np.ndarray, max_lanes: int | None) -> np.ndarray:
+    """present (B, L) limited to max_lanes per image as the official lane_pruning: while an image has more, every
+    present slot at its lowest confidence is dropped (equal confidences together). None: unchanged."""
+    present = np.array(present, dtype=bool)
+    if max_lanes is None:
+        return present
+    for conf, keep in zip(np.asarray(confidence), present):
+        while keep.sum() > max_lanes:
+            keep &= conf != conf[keep].min()
+    return present

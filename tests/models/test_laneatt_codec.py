@@ -5,7 +5,8 @@ import pytest
 import torch
 
 from lanevil_train.models.laneatt import LaneATTHead
-from lanevil_train.models.laneatt.anchors import TARGET_META, UNDEFINED_X, encode_lane, row_ys
+from lanevil_train.models.laneatt.anchors import TARGET_META
+from lanevil_train.models.rows import UNDEFINED_X, encode_lane, row_ys
 
 from ._lanes_fixture import assert_round_trip, synthetic_lanes
 

@@ -6,10 +6,11 @@ import torch
 
 from lanevil_train.models.backbones import build_backbone
 from lanevil_train.models.laneatt import LaneATTHead
-from lanevil_train.models.laneatt.anchors import BOTTOM_ANGLES, LEFT_ANGLES, generate_anchors, row_ys
+from lanevil_train.models.laneatt.anchors import BOTTOM_ANGLES, LEFT_ANGLES, generate_anchors
 from lanevil_train.models.laneatt.frequency import FREQUENCY_FILE, top_anchors
 from lanevil_train.models.losses import focal_loss
 from lanevil_train.models.nms import lane_nms, lane_nms_batched
+from lanevil_train.models.rows import row_ys
 
 from ._head_overfit import head_only_fit
 from ._lanes_fixture import synthetic_lanes, train_steps

@@ -19,8 +19,9 @@ import torch
 from lanevil_train.evaluation.prediction_files import prediction_fields, tusimple_line
 from lanevil_train.lanes import culane_lanes
 from lanevil_train.models.detector import LaneDetector
+from lanevil_train.models.nms import prune_lanes
 from lanevil_train.models.scnn import SCNNHead
-from lanevil_train.models.scnn.codec import OFFICIAL_WRITERS, official_rows, prune_lanes
+from lanevil_train.models.scnn.codec import OFFICIAL_WRITERS, official_rows
 from tests.tasks.cli_helpers import composed
 
 TUSIMPLE = {"experiment": "official_scnn_tusimple", "input": (360, 640), "original": (720, 1280), "slots": 6}

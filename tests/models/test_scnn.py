@@ -12,7 +12,7 @@ import yaml
 
 from lanevil_train.lanes import assign_slots
 from lanevil_train.models.backbones import build_backbone, indices_for_strides
-from lanevil_train.models.scnn.codec import bottom_x
+from lanevil_train.models.masks import bottom_x
 from lanevil_train.models.scnn.head import SCNNHead, SpatialMessagePassing
 
 from ._head_overfit import head_only_fit

@@ -49,8 +49,8 @@ from lanevil_train.models.bezierlanenet.loss import (
     resolve_window,
 )
 from lanevil_train.models.head import LaneHead, lanes_with_scores
+from lanevil_train.models.nms import prune_lanes
 from lanevil_train.models.sampling import sample_at
-from lanevil_train.models.scnn.codec import prune_lanes
 from lanevil_train.rules import any_of, check_settings, int_list, integer, number, one_of
 
 # A curve's end read as covering a row up to this many pixels beyond it: the least-squares fit moves a lane's ends

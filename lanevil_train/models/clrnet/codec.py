@@ -19,8 +19,8 @@ import math
 import numpy as np
 import torch
 
-from lanevil_train.models.laneatt.anchors import UNDEFINED_X, encode_lane
 from lanevil_train.models.nms import lane_nms
+from lanevil_train.models.rows import UNDEFINED_X, encode_lane
 
 # target row layout: [valid, start_y (fraction of the height), start_x (px), theta (pi units), length (rows), x_0..]
 TARGET_META = 5

@@ -51,8 +51,8 @@ from lanevil_train.models.clrnet.priors import (
     sample_indices,
 )
 from lanevil_train.models.head import LaneHead, lanes_with_scores
-from lanevil_train.models.scnn.codec import draw_width
-from lanevil_train.models.scnn.codec import encode_lanes as encode_masks
+from lanevil_train.models.masks import draw_width
+from lanevil_train.models.masks import encode_lanes as encode_masks
 from lanevil_train.rules import check_settings, integer, null_or, number, one_of
 
 ROW_SPANS = ("last_pixel", "height")  # the bottom row at y = H-1 (ours) or y = H (the official's)

@@ -19,36 +19,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lanevil_train.lanes import as_lane, lane_x_at
+from lanevil_train.models.rows import UNDEFINED_X, encode_lane, pixels_per_unit, row_ys
 
 # Line-CNN's angles as the official lists them (lib/models/laneatt.py, LaneATT.__init__), in degrees
 LEFT_ANGLES: tuple[float, ...] = (72.0, 60.0, 49.0, 39.0, 30.0, 22.0)
 RIGHT_ANGLES: tuple[float, ...] = (108.0, 120.0, 131.0, 141.0, 150.0, 158.0)
 BOTTOM_ANGLES: tuple[float, ...] = (165.0, 150.0, 141.0, 131.0, 120.0, 108.0, 100.0, 90.0, 80.0, 72.0,
                                     60.0, 49.0, 39.0, 30.0, 15.0)
-UNDEFINED_X = -1e5  # target x on rows where the ground-truth lane does not exist
 TARGET_META = 3  # target row layout: [valid, start_row, length_rows, x_0 .. x_{S-1}]
-# A fraction f of the width (height) in pixels: f x (W - 1) ("last_pixel") or f x W ("size", the official's)
-FRACTION_SCALES = ("last_pixel", "size")
-
-
-def pixels_per_unit(size: int, scale: str = "last_pixel") -> float:
-    """The pixels a whole image side of `size` pixels spans as a fraction 1 (FRACTION_SCALES)."""
-    if scale not in FRACTION_SCALES:
-        raise ValueError(f"model.head.fraction_scale={scale!r}: expected one of {', '.join(FRACTION_SCALES)}")
-    return float(size - 1 if scale == "last_pixel" else size)
-
-
-def row_ys(height: int, n_offsets: int, scale: str = "last_pixel") -> np.ndarray:
-    """y (pixels) of the n_offsets anchor rows, bottom row first (y = H - 1, or y = H with scale "size"), top
-    row (y = 0) last."""
-    return np.linspace(pixels_per_unit(height, scale), 0, n_offsets)
-
-
-def inside_width(xs: np.ndarray, width: int, scale: str = "last_pixel") -> np.ndarray:
-    """Which x lie in the image: [0, W - 1] ("last_pixel"), or the official targets' [0, W) ("size",
-    lib/datasets/lane_dataset.py l. 155)."""
-    return (xs >= 0) & ((xs <= width - 1) if scale == "last_pixel" else (xs < width))
 
 
 def default_origin_counts(image_size: tuple[int, int]) -> tuple[int, int]:
@@ -157,46 +135,6 @@ def anchor_cut_indices(anchors: Anchors, image_size: tuple[int, int],
     cols = np.round(x / stride)
     valid = (cols >= 0) & (cols <= wf)
     return np.clip(cols, 0, wf - 1).astype(np.int64), valid.astype(np.float32), (hf, wf)
-
-
-def _extrapolate(p0: np.ndarray, p1: np.ndarray, ys: np.ndarray) -> np.ndarray:
-    """x on the straight line through points p0, p1 (distinct y) at rows ys."""
-    return p0[0] + (ys - p0[1]) * (p1[0] - p0[0]) / (p1[1] - p0[1])
-
-
-def encode_lane(lane: np.ndarray, image_size: tuple[int, int], n_offsets: int,
-                scale: str = "last_pixel") -> tuple[int, int, np.ndarray] | None:
-    """One lane -> (start row, length in rows, x per row); None if it never enters the image.
-
-    As in the official LaneATT, the lane is extended straight down to the image bottom from its
-    two lowest points, and ``start`` is the first row (from the bottom) inside the image. It is
-    also extended one row up, so the top anchor row at or above the lane's end is covered. The
-    rows, and which x are inside the image, follow `scale` (FRACTION_SCALES: row_ys, inside_width).
-    """
-    h, w = image_size
-    lane = as_lane(lane)
-    _, first = np.unique(lane[:, 1], return_index=True)
-    lane = lane[np.sort(first)]  # drop repeated y, keep y descending
-    if len(lane) < 2:
-        return None
-    ys = row_ys(h, n_offsets, scale)
-    ymin, ymax = lane[-1, 1], lane[0, 1]
-    strip = ys[0] / (n_offsets - 1)
-    xs = np.full(n_offsets, UNDEFINED_X)
-    span = (ys >= ymin) & (ys <= ymax)
-    xs[span] = lane_x_at(lane, ys[span])
-    below = ys > ymax
-    xs[below] = _extrapolate(lane[0], lane[1], ys[below])
-    above = (ys < ymin) & (ys > ymin - strip)
-    xs[above] = _extrapolate(lane[-1], lane[-2], ys[above])
-    inside = (xs > UNDEFINED_X / 2) & inside_width(xs, w, scale)
-    if not inside.any():
-        return None
-    start = int(np.argmax(inside))
-    end = start
-    while end + 1 < n_offsets and inside[end + 1]:
-        end += 1
-    return start, end - start + 1, xs
 
 
 def encode_lanes(lanes: list[np.ndarray], image_size: tuple[int, int], n_offsets: int, max_lanes: int,

@@ -27,13 +27,11 @@ from torch import nn
 from lanevil_train.lanes import row_proposal_to_lane
 from lanevil_train.models.head import LaneHead, lanes_with_scores
 from lanevil_train.models.laneatt.anchors import (
-    FRACTION_SCALES,
     TARGET_META,
     anchor_cut_indices,
     encode_lanes,
     feature_map_size,
     generate_anchors,
-    row_ys,
 )
 from lanevil_train.models.laneatt.decoding import check_lane_points, official_lane_points
 from lanevil_train.models.laneatt.frequency import (
@@ -45,6 +43,7 @@ from lanevil_train.models.laneatt.frequency import (
 )
 from lanevil_train.models.losses import anchor_target_distances, focal_loss
 from lanevil_train.models.nms import lane_ends, lane_nms, lane_nms_batched
+from lanevil_train.models.rows import FRACTION_SCALES, row_ys
 from lanevil_train.rules import check_settings, existing_file, integer, null_or, number, one_of
 
 log = logging.getLogger(__name__)

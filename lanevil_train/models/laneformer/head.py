@@ -50,8 +50,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from lanevil_train.models.head import LaneHead, lanes_with_scores
-from lanevil_train.models.laneatt.anchors import row_ys
 from lanevil_train.models.laneformer.loss import assemble_lane, encode_lanes, set_loss
+from lanevil_train.models.rows import row_ys
 from lanevil_train.rules import boolean, check_settings, integer, number, one_of
 
 ROW_COLUMN_MODES = ("lines", "axial")

@@ -28,8 +28,8 @@ import torch
 import torch.nn.functional as F
 
 from lanevil_train.lanes import as_lane, lane_x_at
-from lanevil_train.models.laneatt.anchors import row_ys
 from lanevil_train.models.matching import match
+from lanevil_train.models.rows import row_ys
 
 # target layout of "lanes": [valid, start_y, end_y, x_0 .. x_{N-1}] (fractions of the image), and "x_mask"
 TARGET_META = 3

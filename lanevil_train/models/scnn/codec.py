@@ -62,56 +62,6 @@ import cv2
 import numpy as np
 import torch
 
-from lanevil_train.lanes import assign_slots
-
-_SHIFT = 4  # cv2 fixed-point bits: lanes are drawn at 1/16 px precision
-
-
-def bottom_x(lane: np.ndarray, height: int) -> float:
-    """x where the lane, extended straight from its two lowest points, meets the bottom row (y = height - 1)."""
-    pts = lane[np.argsort(-lane[:, 1], kind="stable")]
-    (x0, y0), (x1, y1) = pts[0], pts[-1]
-    for x1_, y1_ in pts[1:]:  # the next point above the lowest one (skip repeated rows)
-        if y1_ < y0:
-            x1, y1 = x1_, y1_
-            break
-    if y1 >= y0:  # a horizontal lane: no extension
-        return float(x0)
-    return float(x0 + (x0 - x1) / (y0 - y1) * (height - 1 - y0))
-
-
-def draw_width(lane_width: float, reference_width: float, width: int) -> int:
-    """The line thickness in input pixels: `lane_width` px at `reference_width`, scaled to `width`."""
-    return max(1, round(lane_width * width / reference_width))
-
-
-def encode_lanes(lanes: list[np.ndarray], image_size: tuple[int, int], max_lanes: int, thickness: int,
-                 mode: str = "ego") -> dict[str, np.ndarray]:
-    """GT lanes (input pixels) -> {"seg": uint8 (H, W) classes 0..max_lanes, "exist": float32 (max_lanes,)}."""
-    h, w = image_size
-    lanes = [np.asarray(lane, dtype=np.float64).reshape(-1, 2) for lane in lanes]
-    lanes = [lane for lane in lanes if len(lane) >= 2]
-    if len(lanes) > max_lanes:
-        raise ValueError(f"SCNNHead.encode: {len(lanes)} lanes, but max_lanes={max_lanes}; raise data.max_lanes")
-    xs = [bottom_x(lane, h) for lane in lanes]
-    order = np.argsort(xs, kind="stable")
-    slots = assign_slots([xs[i] for i in order], w, max_lanes, mode)
-    seg = np.zeros((h, w), dtype=np.uint8)
-    exist = np.zeros(max_lanes, dtype=np.float32)
-    for i, slot in zip(order, slots):
-        lane = lanes[i]
-        lane = lane[np.argsort(-lane[:, 1], kind="stable")]
-        far = 8.0 * max(h, w)  # keeps the fixed-point coordinates in int32
-        pts = np.round(np.clip(lane, -far, far) * (1 << _SHIFT)).astype(np.int32)
-        mask = np.zeros((h, w), dtype=np.uint8)
-        cv2.polylines(mask, [pts.reshape(-1, 1, 2)], False, 1, thickness=thickness, lineType=cv2.LINE_8,
-                      shift=_SHIFT)
-        drawn = mask.astype(bool)
-        if drawn.any():
-            seg[drawn] = slot + 1
-            exist[slot] = 1.0
-    return {"seg": seg, "exist": exist}
-
 
 def box_blur(prob_maps: np.ndarray, size: int) -> np.ndarray:
     """Each (h, w) map of ``prob_maps`` (..., h, w) blurred by the mean of its size x size neighbourhood, the
@@ -122,18 +72,6 @@ def box_blur(prob_maps: np.ndarray, size: int) -> np.ndarray:
     flat = maps.reshape(-1, *maps.shape[-2:])
     blurred = [cv2.blur(m, (size, size), borderType=cv2.BORDER_REPLICATE) for m in flat]
     return np.stack(blurred).reshape(maps.shape) if blurred else maps
-
-
-def prune_lanes(confidence: np.ndarray, present: np.ndarray, max_lanes: int | None) -> np.ndarray:
-    """present (B, L) limited to max_lanes per image as the official lane_pruning: while an image has more, every
-    present slot at its lowest confidence is dropped (equal confidences together). None: unchanged."""
-    present = np.array(present, dtype=bool)
-    if max_lanes is None:
-        return present
-    for conf, keep in zip(np.asarray(confidence), present):
-        while keep.sum() > max_lanes:
-            keep &= conf != conf[keep].min()
-    return present
 
 
 @dataclass(frozen=True)

@@ -34,15 +34,9 @@ from torch import nn
 
 from lanevil_train.lanes import SLOT_ASSIGNMENTS, as_lane
 from lanevil_train.models.head import LaneHead
-from lanevil_train.models.scnn.codec import (
-    OFFICIAL_WRITERS,
-    box_blur,
-    draw_width,
-    encode_lanes,
-    lane_points,
-    official_lane_points,
-    prune_lanes,
-)
+from lanevil_train.models.masks import draw_width, encode_lanes
+from lanevil_train.models.nms import prune_lanes
+from lanevil_train.models.scnn.codec import OFFICIAL_WRITERS, box_blur, lane_points, official_lane_points
 from lanevil_train.rules import boolean, check_settings, integer, number, one_of
 
 
