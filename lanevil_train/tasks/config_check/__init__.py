@@ -23,7 +23,7 @@ from lanevil_train.rules import Rule
 from lanevil_train.tasks.config_check.config_rules import known_defenses
 from lanevil_train.tasks.config_check.cross import CROSS_CHECKS
 from lanevil_train.tasks.config_check.keys import TRAINING_KEYS
-from lanevil_train.tasks.config_check.table import RULES, _apply, _get
+from lanevil_train.tasks.config_check.table import RULES, _apply, _get, task_rules
 from lanevil_train.tasks.config_check.targets import _locate, _target_nodes, check_target
 
 # what the rest of the package imports from here
@@ -71,7 +71,9 @@ def check_config(cfg: DictConfig, where: str = "the config") -> None:
     A value copied from another key (`max_lanes: ${data.max_lanes}`) is reported at that key only. `where`
     names the config in the error's first line."""
     problems, bad_keys = [], set()
-    for key, rule in {**RULES, **head_rules(cfg)}.items():
+    for key, rule in {**RULES, **head_rules(cfg), **task_rules(cfg)}.items():  # a task's own rules win (TASK_RULES)
+        if rule is None:  # a key this task does not read
+            continue
         problem = _apply(cfg, key, rule)
         if problem is not None:
             bad_keys.add(key)

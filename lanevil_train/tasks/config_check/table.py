@@ -34,8 +34,10 @@ from lanevil_train.rules import (
     int_list,
     int_pair,
     integer,
+    is_list,
     null_or,
     number,
+    ok,
     one_of,
     problem,
     string_list,
@@ -304,3 +306,69 @@ def _is_vlm(cfg: DictConfig) -> bool:
     """model.kind=vlm (model=vlm/<backend>; a bad kind is reported by check_task_kind)."""
     model = _get(cfg, "model")
     return isinstance(model, dict) and model.get("kind") == "vlm"
+
+
+# task=profile (tasks/detector/profile.py)
+def _family_list() -> Rule:
+    """all, or a non-empty list of detector families (conf/model/*.yaml, the VLMs not among them)."""
+    def test(value):
+        from lanevil_train.tasks.detector.profile import detector_families
+
+        if value == "all":
+            return None
+        if not is_list(value) or not value or not all(isinstance(x, str) for x in value):
+            return ""
+        unknown = [x for x in value if x not in detector_families()]
+        return f"no detector family {', '.join(map(repr, unknown))}" if unknown else None
+    return Rule("all or a list of detector families (laneatt, ufld, bezierlanenet, ganet, scnn, laneformer, clrnet)",
+                test)
+
+
+RULES.update({
+    "task.families": null_or(_family_list()),
+    "task.input_size": null_or(int_pair(16)),
+    "task.batch_size": integer(1),
+    "task.warmup": null_or(integer(0)),
+})
+
+# Rules that differ by task (task.name): check_config applies them in place of RULES' for that task; None: the task
+# does not read the key, which is not checked. task.runs lists run folders for task=report and task=compare, and
+# counts the timed runs of task=profile; task=profile builds networks only, so an experiment=official_* config's
+# dataset folder (data.root: ???) need not be given.
+TASK_RULES: dict[str, dict[str, Rule | None]] = {
+    "profile": {
+        "data.root": None,
+        "task.runs": null_or(integer(1)),
+        "model.kind": Rule("detector (task=profile measures lane detectors: model=laneatt, ufld, bezierlanenet, ganet, "
+                           "scnn, laneformer or clrnet, or a detector's ckpt_path=; model=vlm/<backend> is a VLM)",
+                           lambda v: ok(v == "detector")),
+    },
+}
+
+
+def task_rules(cfg: DictConfig) -> dict[str, Rule | None]:
+    """The rules of TASK_RULES for the config's task.name (none for most tasks)."""
+    name = _get(cfg, "task.name")
+    return TASK_RULES.get(name, {}) if isinstance(name, str) else {}
+
+
+# task=predict (tasks/detector/predict.py; the formats are predict/run.py FORMATS). It reads no dataset, so an
+# experiment=official_* config's dataset folder (data.root: ???) need not be given.
+def _existing_path() -> Rule:
+    def test(value):
+        if not isinstance(value, str) or not value:
+            return ""
+        from pathlib import Path
+
+        return None if Path(value).exists() else "no such file or folder"
+    return Rule("an image, a folder of images, a video or an image list (.txt) that exists", test)
+
+
+RULES.update({
+    "task.input": null_or(_existing_path()),
+    "task.max_frames": null_or(integer(1)),
+    "task.stride": integer(1),
+    "task.format": one_of("tusimple", "culane", "both"),
+    "task.jpeg_quality": integer(1, 100),
+})
+TASK_RULES["predict"] = {"data.root": None}
