@@ -369,6 +369,7 @@ RULES.update({
     "task.max_frames": null_or(integer(1)),
     "task.stride": integer(1),
     "task.format": one_of("tusimple", "culane", "both"),
+    "task.write_frames": boolean(),
     "task.jpeg_quality": integer(1, 100),
 })
 TASK_RULES["predict"] = {"data.root": None}
