@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import json
 import resource
-import statistics
 import subprocess
 import sys
 import time
@@ -50,16 +49,10 @@ def build(family: str):
 
 
 def _time(fn, repeats: int, sync) -> float:
-    for _ in range(3):
-        fn()
-    sync()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        sync()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+    """The median seconds of `repeats` calls after 3 untimed ones (task=profile's timing)."""
+    from lanevil_train.models.profile import time_call
+
+    return time_call(fn, 3, repeats, sync)["median_ms"] / 1e3
 
 
 def _max_difference(a, b) -> float:
