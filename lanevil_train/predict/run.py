@@ -306,7 +306,9 @@ def predict_source(detector, source: FrameSource, out_dir: str | Path, settings:
             flush()
         if writing is not None:
             writing.result()
-        bar.update(max(0, source.selected - initial - counts["predicted"] - counts["redrawn"]))  # the unreadable
+        unread = source.selected - initial - counts["predicted"] - counts["redrawn"]
+        if unread > 0:
+            bar.update(unread)  # the unreadable frames, counted as gone through
         video_path = video.close() if video is not None else None
     except BaseException:
         pool.shutdown(wait=True)  # the writer done with the video before its temporary goes

@@ -176,6 +176,8 @@ def test_an_unreadable_image_is_named_and_skipped_and_counted_at_the_end(checkpo
     assert "1 of 2 frames unreadable, skipped: broken.jpg" in caplog.text
     assert [r["key"] for r in ResultsLog(out / "per_frame.jsonl").records()] == ["good.jpg"]
     assert summary(out)["unreadable"] == ["broken.jpg"]
+    with pytest.raises(ValueError, match="per_frame.jsonl holds results of another .*stride was '1', now '2'"):
+        predict(checkpoint, tmp_path / "photos", out, "task.stride=2")  # resuming another selection is refused
 
 
 def test_a_video_with_no_frames_and_a_list_with_a_missing_image_are_refused_before_work(checkpoint, tmp_path):
