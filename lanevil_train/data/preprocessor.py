@@ -60,11 +60,13 @@ class Preprocessor:
         image = np.asarray(image)
         if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
             raise ValueError(f"expected a uint8 HxWx3 image, got {image.dtype} of shape {image.shape}")
-        if color == "bgr":
-            image = image[:, :, ::-1]
         cut = crop_rows(self.crop_top, image.shape[0])
-        image = np.ascontiguousarray(image[cut:])
-        return normalize_image(resize_image(image, *self.input_size, self.resize), self.normalize)
+        # resized before the channels are put in RGB order: the filters act on each channel alone, so the result is
+        # the same, and only the network-sized image is reordered (not the whole frame)
+        image = resize_image(np.ascontiguousarray(image[cut:]), *self.input_size, self.resize)
+        if color == "bgr":
+            image = np.ascontiguousarray(image[:, :, ::-1])
+        return normalize_image(image, self.normalize)
 
     def batch(self, images: Sequence[np.ndarray], color: str = "bgr"):
         """Several images (any sizes) as one (B, 3, H, W) float32 tensor."""
