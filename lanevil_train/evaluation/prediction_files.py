@@ -37,6 +37,7 @@ CULANE_LIST = "list.txt"
 NO_POINT = -2  # TuSimple's x for a row a lane does not reach
 CULANE_DECIMALS = 5  # as the official LaneATT and CLRNet writers ("{:.5f}"), trailing zeros dropped
 FIELDS = ("pred_points", "h_samples", "run_time")
+PREDICTION_FORMATS = ("tusimple", "culane")
 
 
 def prediction_fields(pred: list[np.ndarray], meta: dict, run_time_ms: float, row_sampling: str = "linear",
@@ -77,22 +78,37 @@ def _culane_relative(key: str) -> PurePosixPath:
     return path.with_suffix("")
 
 
-def write_prediction_files(results: str | Path, out_dir: str | Path) -> dict[str, Path]:
-    """Write ``predictions/pred_tusimple.json`` and the ``predictions/culane/`` tree in ``out_dir`` from the
-    records of ``results`` (per_image.jsonl written with predictions kept); returns {"tusimple": file, "culane":
-    folder}."""
-    results, out_dir = Path(results), Path(out_dir) / PREDICTIONS_DIR
+def write_prediction_files(results: str | Path, out_dir: str | Path,
+                           formats: tuple[str, ...] = PREDICTION_FORMATS) -> dict[str, Path]:
+    """Write ``predictions/pred_tusimple.json`` and/or the ``predictions/culane/`` tree (``formats``) in ``out_dir``
+    from the records of ``results`` (per_image.jsonl written with predictions kept); returns {"tusimple": file,
+    "culane": folder} of those written."""
+    results = Path(results)
     records = ResultsLog(results).records()
     missing = [r["key"] for r in records if any(field not in r for field in FIELDS)]
     if missing:
         raise ValueError(f"{results}: {len(missing)} of {len(records)} images were scored without "
                          f"task.predictions=true (first: {missing[0]!r}), so their lanes were not kept; evaluate "
                          f"again into a new task.out_dir with task.predictions=true")
-    tusimple = out_dir / TUSIMPLE_FILE
-    atomic_write_text(tusimple, "".join(json.dumps(tusimple_line(r)) + "\n" for r in records))
+    return write_prediction_records(records, Path(out_dir) / PREDICTIONS_DIR, formats)
 
-    culane = out_dir / CULANE_DIR
-    partial = out_dir / f"{CULANE_DIR}.partial"
+
+def write_prediction_records(records: list[dict], folder: str | Path,
+                             formats: tuple[str, ...] = PREDICTION_FORMATS) -> dict[str, Path]:
+    """The prediction files of ``formats`` (tusimple: ``folder/pred_tusimple.json``; culane: ``folder/culane/``
+    with its list.txt) from records holding FIELDS, each written whole under a temporary name."""
+    unknown = [name for name in formats if name not in PREDICTION_FORMATS]
+    if unknown or not formats:
+        raise ValueError(f"formats: expected some of {', '.join(PREDICTION_FORMATS)}, got {list(formats)}")
+    folder = Path(folder)
+    written = {}
+    if "tusimple" in formats:
+        written["tusimple"] = folder / TUSIMPLE_FILE
+        atomic_write_text(written["tusimple"], "".join(json.dumps(tusimple_line(r)) + "\n" for r in records))
+    if "culane" not in formats:
+        return written
+    culane = folder / CULANE_DIR
+    partial = folder / f"{CULANE_DIR}.partial"
     shutil.rmtree(partial, ignore_errors=True)  # what a run killed here left
     names = []
     for record in records:
@@ -105,4 +121,5 @@ def write_prediction_files(results: str | Path, out_dir: str | Path) -> dict[str
     atomic_write_text(partial / CULANE_LIST, "".join(name + "\n" for name in names))
     shutil.rmtree(culane, ignore_errors=True)
     partial.rename(culane)
-    return {"tusimple": tusimple, "culane": culane}
+    written["culane"] = culane
+    return written

@@ -18,6 +18,14 @@
   encoding and per_frame.jsonl, in the writing thread; ``wait_read_s`` / ``wait_write_s`` the calling thread waiting
   for frames / for the writer; ``cpu_s`` every thread's CPU time).
 
+With ``PredictSettings.illusion`` (task.illusion=NAME, predict/illusion.py) every frame is predicted twice, clean and
+with the illusion on the ground its lanes give: the drawn frames and the video are clean | illusion side by side
+(twice the width), a frame's line gains ``illusion``: the illusion's lanes (``pred_points``, ``scores``, ...), its
+``layout`` (a video's 0, 1, ...), where its ground came from (``ground``: prediction or labels) and how it changed
+the lanes (``kept``, ``lost``, ``added``, ``accuracy``: predict.illusion.lane_changes), or ``passed_through`` (why no
+ground plane) for a frame drawn clean on both sides; ``predictions/illusion/`` holds the illusion's prediction files
+and summary.json its totals.
+
 A rerun into the same folder resumes: an image already in per_frame.jsonl is not read again; a video is decoded
 again from its start (frames are read in order), its finished frames redrawn from their lines without the network
 and the annotated video written whole again (an interrupted run leaves no half video: its temporary is removed at
@@ -45,24 +53,20 @@ import cv2
 import numpy as np
 import torch
 
-from lanevil_train.evaluation.prediction_files import (
-    PREDICTIONS_DIR,
-    TUSIMPLE_FILE,
-    prediction_fields,
-    tusimple_line,
-    write_prediction_files,
-)
+from lanevil_train.evaluation.prediction_files import PREDICTIONS_DIR, prediction_fields, write_prediction_records
 from lanevil_train.evaluation.streaming import claim_results, run_identity
 from lanevil_train.files.atomic import atomic_write_bytes, atomic_write_text
 from lanevil_train.lanes import default_h_samples
 from lanevil_train.predict.drawing import draw_lanes
+from lanevil_train.predict.illusion import IllusionSettings, RoadIllusion, lane_changes, side_by_side
 from lanevil_train.predict.sources import FrameSource
 from lanevil_train.progress import MODES, progress_counter
 from lanevil_train.results_log import ResultsLog
 
 log = logging.getLogger(__name__)
 
-FORMATS = ("tusimple", "culane", "both")
+FORMATS = {"tusimple": ("tusimple",), "culane": ("culane",), "both": ("tusimple", "culane")}
+ILLUSION_DIR = "illusion"  # predictions/illusion/: the prediction files of the frames with the illusion
 RESULTS_FILE = "per_frame.jsonl"
 SUMMARY_FILE = "summary.json"
 FRAMES_DIR = "frames"
@@ -82,6 +86,7 @@ class PredictSettings:
     progress: str = "auto"
     write_frames: bool = True
     jpeg_quality: int = 95
+    illusion: IllusionSettings | None = None
 
     def __post_init__(self) -> None:
         if isinstance(self.batch_size, bool) or not isinstance(self.batch_size, int) or self.batch_size < 1:
@@ -104,6 +109,7 @@ class _Frame:
     input: np.ndarray | None  # the network's input (3xHxW float32) of a frame to predict
     record: dict | None  # None until predicted
     new: bool
+    perturbed: np.ndarray | None = None  # with task.illusion: the frame with the illusion (None: passed through)
 
 
 def frame_record(key: str, image: np.ndarray, lanes: list, run_time_ms: float, detector) -> dict:
@@ -222,10 +228,17 @@ def _prepared(frames, preprocessor, previous: dict):
         frames.close()
 
 
-def predict_source(detector, source: FrameSource, out_dir: str | Path, settings: PredictSettings | None = None) -> dict:
+def predict_source(detector, source: FrameSource, out_dir: str | Path, settings: PredictSettings | None = None,
+                   labels: dict[str, list[np.ndarray]] | None = None) -> dict:
     """Run `detector` (a LaneDetector, in eval mode on its device) over `source`, writing into `out_dir` what the
-    module docstring lists; returns the summary (also in summary.json)."""
+    module docstring lists; returns the summary (also in summary.json). With ``settings.illusion`` each frame is
+    predicted clean and with the illusion (predict/illusion.py), its ground from `labels` (the lanes of a frame's
+    key, in its pixels) where they have the frame, else from the clean prediction."""
     settings = settings or PredictSettings()
+    labels = labels or {}
+    illusion = settings.illusion
+    road = None if illusion is None else (RoadIllusion.for_video(illusion, source.fps) if source.is_video
+                                          else RoadIllusion(illusion))
     detector.eval()
     preprocessor = detector.preprocessor
     device = next(detector.parameters()).device
@@ -233,17 +246,30 @@ def predict_source(detector, source: FrameSource, out_dir: str | Path, settings:
     out.mkdir(parents=True, exist_ok=True)
     results = ResultsLog(out / RESULTS_FILE)
     done = results.resume()
-    claim_results(results.path, run_identity(detector, {"input": str(source.path.resolve()), "stride": source.stride}),
-                  resuming=bool(done))
+    identity = {"input": str(source.path.resolve()), "stride": source.stride,
+                **({} if illusion is None else {**illusion.identity(), "labels": sorted(labels)})}
+    claim_results(results.path, run_identity(detector, identity), resuming=bool(done))
     previous = {record["key"]: record for record in results.records()} if source.is_video and done else {}
     video = _VideoOut(out / f"{source.path.stem}{VIDEO_SUFFIX}", source.fps / source.stride) \
         if source.is_video else None
     frames_dir = out / FRAMES_DIR
-    timing = {"predict_s": 0.0, "write_s": 0.0, "wait_read_s": 0.0, "wait_write_s": 0.0}
+    timing = {"predict_s": 0.0, "write_s": 0.0, "wait_read_s": 0.0, "wait_write_s": 0.0,
+              **({} if illusion is None else {"illusion_s": 0.0})}
     initial = 0 if source.is_video else sum(key in done for key in source.keys)
     bar = progress_counter(source.total if source.total is not None else float("inf"), initial, "predict", "frame",
                            settings.progress)
     counts = {"predicted": 0, "redrawn": 0}
+    illusion_label = None if illusion is None else f"{illusion.name}, severity {illusion.severity}"
+
+    def drawn_frame(frame: _Frame) -> np.ndarray:
+        if illusion is None:
+            return draw_lanes(frame.image, record_lanes(frame.record), copy=False)  # the frame is not used again
+        perturbed = frame.record["illusion"]
+        right = draw_lanes(frame.perturbed, record_lanes(perturbed), copy=False) if frame.perturbed is not None \
+            else frame.image.copy()
+        title = f"{illusion_label}: {perturbed['lost']} lost, {perturbed['added']} added" \
+            if frame.perturbed is not None else "passed through: no ground plane"
+        return side_by_side(draw_lanes(frame.image, record_lanes(frame.record), copy=False), right, "clean", title)
 
     def write(batch: list[_Frame]) -> None:  # in the writer thread, one batch at a time, in order
         start = time.perf_counter()
@@ -252,7 +278,7 @@ def predict_source(detector, source: FrameSource, out_dir: str | Path, settings:
             jpeg = settings.write_frames and (frame.new or not path.is_file())
             if not jpeg and video is None:
                 continue
-            drawn = draw_lanes(frame.image, record_lanes(frame.record), copy=False)  # the frame is not used again
+            drawn = drawn_frame(frame)
             if jpeg:
                 ok, data = cv2.imencode(".jpg", drawn, [cv2.IMWRITE_JPEG_QUALITY, settings.jpeg_quality])
                 if not ok:
@@ -264,6 +290,36 @@ def predict_source(detector, source: FrameSource, out_dir: str | Path, settings:
         if new:
             results.append(new)  # after their drawn frames: a line in the file means its frame is on disk
         timing["write_s"] += time.perf_counter() - start
+
+    def with_illusion(new: list[_Frame]) -> None:
+        """Every pending frame in order with the illusion on its ground; a new one's lanes predicted on it."""
+        start = time.perf_counter()
+        for frame in pending:
+            key = os.path.normpath(frame.key)
+            lanes = labels[key] if key in labels else [points for points, _ in record_lanes(frame.record)]
+            drawn = road.apply(frame.image, lanes, frame.record.get("frame"))
+            frame.perturbed = drawn.image
+            if frame.new:
+                frame.record["illusion"] = {"passed_through": drawn.passed_through} if drawn.image is None else \
+                    {"layout": drawn.layout, "ground": "labels" if key in labels else "prediction"}
+        timing["illusion_s"] += time.perf_counter() - start
+        drawn = [frame for frame in new if frame.perturbed is not None]
+        if not drawn:
+            return
+        start = time.perf_counter()
+        with torch.inference_mode():
+            inputs = torch.from_numpy(np.stack([preprocessor.image(frame.perturbed, "bgr") for frame in drawn]))
+            predicted = detector.decode_lanes(detector(inputs.to(device)), preprocessor.input_size,
+                                              [frame.image.shape[:2] for frame in drawn], with_scores=True)
+        elapsed = time.perf_counter() - start
+        timing["predict_s"] += elapsed
+        for frame, lanes in zip(drawn, predicted):
+            lanes_record = frame_record(frame.key, frame.perturbed, lanes, elapsed * 1000 / len(drawn), detector)
+            height, width = frame.image.shape[:2]
+            changes = lane_changes([points for points, _ in record_lanes(frame.record)],
+                                   [points for points, _ in record_lanes(lanes_record)], height, width)
+            frame.record["illusion"].update({name: lanes_record[name] for name in lanes_record
+                                             if name not in ("key", "frame", "height", "width")}, **changes)
 
     pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="predict-write")
     writing: Future | None = None
@@ -284,6 +340,8 @@ def predict_source(detector, source: FrameSource, out_dir: str | Path, settings:
                 frame.record = frame_record(frame.key, frame.image, lanes, elapsed * 1000 / len(new), detector)
                 frame.input = None
             counts["predicted"] += len(new)
+        if road is not None:
+            with_illusion(new)
         counts["redrawn"] += len(pending) - len(new)
         if writing is not None:
             start = time.perf_counter()
@@ -325,7 +383,13 @@ def predict_source(detector, source: FrameSource, out_dir: str | Path, settings:
     if not records:
         raise ValueError(f"{source.path}: none of its {source.selected} selected frames could be read "
                          f"({', '.join(source.unreadable[:LISTED_UNREADABLE])})")
-    predictions = write_official_files(results.path, records, out, settings.format)
+    predictions = write_prediction_records(records, out / PREDICTIONS_DIR, FORMATS[settings.format])
+    if illusion is not None:
+        perturbed = [{**record, **record["illusion"]} for record in records if "pred_points" in record["illusion"]]
+        if perturbed:
+            written = write_prediction_records(perturbed, out / PREDICTIONS_DIR / ILLUSION_DIR,
+                                               FORMATS[settings.format])
+            predictions.update({f"illusion_{name}": path for name, path in written.items()})
     if source.unreadable:
         names = source.unreadable[:LISTED_UNREADABLE]
         more = len(source.unreadable) - len(names)
@@ -340,7 +404,8 @@ def predict_source(detector, source: FrameSource, out_dir: str | Path, settings:
                "frames": str(frames_dir) if settings.write_frames else None,
                "video": str(video_path) if video_path else None,
                "video_fps": video.fps if video is not None else None, "per_frame": str(results.path),
-               "predictions": {name: str(path) for name, path in predictions.items()}}
+               "predictions": {name: str(path) for name, path in predictions.items()},
+               **({} if illusion is None else {"illusion": illusion_summary(records, illusion)})}
     atomic_write_text(out / SUMMARY_FILE, json.dumps(summary, indent=1) + "\n")
     written = [frames_dir if settings.write_frames else None, video_path, results.path, *predictions.values()]
     log.info("task=predict: %d frames predicted (%d already done%s) in %.1f s (%.2f frames/s); wrote %s",
@@ -349,14 +414,12 @@ def predict_source(detector, source: FrameSource, out_dir: str | Path, settings:
     return summary
 
 
-def write_official_files(results: Path, records: list[dict], out: Path, format: str) -> dict[str, Path]:
-    """The official prediction files of `format` from per_frame.jsonl (evaluation/prediction_files.py's writers):
-    predictions/pred_tusimple.json, predictions/culane/ or both."""
-    if format == "tusimple":
-        path = out / PREDICTIONS_DIR / TUSIMPLE_FILE
-        atomic_write_text(path, "".join(json.dumps(tusimple_line(record)) + "\n" for record in records))
-        return {"tusimple": path}
-    written = write_prediction_files(results, out)
-    if format == "culane":
-        written.pop("tusimple").unlink(missing_ok=True)
-    return written
+def illusion_summary(records: list[dict], illusion: IllusionSettings) -> dict:
+    """The illusion's effect over a run's frames: how many carried it, how many were passed through (no ground
+    plane), the clean lanes lost and the lanes added under it, and the frames whose lanes changed."""
+    drawn = [record["illusion"] for record in records if "pred_points" in record["illusion"]]
+    return {**illusion.identity(), "frames": len(drawn), "passed_through": len(records) - len(drawn),
+            "layouts": len({entry["layout"] for entry in drawn if entry.get("layout") is not None}),
+            "lanes_lost": sum(entry["lost"] for entry in drawn), "lanes_added": sum(entry["added"] for entry in drawn),
+            "frames_changed": sum(bool(entry["lost"] or entry["added"]) for entry in drawn),
+            "mean_accuracy": round(float(np.mean([entry["accuracy"] for entry in drawn])), 6) if drawn else None}

@@ -201,7 +201,110 @@ def test_a_list_file_with_stride_and_cap(tmp_path):
     assert [key for key, _ in open_source(tmp_path / "list.txt", max_frames=1)] == ["z.jpg"]
 
 
+def drive(path, frames: int, size=(144, 256), fps=10.0, seed=3):
+    """A video of a car driving down a straight simulated road (sim.scene_at), written by OpenCV, and a TuSimple
+    label file of its frames' true lanes (raw_file frame_%06d)."""
+    from lanevil_train.data.formats.tusimple import write_tusimple
+    from lanevil_train.sim import build_scene, sample_scene_params, scene_at, shade_scene
+
+    road = build_scene(seed, sample_scene_params(seed).replace(road="straight", weather="clear_noon"), size[1], size[0])
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps, (size[1], size[0]))
+    labels = []
+    for k in range(frames):
+        view = scene_at(road, k * 50 / 3.6 / fps)  # at task.speed_kmh's default
+        writer.write(cv2.cvtColor(shade_scene(view), cv2.COLOR_RGB2BGR))
+        labels.append({"raw_file": f"frame_{k:06d}", "lanes": view.lanes()[0],
+                       "h_samples": default_h_samples(size[0])})
+    writer.release()
+    return write_tusimple(labels, path.with_suffix(".json"))
+
+
+def illusion_rows(video, frames: int) -> list[float]:
+    """The mean image row where the annotated video's right half (with the illusion) differs from its left (clean),
+    below the titles, in each frame (no lanes are drawn: the tests' threshold is above every score)."""
+    capture = cv2.VideoCapture(str(video))
+    rows = []
+    for _ in range(frames):
+        ok, frame = capture.read()
+        assert ok
+        width = frame.shape[1] // 2
+        changed = np.abs(frame[:, width:].astype(int) - frame[:, :width].astype(int)).sum(axis=2) > 60
+        changed[:30] = False  # the titles
+        assert changed.mean() > 0.005, "the illusion is missing from a frame"
+        rows.append(float(np.nonzero(changed)[0].mean()))
+    capture.release()
+    return rows
+
+
+def test_an_illusion_on_a_video_lies_on_the_road_side_by_side_and_slides_toward_the_camera(checkpoint, tmp_path):
+    video = tmp_path / "drive.mp4"
+    labels = drive(video, 6)
+    out = tmp_path / "out"
+    args = ["task.illusion=road_crack", "task.severity=5", f"task.labels={labels}", "task.decode.conf_threshold=0.99"]
+    predict(checkpoint, video, out, *args)
+
+    done = summary(out)
+    assert done["illusion"]["frames"] == 6 and done["illusion"]["passed_through"] == 0
+    assert done["illusion"]["layouts"] == 1  # 6 frames at 10 fps and 50 km/h: 7 m, less than task.relayout_m
+    annotated = cv2.VideoCapture(done["video"])
+    assert int(annotated.get(cv2.CAP_PROP_FRAME_COUNT)) == 6
+    assert int(annotated.get(cv2.CAP_PROP_FRAME_WIDTH)) == 2 * 256  # clean | illusion
+    annotated.release()
+    rows = illusion_rows(done["video"], 6)
+    assert rows[-1] > rows[0] + 5 and all(b > a - 3 for a, b in zip(rows, rows[1:])), rows  # down, without jumps
+    for record in ResultsLog(out / "per_frame.jsonl").records():
+        entry = record["illusion"]
+        assert entry["ground"] == "labels" and entry["layout"] == 0
+        assert entry["pred_points"] == [] and (entry["kept"], entry["lost"], entry["added"]) == (0, 0, 0)
+    assert (out / "predictions" / "illusion" / "pred_tusimple.json").is_file()
+
+    before = (out / "per_frame.jsonl").read_text()
+    predict(checkpoint, video, out, *args)  # resumed: every frame redrawn from its line, the illusion drawn again
+    assert summary(out)["predicted"] == 0 and summary(out)["redrawn"] == 6
+    assert (out / "per_frame.jsonl").read_text() == before
+    assert illusion_rows(done["video"], 6) == pytest.approx(rows, abs=1.0)
+
+
+def test_a_frame_without_a_ground_plane_is_passed_through_and_counted(checkpoint, tmp_path):
+    labels = drive(tmp_path / "drive.mp4", 1)  # frame_000000's true lanes
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    capture = cv2.VideoCapture(str(tmp_path / "drive.mp4"))
+    image = capture.read()[1]
+    capture.release()
+    cv2.imwrite(str(photos / "frame_000000.png"), image)
+    cv2.imwrite(str(photos / "unlabelled.png"), image)
+    raw = json.loads(labels.read_text())
+    labels.write_text(json.dumps({**raw, "raw_file": "frame_000000.png"}) + "\n")
+    out = tmp_path / "out"
+    predict(checkpoint, photos, out, "task.illusion=vehicle", f"task.labels={labels}",
+            "task.decode.conf_threshold=0.99")  # no predicted lanes: the unlabelled image has no ground
+
+    records = {r["key"]: r["illusion"] for r in ResultsLog(out / "per_frame.jsonl").records()}
+    assert records["frame_000000.png"]["ground"] == "labels" and records["frame_000000.png"]["layout"] is None
+    assert records["unlabelled.png"]["passed_through"].startswith("no ground plane: lanes: need at least 2 usable")
+    assert summary(out)["illusion"]["frames"] == 1 and summary(out)["illusion"]["passed_through"] == 1
+    drawn = cv2.imread(str(out / "frames" / "unlabelled.jpg"))
+    assert drawn.shape[1] == 2 * image.shape[1]
+    assert np.abs(drawn[40:, :256].astype(int) - drawn[40:, 256:].astype(int)).max() < 40  # the clean frame twice
+
+
+def test_lane_changes_count_kept_lost_and_added_lanes():
+    from lanevil_train.predict.illusion import lane_changes
+
+    ys = np.linspace(200, 700, 11)
+    left, right, far = (np.stack([x0 + 0.3 * (ys - 200), ys], axis=1) for x0 in (300.0, 800.0, 1100.0))
+    moved = left + [12.0, 0.0]  # within 20 px: kept
+    # TuSimple's accuracy counts a row neither lane reaches (5 of the 56 rows at 720 px) as a match, as LaneEval does
+    assert lane_changes([left, right], [moved, far], 720, 1280) == {"kept": 1, "lost": 1, "added": 1,
+                                                                    "accuracy": pytest.approx((1 + 5 / 56) / 2)}
+    assert lane_changes([left, right], [left + [12.0, 0.0]], 360, 640)["lost"] == 2  # 20 px at 1280 is 10 at 640
+
+
 @pytest.mark.parametrize("override, message", [
+    ("task.illusion=fog", "task.illusion: expected null or one of road_crack"),
+    ("task.severity=6", "task.severity: expected an integer from 1 to 5, got 6"),
+    ("task.speed_kmh=0", "task.speed_kmh: expected a number in (0, 300], got 0"),
     ("task.stride=0", "task.stride: expected an integer >= 1, got 0"),
     ("task.max_frames=-3", "task.max_frames: expected null or an integer >= 1, got -3"),
     ("task.format=jpeg", "task.format: expected one of tusimple, culane, both, got 'jpeg'"),
