@@ -12,9 +12,16 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
+
+# lanevil_dev (the test doubles of a source checkout, not in the wheel) is imported from the checkout root
+CHECKOUT = Path(__file__).resolve().parents[1]
+if str(CHECKOUT) not in sys.path:
+    sys.path.insert(0, str(CHECKOUT))
 
 
 def road_frame(seed: int, height: int, width: int) -> np.ndarray:
@@ -64,7 +71,7 @@ def main() -> None:
     parser.add_argument("--questions-per-clip", type=int, default=5)
     parser.add_argument("--size", type=int, nargs=2, default=[360, 640], metavar=("HEIGHT", "WIDTH"))
     args = parser.parse_args()
-    from lanevil_train.testing.fake_server import FakeServer
+    from lanevil_dev.fake_server import FakeServer
 
     with FakeServer("--delay-ms", str(args.delay_ms), "--no-decode", idle_exit_s=120) as server:
         for image_format in args.formats:

@@ -3,26 +3,31 @@ per_answer.jsonl) and of the tables built from it, on a clip suite written to di
 
     python benchmarks/bench_vlm_evaluate.py [--cases 2] [--height 360 --width 640] [--judge minilm|none]
 
-Backends: a tiny random-weight Qwen2-VL saved on disk (vlm/tiny.py; the wrapper's and the pipeline's own cost, not
-a real VLM's) and the local fake OpenAI-compatible server (50 ms per request, concurrency 8). One JSON line each.
+Backends: a tiny random-weight Qwen2-VL saved on disk (lanevil_dev/tiny_vlm.py; the wrapper's and the pipeline's
+own cost, not a real VLM's) and the local fake OpenAI-compatible server (lanevil_dev/fake_server.py; 50 ms per
+request, concurrency 8). One JSON line each.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 import tempfile
 import time
 from pathlib import Path
 
 from lanevil_train.evaluation.results import write_results
-from lanevil_train.testing.fake_server import FakeServer
+from lanevil_train.vlm.answer_scoring.evaluation import evaluate_clips
 from lanevil_train.vlm.backends.hf import HFVLM
 from lanevil_train.vlm.backends.openai import OpenAIVLM
 from lanevil_train.vlm.clips.clip_set import ClipSetDataset, build_clip_set
 from lanevil_train.vlm.clips.clips import clip_cases
-from lanevil_train.vlm.scoring.evaluation import evaluate_clips
-from lanevil_train.vlm.tiny import build_tiny_vlm
+
+# lanevil_dev (the test doubles of a source checkout, not in the wheel) is imported from the checkout root
+CHECKOUT = Path(__file__).resolve().parents[1]
+if str(CHECKOUT) not in sys.path:
+    sys.path.insert(0, str(CHECKOUT))
 
 
 def timed(label: str, vlm, suite, judge, work: Path) -> dict:
@@ -44,6 +49,9 @@ def main() -> None:
     parser.add_argument("--width", type=int, default=640)
     parser.add_argument("--judge", choices=("minilm", "none"), default="minilm")
     args = parser.parse_args()
+    from lanevil_dev.fake_server import FakeServer
+    from lanevil_dev.tiny_vlm import build_tiny_vlm
+
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         cases = clip_cases(args.cases, 1000000, ["road_repair", "rail_shadow", "vehicle", "sunlight_reflection"])
@@ -53,7 +61,7 @@ def main() -> None:
         suite = ClipSetDataset(work / "suite")
         judge = None
         if args.judge == "minilm":
-            from lanevil_train.vlm.scoring.judge import EmbeddingJudge
+            from lanevil_train.vlm.answer_scoring.judge import EmbeddingJudge
 
             judge = EmbeddingJudge()
         hf = HFVLM(build_tiny_vlm("qwen2_vl", work / "tiny"), max_new_tokens=16, batch_size=4)

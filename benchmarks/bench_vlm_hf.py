@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import json
 import platform
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -20,7 +21,11 @@ import numpy as np
 import torch
 
 from lanevil_train.vlm.backends.hf import HFVLM
-from lanevil_train.vlm.tiny import build_tiny_vlm
+
+# lanevil_dev (the test doubles of a source checkout, not in the wheel) is imported from the checkout root
+CHECKOUT = Path(__file__).resolve().parents[1]
+if str(CHECKOUT) not in sys.path:
+    sys.path.insert(0, str(CHECKOUT))
 
 QUESTIONS = ("How many lanes does the road have?", "Is the dark straight line in the left lane a lane marking?",
              "What should the ego vehicle do next?", "Is the car in front moving or stopped?")
@@ -35,6 +40,8 @@ def make_clips(n: int, height: int, width: int, seed: int) -> list[list[np.ndarr
 
 def time_family(family: str, root: Path, clips, batch_size: int, max_new_tokens: int) -> dict:
     """answers/s and answer_loss samples/s (forward + backward) of one family's tiny model on `clips`."""
+    from lanevil_dev.tiny_vlm import build_tiny_vlm
+
     vlm = HFVLM(build_tiny_vlm(family, root / family), dtype="float32", device="cpu", batch_size=batch_size,
                 max_new_tokens=max_new_tokens)
     questions = [QUESTIONS[i % len(QUESTIONS)] for i in range(len(clips))]

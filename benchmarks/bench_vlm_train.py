@@ -1,4 +1,4 @@
-"""VLM fine-tuning step time and peak memory: LoRA vs full, on a tiny offline model (vlm/tiny.py).
+"""VLM fine-tuning step time and peak memory: LoRA vs full, on a tiny offline model (lanevil_dev/tiny_vlm.py).
 
 Each (family, mode) runs in its own process so its peak RSS is its own. A step is VLMFineTuner.batch_loss on a
 batch of `batch` (clip, question, answer) pairs of 6 random frames, backward, AdamW step; the first `warmup` steps
@@ -19,13 +19,18 @@ import tempfile
 import time
 from pathlib import Path
 
+# lanevil_dev (the test doubles of a source checkout, not in the wheel) is imported from the checkout root
+CHECKOUT = Path(__file__).resolve().parents[1]
+if str(CHECKOUT) not in sys.path:
+    sys.path.insert(0, str(CHECKOUT))
+
 
 def run_one(family: str, mode: str, steps: int, warmup: int, batch: int, size: tuple[int, int], device: str) -> dict:
     """Time `steps` optimizer steps of one setup; its s/step, peak RSS (MiB) and CUDA peak (MiB) as a dict."""
     import numpy as np
     import torch
 
-    from lanevil_train.vlm.tiny import build_tiny_vlm
+    from lanevil_dev.tiny_vlm import build_tiny_vlm
     from lanevil_train.vlm.training.finetune import VLMFineTuner, collate_clip_qa
 
     torch.manual_seed(0)

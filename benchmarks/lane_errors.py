@@ -15,7 +15,7 @@ import argparse
 
 import numpy as np
 
-from lanevil_train.evaluation.scoring import read_records
+from lanevil_train.evaluation.lane_records import read_records
 
 
 def paired_errors(records: list[dict]) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:

@@ -79,6 +79,10 @@ def number(low: float | None = None, high: float | None = None, low_open: bool =
     return Rule(expected, test)
 
 
+def probability() -> Rule:
+    return Rule("a probability in [0, 1]", number(0, 1).test)
+
+
 def exactly(value: Any) -> Rule:
     return Rule(show(value), lambda v: ok(is_int(v) and v == value))
 
@@ -115,6 +119,26 @@ def int_list(low: int | None = None, high: int | None = None) -> Rule:
     item = integer(low, high)
     return Rule(f"a non-empty list of {item.expected.replace('an integer', 'integers')}",
                 lambda v: ok(is_list(v) and len(v) > 0 and all(item.test(x) is None for x in v)))
+
+
+def number_list(low: float | None = None, low_open: bool = False) -> Rule:
+    """A non-empty list of finite numbers (each >= low, or > low when low_open, when low is given)."""
+    if low is None:
+        item, items = Rule("a number", lambda v: ok(is_number(v) and math.isfinite(v))), "numbers"
+    else:
+        item = number(low, low_open=low_open)
+        items = item.expected.replace("a number", "numbers")
+    return Rule(f"a non-empty list of {items}",
+                lambda v: ok(is_list(v) and len(v) > 0 and all(item.test(x) is None for x in v)))
+
+
+def one_or_pair(item: Rule) -> Rule:
+    """`item`, or a [min, max] pair of such values with min <= max (a range to draw from)."""
+    def test(v):
+        if not is_list(v):
+            return item.test(v)
+        return ok(len(v) == 2 and all(item.test(x) is None for x in v) and v[0] <= v[1])
+    return Rule(f"{item.expected}, or a [min, max] pair of them with min <= max", test)
 
 
 def number_range(low: float) -> Rule:

@@ -6,8 +6,8 @@ import json
 import numpy as np
 import pytest
 
+from lanevil_train.evaluation.lane_records import lane_record
 from lanevil_train.evaluation.prediction_files import prediction_fields, tusimple_line
-from lanevil_train.evaluation.scoring import lane_record
 from lanevil_train.lanes import INVALID_X, lanes_to_rows, sample_lane
 from lanevil_train.models.detector import LaneDetector
 

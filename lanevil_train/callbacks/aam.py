@@ -23,7 +23,6 @@ A layer whose output is not a (B, C, H, W) map of the batch images (a vision tra
 
 from __future__ import annotations
 
-import numbers
 from collections import deque
 from collections.abc import Mapping
 from typing import Callable
@@ -45,17 +44,10 @@ from lanevil_train.callbacks.regions import (
     hard_examples,
     target_area,
 )
+from lanevil_train.rules import Rule, check_settings, integer, is_int, number, ok, one_of
 
 MODES = {"aam": (HAA,), "aam++": (HAA, LAA)}
 HARDNESS = ("auto", "accuracy", "loss")
-
-
-def _is_int(value) -> bool:
-    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
-
-
-def _is_number(value) -> bool:
-    return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
 class RegionBank:
@@ -108,6 +100,23 @@ class AttentionAreaMixing(pl.Callback):
     """
 
     MODEL_ARGUMENTS = ("layer",)  # the arguments check_model checks against the model (task=compare names them)
+    # t_haa < t_laa is allowed (the paper's sensitivity grid has T_HAA 0.2 with T_LAA 0.4): the masks overlap
+    SETTINGS = {
+        "layer": Rule("the dotted name of a module of the model (e.g. 'backbone.layer4')",
+                      lambda v: ok(isinstance(v, str) and v != "")),
+        "mode": one_of(*MODES),
+        "output_index": Rule("an integer (which of the layer's outputs, when it returns a list) or a key (of a "
+                             "mapping output)", lambda v: ok(is_int(v) or isinstance(v, str))),
+        "feature_map": Rule("null or a callable (layer output -> (B, C, h, w) map)",
+                            lambda v: ok(v is None or callable(v))),
+        "sigma": Rule("a number >= 0 (the blur's std in input pixels; 0: no blur)", number(0).test),
+        **{name: number(0, 1) for name in ("t_haa", "t_laa", "beta", "mix_prob", "overlap_threshold", "min_area",
+                                           "max_region_fraction")},
+        "lane_width": Rule("a fraction of the image width in (0, 1]", number(0, 1, low_open=True).test),
+        "bank_size": integer(1),
+        "hardness": one_of(*HARDNESS),
+        "start_step": integer(0),
+    }
 
     def __init__(self, layer: str, mode: str = "aam++", output_index: int | str = -1, sigma: float = 3.0,
                  t_haa: float = 0.6, t_laa: float = 0.4, min_area: float = 0.002, overlap_threshold: float = 0.2,
@@ -115,34 +124,7 @@ class AttentionAreaMixing(pl.Callback):
                  max_region_fraction: float = 0.25, hardness: str = "auto",
                  start_step: int = 0, adapter: BatchAdapter | None = None, seed: int = 0,
                  feature_map: Callable[[torch.Tensor], torch.Tensor] | None = None):
-        if mode not in MODES:
-            raise ValueError(f"AttentionAreaMixing: mode={mode!r}, expected one of {sorted(MODES)}")
-        if hardness not in HARDNESS:
-            raise ValueError(f"AttentionAreaMixing: hardness={hardness!r}, expected one of {HARDNESS}")
-        if not isinstance(layer, str) or not layer:
-            raise ValueError(f"AttentionAreaMixing: layer must be the dotted name of a module of the model "
-                             f"(e.g. 'backbone.layer4'), got {layer!r}")
-        if not (_is_int(output_index) or isinstance(output_index, str)):
-            raise ValueError(f"AttentionAreaMixing: output_index must be an integer (which of the layer's outputs, "
-                             f"when it returns a list) or a key (of a mapping output), got {output_index!r}")
-        if feature_map is not None and not callable(feature_map):
-            raise ValueError(f"AttentionAreaMixing: feature_map must be a callable (layer output -> (B, C, h, w) "
-                             f"map), got {type(feature_map).__name__}")
-        # t_haa < t_laa is allowed (the paper's sensitivity grid has T_HAA 0.2 with T_LAA 0.4): the masks overlap
-        for name, value in (("t_haa", t_haa), ("t_laa", t_laa), ("beta", beta), ("mix_prob", mix_prob),
-                            ("overlap_threshold", overlap_threshold), ("min_area", min_area),
-                            ("max_region_fraction", max_region_fraction)):
-            if not _is_number(value) or not 0.0 <= value <= 1.0:
-                raise ValueError(f"AttentionAreaMixing: {name} must be a number in [0, 1], got {value!r}")
-        if not _is_number(sigma) or sigma < 0:
-            raise ValueError(f"AttentionAreaMixing: sigma must be a number >= 0 (the blur's std in input pixels; "
-                             f"0: no blur), got {sigma!r}")
-        if not _is_number(lane_width) or not 0.0 < lane_width <= 1.0:
-            raise ValueError(f"AttentionAreaMixing: lane_width must be a fraction of the image width in (0, 1], "
-                             f"got {lane_width!r}")
-        for name, value, low in (("bank_size", bank_size, 1), ("start_step", start_step, 0)):
-            if not _is_int(value) or value < low:
-                raise ValueError(f"AttentionAreaMixing: {name} must be an integer >= {low}, got {value!r}")
+        check_settings(self.SETTINGS, locals(), "AttentionAreaMixing")
         self.layer = layer
         self.mode = mode
         self.kinds = MODES[mode]

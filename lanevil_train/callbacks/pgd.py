@@ -3,13 +3,13 @@
 Before each training step the batch images are replaced, in place, by L-inf PGD adversarial examples
 of the module's own loss: `steps` signed-gradient steps of `step_size` from a random start inside the
 eps-ball, projected back onto the ball and onto the valid pixel range. eps and step_size are in [0, 1]
-pixel units; `std`/`mean` say how the batch images were normalised ((pixel - mean) / std per channel),
-so the ball is eps / std wide in the tensor the model sees.
+pixel units; `mean`/`std` say how the batch images were normalised ((pixel - mean) / std per channel),
+so the ball is eps / std wide in the tensor the model sees. Without them they are the model's own: the
+normalisation preset of its build config (data/normalization.py; `imagenet` for a module that records none).
 """
 
 from __future__ import annotations
 
-import numbers
 from contextlib import nullcontext
 from typing import Any, Callable, Sequence
 
@@ -17,17 +17,8 @@ import pytorch_lightning as pl
 import torch
 
 from lanevil_train.callbacks.adapter import BatchAdapter
-
-IMAGENET_MEAN = (0.485, 0.456, 0.406)
-IMAGENET_STD = (0.229, 0.224, 0.225)
-
-
-def _is_int(value) -> bool:
-    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
-
-
-def _is_number(value) -> bool:
-    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+from lanevil_train.data.normalization import normalization, spec_normalization
+from lanevil_train.rules import Rule, check_settings, integer, null_or, number, number_list
 
 
 def default_loss(module: pl.LightningModule, batch: Any) -> torch.Tensor:
@@ -49,31 +40,31 @@ def default_loss(module: pl.LightningModule, batch: Any) -> torch.Tensor:
 class PGDAdversarialTraining(pl.Callback):
     """Train on PGD adversarial examples of a `fraction` of each batch (all of it by default)."""
 
+    SETTINGS = {
+        "eps": Rule("a number >= 0 (the L-inf radius, in [0, 1] pixel units: 4/255 = 0.0157)", number(0).test),
+        "step_size": Rule("a number > 0 (in [0, 1] pixel units)", number(0, low_open=True).test),
+        "steps": integer(1),
+        "fraction": Rule("a number in [0, 1] (the share of each batch replaced)", number(0, 1).test),
+        "mean": null_or(number_list()),
+        "std": null_or(number_list(0, low_open=True)),
+    }
+
     def __init__(self, eps: float = 4 / 255, step_size: float = 1 / 255, steps: int = 3, random_start: bool = True,
-                 fraction: float = 1.0, mean: Sequence[float] = IMAGENET_MEAN, std: Sequence[float] = IMAGENET_STD,
+                 fraction: float = 1.0, mean: Sequence[float] | None = None, std: Sequence[float] | None = None,
                  adapter: BatchAdapter | None = None,
                  loss_fn: Callable[[pl.LightningModule, Any], torch.Tensor] | None = None, seed: int = 0):
-        if not _is_number(eps) or eps < 0:
-            raise ValueError(f"PGDAdversarialTraining: eps must be a number >= 0 (the L-inf radius, in [0, 1] "
-                             f"pixel units: 4/255 = 0.0157), got {eps!r}")
-        if not _is_number(step_size) or step_size <= 0:
-            raise ValueError(f"PGDAdversarialTraining: step_size must be a number > 0 (in [0, 1] pixel units), "
-                             f"got {step_size!r}")
-        if not _is_int(steps) or steps < 1:
-            raise ValueError(f"PGDAdversarialTraining: steps must be an integer >= 1, got {steps!r}")
-        if not _is_number(fraction) or not 0.0 <= fraction <= 1.0:
-            raise ValueError(f"PGDAdversarialTraining: fraction must be a number in [0, 1] (the share of each "
-                             f"batch replaced), got {fraction!r}")
-        if len(mean) != len(std):
+        check_settings(self.SETTINGS, locals(), "PGDAdversarialTraining")
+        if (mean is None) != (std is None):
+            raise ValueError("PGDAdversarialTraining: give mean and std together (how the images were normalised, "
+                             "in [0, 1] pixel units), or neither (the model's own normalisation preset)")
+        if mean is not None and len(mean) != len(std):
             raise ValueError(f"PGDAdversarialTraining: mean and std must give one value per channel each, got "
                              f"{len(mean)} and {len(std)} values")
-        if not all(_is_number(s) and s > 0 for s in std):
-            raise ValueError(f"PGDAdversarialTraining: std must be numbers > 0, got {list(std)!r}")
         self.eps, self.step_size, self.steps = eps, step_size, steps
         self.random_start = random_start
         self.fraction = fraction
-        self.mean = torch.tensor(mean, dtype=torch.float32)
-        self.std = torch.tensor(std, dtype=torch.float32)
+        self.mean = None if mean is None else tuple(float(m) for m in mean)
+        self.std = None if std is None else tuple(float(s) for s in std)
         self.adapter = adapter or BatchAdapter()
         self.loss_fn = loss_fn or default_loss
         self.generator = torch.Generator().manual_seed(seed)
@@ -87,19 +78,28 @@ class PGDAdversarialTraining(pl.Callback):
         with torch.no_grad():
             images[:count] = adversarial[:count]
 
-    def bounds(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """(eps, step, low, high) per channel, in the units of the image tensor, shaped (1, C, 1, 1)."""
-        if images.shape[1] != len(self.std):
+    def mean_std(self, pl_module: pl.LightningModule) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        """(mean, std) per channel of the image tensor, in [0, 1] pixel units: the constructor's, else those of the
+        normalisation preset `pl_module`'s build config records (`imagenet` for a module that records none)."""
+        if self.mean is not None:
+            return self.mean, self.std
+        return normalization(spec_normalization(getattr(pl_module, "build_config", None))).pixel_mean_std()
+
+    def bounds(self, images: torch.Tensor, pl_module: pl.LightningModule
+               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(eps, step, low, high) per channel, in the units of the image tensor, shaped (1, C, 1, 1): low and high
+        are the tensor's values of pixels 0 and 255."""
+        mean, std = (torch.tensor(v, dtype=torch.float32, device=images.device).view(1, -1, 1, 1)
+                     for v in self.mean_std(pl_module))
+        if images.shape[1] != std.shape[1]:
             raise ValueError(f"PGDAdversarialTraining: images have {images.shape[1]} channels but mean/std "
-                             f"give {len(self.std)}")
-        std = self.std.to(images.device).view(1, -1, 1, 1)
-        mean = self.mean.to(images.device).view(1, -1, 1, 1)
+                             f"give {std.shape[1]}")
         return self.eps / std, self.step_size / std, (0 - mean) / std, (1 - mean) / std
 
     def attack(self, pl_module: pl.LightningModule, batch, images: torch.Tensor, trainer: pl.Trainer | None = None):
         """The PGD adversarial images for `batch` (the batch itself is left as it was)."""
         clean = images.detach().clone().float()
-        eps, step, low, high = self.bounds(clean)
+        eps, step, low, high = self.bounds(clean, pl_module)
         delta = torch.zeros_like(clean)
         if self.random_start:
             noise = torch.rand(clean.shape, generator=self.generator).to(clean.device)

@@ -2,14 +2,14 @@
 
 sim.vehicle moves the car (kinematic bicycle); episode.drive renders each step from the car's pose and runs the
 policy (policies: a lane detector or the ground truth through a lane keeper: ground lanes, a tracker, a controller;
-a VLM); scoring gives the paper's attack success rule and the deviation and departure scores; protocol.Protocol
+a VLM); run_scores gives the paper's attack success rule and the deviation and departure scores; protocol.Protocol
 plans the grid of cases, illusions, severities and repeats, which tasks/closed_loop.py drives, resumable, and
 report/closed_loop.py writes its tables and plots.
 """
 
-from lanevil_train.closed_loop.controller import LaneKeeper, lane_keeper
-from lanevil_train.closed_loop.controllers import LinearMPC, PurePursuit, Stanley
 from lanevil_train.closed_loop.episode import LoopSettings, Run, drive
+from lanevil_train.closed_loop.lane_keeper import LaneKeeper, lane_keeper
+from lanevil_train.closed_loop.lateral_controllers import LinearMPC, PurePursuit, Stanley
 from lanevil_train.closed_loop.policies import (
                                                 DRIVING_QUESTION,
                                                 DetectorPolicy,
@@ -19,7 +19,7 @@ from lanevil_train.closed_loop.policies import (
                                                 parse_direction,
 )
 from lanevil_train.closed_loop.protocol import Protocol
-from lanevil_train.closed_loop.scoring import ASR_THRESHOLD_M, ASR_WINDOW_S, run_scores, wilson_interval
+from lanevil_train.closed_loop.run_scores import ASR_THRESHOLD_M, ASR_WINDOW_S, run_scores, wilson_interval
 
 __all__ = ["LaneKeeper", "lane_keeper", "LinearMPC", "PurePursuit", "Stanley", "LoopSettings", "Run", "drive",
            "Protocol", "DRIVING_QUESTION", "DetectorPolicy", "Observation", "TruthPolicy", "VLMPolicy",

@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 
 from lanevil_train.closed_loop.episode import Run, render_view
-from lanevil_train.closed_loop.scoring import ASR_THRESHOLD_M
+from lanevil_train.closed_loop.run_scores import ASR_THRESHOLD_M
 from lanevil_train.files.atomic import atomic_write_bytes
 from lanevil_train.sim.vehicle import VehicleState
 

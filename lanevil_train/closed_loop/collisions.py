@@ -39,7 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lanevil_train.closed_loop.scoring import HALF_CAR_WIDTH_M
+from lanevil_train.closed_loop.run_scores import HALF_CAR_WIDTH_M
 from lanevil_train.illusions.context import context_from_scene
 from lanevil_train.illusions.footprint import STANDING
 from lanevil_train.illusions.road_damage import LEVELS, RAIL_Z_FAR, rail_offsets
@@ -129,7 +129,7 @@ def collision(trace: Sequence[dict], obstacle: Obstacle | Sequence[Obstacle] | N
     collision (bool); collision_t: the first time its rectangle overlaps one (between steps, the pose is
     interpolated linearly at most substep_m apart and the contact bisected to 1e-6 of a step); time_to_collision_s:
     collision_t minus the run's start (trace[0]['t']); collision_after_entry_s: collision_t minus entry_s (the run's
-    entry into the illusion region, scoring.entry_time; negative when the car's front reaches the object before
+    entry into the illusion region, run_scores.entry_time; negative when the car's front reaches the object before
     its rear axle enters the region; None without an entry); obstacle: the obstacle hit (as_dict), else None."""
     if not trace:
         raise ValueError("collision: an empty trace")

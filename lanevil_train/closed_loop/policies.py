@@ -4,7 +4,7 @@ A policy is anything with `name`, `reset()` (a new run) and `act(observation) ->
 a small JSON-able dict kept in the run's trace (`lanes`: how many lanes it saw, where that applies). Three ship:
 
 * DetectorPolicy: a lane detector (a trained LaneDetector, any family) + a LaneKeeper (tracker and controller,
-  closed_loop/controller.py) on its lanes;
+  closed_loop/lane_keeper.py) on its lanes;
 * TruthPolicy: the simulator's ground-truth lanes + a LaneKeeper (an oracle, optionally with every lane moved by
   `shift_m` on the ground: a detector that is wrong by a known amount);
 * VLMPolicy: a driving VLM (any vlm/ backend) asked DRIVING_QUESTION about the last frames; its answer, read by
@@ -21,7 +21,7 @@ from typing import Protocol
 
 import numpy as np
 
-from lanevil_train.closed_loop.controller import LaneKeeper
+from lanevil_train.closed_loop.lane_keeper import LaneKeeper
 from lanevil_train.rules import check_settings, integer, number, text
 from lanevil_train.sim import Camera, Scene
 

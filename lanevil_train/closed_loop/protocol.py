@@ -3,7 +3,7 @@
 For every case (scene seed first_seed + i), every illusion and every repeat, the car starts start_before_m
 (drawn per repeat and seed) before the illusion region and drives once clean (the twin, severity 0) and once at
 each severity. A run is an attack success when the car leaves the lane centre by more than threshold_m
-(closed_loop/scoring.py). task=closed_loop builds one Protocol from task.* and passes it down.
+(closed_loop/run_scores.py). task=closed_loop builds one Protocol from task.* and passes it down.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lanevil_train.closed_loop.episode import Run, illusion_region
-from lanevil_train.closed_loop.scoring import ASR_THRESHOLD_M
+from lanevil_train.closed_loop.run_scores import ASR_THRESHOLD_M
 from lanevil_train.data.illusion_set import Plan
 from lanevil_train.rules import check_settings, integer, number, number_range
 from lanevil_train.taxonomy import ILLUSION_NAMES

@@ -13,6 +13,7 @@ from lanevil_train.data.normalization import DEFAULT_NORMALIZATION
 from lanevil_train.data.resize import DEFAULT_RESIZE
 from lanevil_train.data.transforms import LaneSampleProcessor
 from lanevil_train.errors import prefixed
+from lanevil_train.rules import is_int
 
 
 class ProcessedDataset(Dataset):
@@ -77,7 +78,7 @@ def encoder_max_lanes(encode: Callable | None) -> int | None:
     the encoder object itself; None when it has no such limit."""
     owner = getattr(encode, "__self__", encode)
     value = getattr(owner, "max_lanes", None)
-    return int(value) if isinstance(value, (int, np.integer)) and not isinstance(value, bool) else None
+    return int(value) if is_int(value) else None
 
 
 def check_lane_counts(dataset: Dataset | None, max_lanes: int, split: str = "train") -> None:

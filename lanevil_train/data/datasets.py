@@ -3,10 +3,15 @@
 Every sample's meta carries a stable "case_id" and the "h_samples" rows at which the TuSimple
 metric scores it; a dataset scored by another CULane-style procedure than CULane's says which in "culane_metric"
 (LLAMAS: "llamas", see lanevil_train/metrics/llamas.py).
+
+A split's labels alone, without its images where the labels suffice: `labelled_lanes` (each item's lanes and image
+size) and `input_lane_sets` (each item's lanes in a network input's pixels, e.g. for counting which LaneATT anchors a
+train split uses, tasks/detector/anchor_use.py).
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +19,7 @@ from torch.utils.data import Dataset
 
 from lanevil_train.data.formats import load_image, read_culane, read_tusimple
 from lanevil_train.data.formats.llamas import read_llamas
+from lanevil_train.data.preprocessor import lanes_to_input
 from lanevil_train.errors import prefixed
 from lanevil_train.lanes import default_h_samples, lane_extent_problem
 from lanevil_train.sim import render_scene
@@ -91,12 +97,31 @@ class _RecordDataset(Dataset):
         record = self.records[index]
         return str(record.get("raw_file") or record.get("rel_path") or record["image_path"])
 
-    def __getitem__(self, index: int) -> dict:
+    def _image(self, index: int) -> np.ndarray:
+        """Record `index`'s image (a bad one reported with the record's source)."""
         record = self.records[index]
         try:
-            image = load_image(record["image_path"])
+            return load_image(record["image_path"])
         except (FileNotFoundError, ValueError) as error:
             raise prefixed(error, record.get("source", f"record {index}")) from None
+
+    def labelled_lanes(self) -> Iterator[tuple[list[np.ndarray], tuple[int, int]]]:
+        """Each record's lanes (float64, original pixels) and its image's (H, W), from the labels alone: every image
+        taken to be the first one's size (one image read), a record whose lanes do not fit that size read for its
+        own."""
+        if not self.records:
+            return
+        size = self._image(0).shape[:2]
+        for index, record in enumerate(self.records):
+            lanes = [np.asarray(lane, dtype=np.float64) for lane in record.get("lanes") or []]
+            own = size
+            if any(lane_extent_problem(lane, *size) for lane in lanes):
+                own = self._image(index).shape[:2]
+            yield lanes, own
+
+    def __getitem__(self, index: int) -> dict:
+        record = self.records[index]
+        image = self._image(index)
         h_samples = record.get("h_samples")
         if h_samples is None:
             h_samples = default_h_samples(image.shape[0])
@@ -119,6 +144,26 @@ def _check_lane_extent(source: str, lanes: list[np.ndarray], height: int, width:
         problem = lane_extent_problem(lane, height, width)
         if problem is not None:
             raise ValueError(f"{source}: lanes[{i}] does not fit the {width}x{height} image: {problem}")
+
+
+def labelled_lanes(dataset) -> Iterator[tuple[list[np.ndarray], tuple[int, int]]]:
+    """Each item's lanes (original pixels) and its image's (H, W), in order: a dataset of records (TuSimple, CULane,
+    LLAMAS) from its labels (`_RecordDataset.labelled_lanes`), any other (simulated scenes) item by item."""
+    own = getattr(dataset, "labelled_lanes", None)
+    if own is not None:
+        yield from own()
+        return
+    for index in range(len(dataset)):
+        sample = dataset[index]
+        yield sample["lanes"], sample["image"].shape[:2]
+
+
+def input_lane_sets(dataset, input_size: tuple[int, int], crop_top: float = 0.0) -> Iterator[list[np.ndarray]]:
+    """Each item's lanes in the pixels of a network input of input_size (H, W) whose images lose their top crop_top
+    first, as the datamodule feeds them without augmentation (preprocessor.lanes_to_input), read as
+    `labelled_lanes` reads them."""
+    for lanes, size in labelled_lanes(dataset):
+        yield lanes_to_input(lanes, size, input_size, crop_top)
 
 
 class TuSimpleDataset(_RecordDataset):

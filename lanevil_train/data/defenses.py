@@ -7,13 +7,13 @@ workers. Neither moves or removes lane keypoints: the lane is still there under 
 
 from __future__ import annotations
 
-import numbers
 from typing import Any, Sequence
 
 import albumentations as A
 import numpy as np
 
 from lanevil_train.data.normalization import NORMALIZATIONS
+from lanevil_train.rules import Rule, check_settings, integer, is_list, is_number, number, ok, one_or_pair, probability
 
 # ImageNet mean in uint8 RGB: a hole of this colour is 0 (within half a grey level) after the `imagenet`
 # normalisation, which is what DeVries & Taylor's cutout does on normalised inputs. Under another preset the
@@ -21,22 +21,10 @@ from lanevil_train.data.normalization import NORMALIZATIONS
 IMAGENET_MEAN_UINT8 = NORMALIZATIONS["imagenet"].mean_colour()
 
 
-def _is_number(value: Any) -> bool:
-    return isinstance(value, numbers.Real) and not isinstance(value, bool)
-
-
-def _range(value: Any, name: str, kind: type, low: float, high: float | None) -> tuple:
-    """A (min, max) pair from a scalar or a 2-list, checked against [low, high]."""
-    if isinstance(value, (int, float)):
-        value = (value, value)
-    pair = tuple(value)
-    if len(pair) != 2:
-        raise ValueError(f"LaneCutout: {name} must be a number or a [min, max] pair, got {value!r}")
-    pair = (kind(pair[0]), kind(pair[1]))
-    if not (low <= pair[0] <= pair[1]) or (high is not None and pair[1] > high):
-        bound = f"[{low}, {high}]" if high is not None else f">= {low}"
-        raise ValueError(f"LaneCutout: {name} must satisfy min <= max within {bound}, got {value!r}")
-    return pair
+def _pair(value: Any, kind: type) -> tuple:
+    """(min, max) of a value one_or_pair accepts: a scalar v is (v, v)."""
+    low, high = value if is_list(value) else (value, value)
+    return kind(low), kind(high)
 
 
 class LaneCutout(A.ImageOnlyTransform):
@@ -50,19 +38,24 @@ class LaneCutout(A.ImageOnlyTransform):
     mean colour of data.normalize's preset, Normalization.mean_colour, unless the config sets a fill).
     """
 
+    SETTINGS = {
+        "num_holes": one_or_pair(integer(1)),
+        "hole_height": one_or_pair(Rule("a fraction of the image height in [0, 1]", number(0, 1).test)),
+        "hole_width": one_or_pair(Rule("a fraction of the image width in [0, 1]", number(0, 1).test)),
+        "fill": Rule("one grey level or an RGB triple of them",
+                     lambda v: ok(is_number(v) or is_list(v) and len(v) in (1, 3) and all(is_number(x) for x in v))),
+        "p": probability(),
+    }
+
     def __init__(self, num_holes: Sequence[int] | int = (1, 3), hole_height: Sequence[float] | float = (0.1, 0.3),
                  hole_width: Sequence[float] | float = (0.1, 0.3), fill: Sequence[float] | float = IMAGENET_MEAN_UINT8,
                  p: float = 0.5):
-        if not _is_number(p) or not 0.0 <= p <= 1.0:
-            raise ValueError(f"LaneCutout: p must be a probability in [0, 1], got {p!r}")
+        check_settings(self.SETTINGS, locals(), "LaneCutout")
         super().__init__(p=p)
-        self.num_holes = _range(num_holes, "num_holes", int, 1, None)
-        self.hole_height = _range(hole_height, "hole_height", float, 0.0, 1.0)
-        self.hole_width = _range(hole_width, "hole_width", float, 0.0, 1.0)
-        fill_values = [float(fill)] if isinstance(fill, (int, float)) else [float(v) for v in fill]
-        if len(fill_values) not in (1, 3):
-            raise ValueError(f"LaneCutout: fill must be one value or an RGB triple, got {fill!r}")
-        self.cutout_fill = tuple(fill_values)
+        self.num_holes = _pair(num_holes, int)
+        self.hole_height = _pair(hole_height, float)
+        self.hole_width = _pair(hole_width, float)
+        self.cutout_fill = tuple(float(v) for v in (fill if is_list(fill) else [fill]))
 
     def get_transform_init_args(self) -> dict[str, Any]:
         """Constructor arguments, for albumentations' repr and (de)serialisation."""
@@ -106,6 +99,11 @@ def fill_holes(image: np.ndarray, holes: np.ndarray, fill: Sequence[float]) -> n
     return out
 
 
+HSV_SETTINGS = {**{name: Rule(f"a shift limit in [0, {high}]", number(0, high).test)
+                   for name, high in (("hue", 180), ("saturation", 255), ("value", 255))},
+                "p": probability()}
+
+
 def hsv_jitter(hue: float = 20, saturation: float = 40, value: float = 40, p: float = 0.8) -> A.HueSaturationValue:
     """The `hsv` defense: HSV jitter about 2.5x the default augmentation's (8, 20, 15 at p=0.4).
 
@@ -114,9 +112,5 @@ def hsv_jitter(hue: float = 20, saturation: float = 40, value: float = 40, p: fl
     p=0.8 jitters most images while leaving some clean ones, as illusions (tints, glare, dusk)
     change colour and brightness far more than the mild default jitter does.
     """
-    for name, limit, high in (("hue", hue, 180), ("saturation", saturation, 255), ("value", value, 255)):
-        if not _is_number(limit) or not 0 <= limit <= high:
-            raise ValueError(f"hsv_jitter: {name} must be a shift limit in [0, {high}], got {limit!r}")
-    if not _is_number(p) or not 0.0 <= p <= 1.0:
-        raise ValueError(f"hsv_jitter: p must be a probability in [0, 1], got {p!r}")
+    check_settings(HSV_SETTINGS, locals(), "hsv_jitter")
     return A.HueSaturationValue(hue_shift_limit=hue, sat_shift_limit=saturation, val_shift_limit=value, p=p)

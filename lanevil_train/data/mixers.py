@@ -9,7 +9,6 @@ Inputs are not modified: changed items are shallow copies with new arrays.
 
 from __future__ import annotations
 
-import numbers
 import os
 
 import cv2
@@ -17,6 +16,7 @@ import numpy as np
 import torch
 
 from lanevil_train.lanes import lane_x_at
+from lanevil_train.rules import Rule, check_settings, integer, number, probability
 
 
 class _SeededMixer:
@@ -49,16 +49,6 @@ class _SeededMixer:
         return state
 
 
-def _is_number(value) -> bool:
-    return isinstance(value, numbers.Real) and not isinstance(value, bool)
-
-
-def _check_probability(p: float, owner: str) -> float:
-    if not _is_number(p) or not 0.0 <= p <= 1.0:
-        raise ValueError(f"{owner}: p must be a probability in [0, 1], got {p!r}")
-    return float(p)
-
-
 def _check_images(items: list[dict], owner: str) -> None:
     shapes = {np.shape(it["image"]) for it in items}
     if len(shapes) > 1:
@@ -82,12 +72,14 @@ class MixUp(_SeededMixer):
     Each image is mixed with probability p with another (unmixed) image of the same batch.
     """
 
+    SETTINGS = {"alpha": Rule("a number > 0 (lambda ~ Beta(alpha, alpha))", number(0, low_open=True).test),
+                "p": probability()}
+
     def __init__(self, alpha: float = 0.2, p: float = 0.5, seed: int | None = None):
+        check_settings(self.SETTINGS, locals(), "MixUp")
         super().__init__(seed)
-        if not _is_number(alpha) or not alpha > 0:
-            raise ValueError(f"MixUp: alpha must be a number > 0 (lambda ~ Beta(alpha, alpha)), got {alpha!r}")
         self.alpha = float(alpha)
-        self.p = _check_probability(p, "MixUp")
+        self.p = float(p)
 
     def plan(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         """Partner index and lam for each of n images; partner -1 and lam 1.0 where not mixed."""
@@ -155,19 +147,18 @@ class LaneCopyPaste(_SeededMixer):
     marking is a few px wide, so band=8 carries it plus some road; min_gap=24 is 3 bands.
     """
 
+    SETTINGS = {"p": probability(),
+                **{name: Rule("a number of input pixels >= 0", number(0).test) for name in ("band", "min_gap")},
+                "max_lanes": integer(1), "max_paste": integer(1)}
+
     def __init__(self, p: float = 0.5, band: float = 8.0, min_gap: float = 24.0, max_lanes: int = 6,
                  max_paste: int = 1, seed: int | None = None):
-        super().__init__(seed)
-        self.p = _check_probability(p, "LaneCopyPaste")
-        for name, value in (("band", band), ("min_gap", min_gap)):
-            if not _is_number(value) or value < 0:
-                raise ValueError(f"LaneCopyPaste: {name} must be a number of input pixels >= 0, got {value!r}")
+        check_settings(self.SETTINGS, locals(), "LaneCopyPaste")
         if min_gap < band:
             raise ValueError(f"LaneCopyPaste: need band <= min_gap (a pasted band must not cover a "
                              f"labelled lane), got band={band}, min_gap={min_gap}")
-        for name, value in (("max_lanes", max_lanes), ("max_paste", max_paste)):
-            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
-                raise ValueError(f"LaneCopyPaste: {name} must be an integer >= 1, got {value!r}")
+        super().__init__(seed)
+        self.p = float(p)
         self.band = float(band)
         self.min_gap = float(min_gap)
         self.max_lanes = int(max_lanes)

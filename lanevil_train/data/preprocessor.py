@@ -18,7 +18,7 @@ import numpy as np
 
 from lanevil_train.data.normalization import DEFAULT_NORMALIZATION, normalization, normalize_image
 from lanevil_train.data.resize import DEFAULT_RESIZE, resize_filter, resize_image
-from lanevil_train.data.transforms import LaneSampleProcessor, crop_rows
+from lanevil_train.data.transforms import LaneSampleProcessor, clip_lane_to_image, crop_lane_rows, crop_rows
 from lanevil_train.lanes import scale_lanes
 
 COLOR_ORDERS = ("bgr", "rgb")
@@ -32,6 +32,20 @@ def lanes_to_original(lanes: Sequence[np.ndarray], input_size: tuple[int, int], 
     h, w = original_size
     cut = int(round(crop_top * h))
     return [lane + np.array([0.0, cut]) for lane in scale_lanes(list(lanes), w / in_w, (h - cut) / in_h)]
+
+
+def lanes_to_input(lanes: Sequence[np.ndarray], original_size: tuple[int, int], input_size: tuple[int, int],
+                   crop_top: float) -> list[np.ndarray]:
+    """Lanes of an original image of original_size (H, W) in input pixels, as a sample's labels reach the network
+    without augmentation (the inverse of lanes_to_original): the top crop_top of the height cut, each lane cut at the
+    border of what is left (transforms.clip_lane_to_image), then scaled to input_size; a lane left with fewer than 2
+    points is dropped."""
+    h, w = original_size
+    rows = crop_rows(crop_top, h)
+    scale = np.array([input_size[1] / w, input_size[0] / (h - rows)])
+    cropped = crop_lane_rows([np.asarray(lane, dtype=np.float64).reshape(-1, 2) for lane in lanes], rows)
+    clipped = [clip_lane_to_image(lane, h - rows, w) for lane in cropped]
+    return [lane * scale for lane in clipped if len(lane) >= 2]
 
 
 @dataclass(frozen=True)

@@ -122,12 +122,18 @@ def crop_rows(crop_top: float, height: int) -> int:
     return int(round(crop_top * height))
 
 
+def crop_lane_rows(lanes: list[np.ndarray], rows: int) -> list[np.ndarray]:
+    """Lanes of an image whose top `rows` rows are cut: moved up with it, without their points above the cut; a lane
+    left with fewer than 2 points is dropped."""
+    moved = [lane[lane[:, 1] >= rows] - np.array([0.0, rows]) for lane in lanes]
+    return [lane for lane in moved if len(lane) >= 2]
+
+
 def crop_top_rows(image: np.ndarray, lanes: list[np.ndarray], rows: int) -> tuple[np.ndarray, list[np.ndarray]]:
     """Drop the top `rows` rows of an image; lanes move up with it and lose their points above the cut."""
     if rows == 0:
         return image, lanes
-    moved = [lane[lane[:, 1] >= rows] - np.array([0.0, rows]) for lane in lanes]
-    return image[rows:], [lane for lane in moved if len(lane) >= 2]
+    return image[rows:], crop_lane_rows(lanes, rows)
 
 
 class LaneSampleProcessor:

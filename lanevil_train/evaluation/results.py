@@ -7,9 +7,9 @@ from pathlib import Path
 
 import pytorch_lightning as pl
 
-from lanevil_train.evaluation.scoring import PerImageWriter, read_records
-from lanevil_train.report.scores import summary_rows
+from lanevil_train.evaluation.lane_records import PerImageWriter, read_records
 from lanevil_train.report.specs import record_set
+from lanevil_train.report.summary import summary_rows
 from lanevil_train.report.tables import print_table, write_table
 
 

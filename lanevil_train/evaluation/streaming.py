@@ -17,8 +17,8 @@ from torch.utils.data import DataLoader, Dataset, Subset
 from lanevil_train.data.datamodule import ProcessedDataset, collate_lanes
 from lanevil_train.data.normalization import DEFAULT_NORMALIZATION, spec_normalization
 from lanevil_train.data.resize import DEFAULT_RESIZE, spec_resize
+from lanevil_train.evaluation.lane_records import lane_record
 from lanevil_train.evaluation.prediction_files import prediction_fields
-from lanevil_train.evaluation.scoring import lane_record
 from lanevil_train.files.atomic import atomic_write_text
 from lanevil_train.models.cuda_graphs import GraphedInference
 from lanevil_train.models.detector import LaneDetector

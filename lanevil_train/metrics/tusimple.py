@@ -39,6 +39,7 @@ from typing import Sequence
 import numpy as np
 
 from lanevil_train.lanes import lanes_to_rows
+from lanevil_train.rules import is_number
 
 __all__ = [
     "tusimple_count_f1",
@@ -302,13 +303,10 @@ def _lane_rows(value: object, ys: np.ndarray, path: Path, lineno: int, raw: str,
 
 def _check_thresholds(pixel_thresh, pt_thresh) -> None:
     """ValueError naming the threshold unless pixel_thresh is finite > 0 and pt_thresh in (0, 1]."""
-    def real(v) -> bool:
-        return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)
-
-    if not real(pixel_thresh) or not (math.isfinite(pixel_thresh) and pixel_thresh > 0):
+    if not is_number(pixel_thresh) or not (math.isfinite(pixel_thresh) and pixel_thresh > 0):
         raise ValueError(f"pixel_thresh (--pixel-thresh) must be a finite number of pixels > 0 (official: 20), "
                          f"got {pixel_thresh}")
-    if not real(pt_thresh) or not 0 < pt_thresh <= 1:
+    if not is_number(pt_thresh) or not 0 < pt_thresh <= 1:
         raise ValueError(f"pt_thresh (--pt-thresh) must be a fraction of matched points in (0, 1] (official: 0.85), "
                          f"got {pt_thresh}")
 

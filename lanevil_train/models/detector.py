@@ -190,7 +190,7 @@ class LaneDetector(pl.LightningModule):
 
     def test_step(self, batch: dict, batch_idx: int) -> list[list[np.ndarray]]:
         """Scores the batch into the test metric; returns the decoded lanes (original pixels) per image, which
-        a callback may turn into per-image records (tasks/scoring.PerImageWriter)."""
+        a callback may turn into per-image records (evaluation/lane_records.PerImageWriter)."""
         return self._score_batch(batch, self.test_metric)
 
     def on_test_epoch_end(self) -> None:

@@ -29,6 +29,8 @@ from pathlib import Path, PurePosixPath
 import cv2
 import numpy as np
 
+from lanevil_train.rules import Rule, check_settings, integer, null_or
+
 log = logging.getLogger(__name__)
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp")
@@ -37,15 +39,13 @@ FRAME_KEY = "frame_{:06d}"  # a video frame's key: its index in the video
 FAILED_READS_AT_END = 5  # this many failed reads in a row end a video (a header may count frames it does not hold)
 
 
+SELECTION_SETTINGS = {"stride": Rule("an integer >= 1 (every k-th frame)", integer(1).test),
+                      "max_frames": null_or(integer(1))}
+
+
 def check_selection(stride, max_frames) -> tuple[int, int | None]:
     """stride an integer >= 1, max_frames null or an integer >= 1."""
-    def integer(value) -> bool:
-        return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
-
-    if not integer(stride) or stride < 1:
-        raise ValueError(f"stride: expected an integer >= 1 (every k-th frame), got {stride!r}")
-    if max_frames is not None and (not integer(max_frames) or max_frames < 1):
-        raise ValueError(f"max_frames: expected null or an integer >= 1, got {max_frames!r}")
+    check_settings(SELECTION_SETTINGS, {"stride": stride, "max_frames": max_frames}, "")
     return int(stride), None if max_frames is None else int(max_frames)
 
 

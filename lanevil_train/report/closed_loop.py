@@ -1,7 +1,7 @@
 """Closed-loop tables and plots from run records (one dict per run, closed_loop/ and tasks/closed_loop.py).
 
 A run record holds: model, key, case_id, illusion, category, severity (0: the clean twin), perturbed, repeat,
-and the scores of closed_loop.scoring.run_scores (success, max_deviation_m, first_departure_s,
+and the scores of closed_loop.run_scores.run_scores (success, max_deviation_m, first_departure_s,
 departures_per_km...). Every table compares each group's perturbed runs with their clean twins (the same cases,
 illusions and starts driven without the illusion); ASR intervals are Wilson 95 % intervals over the runs (cases
 x repeats). Plots: ASR per category (clean vs perturbed, whiskers: the intervals) and the lateral deviation over
@@ -19,7 +19,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from lanevil_train.closed_loop.scoring import ASR_THRESHOLD_M, ASR_WINDOW_S, wilson_interval  # noqa: E402
+from lanevil_train.closed_loop.run_scores import ASR_THRESHOLD_M, ASR_WINDOW_S, wilson_interval  # noqa: E402
 from lanevil_train.files.atomic import atomic_write_text  # noqa: E402
 from lanevil_train.report.plots import save_figure  # noqa: E402
 from lanevil_train.report.records import ordered  # noqa: E402

@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
+from lanevil_train.rules import check_settings, is_int, number
 from lanevil_train.sim.presets import (
     MARKING_STRIPES,
     MARKING_TYPES,
@@ -18,9 +18,7 @@ from lanevil_train.sim.presets import (
 
 
 def _check_range(name: str, value, lo: float, hi: float) -> None:
-    if not isinstance(value, (int, float, np.integer, np.floating)) or isinstance(value, bool) \
-            or not math.isfinite(float(value)) or not lo <= float(value) <= hi:
-        raise ValueError(f"SceneParams.{name}: expected a number in [{lo}, {hi}], got {value!r}")
+    check_settings({name: number(lo, hi)}, {name: value}, "SceneParams")
 
 
 def _check_name(name: str, value, allowed: tuple[str, ...]) -> None:
@@ -70,8 +68,7 @@ class SceneParams:
         _check_range("s_curve_flip", self.s_curve_flip, 10.0, 500.0)
         _check_range("grade", self.grade, 0.0, 0.15)
         _check_range("slope_start", self.slope_start, 0.0, 200.0)
-        if not isinstance(self.num_lanes, (int, np.integer)) or isinstance(self.num_lanes, bool) \
-                or not 2 <= self.num_lanes <= 5:
+        if not is_int(self.num_lanes) or not 2 <= self.num_lanes <= 5:
             raise ValueError(f"SceneParams.num_lanes: expected an integer in [2, 5], got {self.num_lanes!r}")
         _check_range("lane_width", self.lane_width, 2.5, 4.5)
         if self.markings is not None:
@@ -83,8 +80,7 @@ class SceneParams:
                 if mk not in MARKING_STRIPES:
                     raise ValueError(f"SceneParams.markings[{i}]: unknown {mk!r}, expected one of "
                                      f"{list(MARKING_STRIPES)}")
-        if self.ego_lane is not None and (not isinstance(self.ego_lane, (int, np.integer))
-                                          or not 0 <= self.ego_lane < self.num_lanes):
+        if self.ego_lane is not None and (not is_int(self.ego_lane) or not 0 <= self.ego_lane < self.num_lanes):
             raise ValueError(f"SceneParams.ego_lane: expected None or an integer in [0, {self.num_lanes - 1}],"
                              f" got {self.ego_lane!r}")
         _check_range("lateral_offset", self.lateral_offset, -1.2, 1.2)

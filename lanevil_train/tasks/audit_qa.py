@@ -1,4 +1,4 @@
-"""task=audit_qa: how much of a QA file's closed answers the words alone give away (vlm/scoring/leakage.py).
+"""task=audit_qa: how much of a QA file's closed answers the words alone give away (vlm/answer_scoring/leakage.py).
 
     python -m lanevil_train task=audit_qa task.suite=PATH   # a clip suite folder or a DriveLM-style QA .json
     python -m lanevil_train task=audit_qa task.suite=synthetic task.cases=200   # this benchmark's own QA
@@ -16,7 +16,7 @@ from omegaconf import DictConfig
 from lanevil_train.errors import prefixed
 from lanevil_train.report.tables import print_table
 from lanevil_train.tasks.builders import output_dir
-from lanevil_train.vlm.scoring.leakage import audit, read_qa_file, synthetic_qa, write_audit
+from lanevil_train.vlm.answer_scoring.leakage import audit, read_qa_file, synthetic_qa, write_audit
 
 
 def audit_qa(cfg: DictConfig) -> float:

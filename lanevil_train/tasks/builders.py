@@ -83,6 +83,21 @@ def build_model(spec: dict) -> LaneDetector:
     return create_detector(DetectorSpec.from_build_config(spec))
 
 
+def model_label(model, label: str | None = None, defense: str | None = None) -> str:
+    """A detector's name in results, tables and reports: `label` (task.label) when one is set, else
+    <family>-<backbone> of the network's build config (laneatt-resnet18), with +<defense> when it was trained
+    with one (laneatt-resnet18+aam++; None or "none": no defense)."""
+    if label:
+        return str(label)
+    spec = model.build_config or {}
+    try:
+        name = f"{spec['model']['name']}-{spec['backbone']['name']}"
+    except (KeyError, TypeError):
+        raise ValueError(f"a {type(model).__name__} without a build config naming its model and backbone has no "
+                         f"label: set task.label") from None
+    return name if defense in (None, "none") else f"{name}+{defense}"
+
+
 def build_defense(cfg: DictConfig) -> dict:
     """The configured defense as library objects: {"transforms": [...], "mixer": ..., "callback": ...}.
 
@@ -101,20 +116,16 @@ def build_defense(cfg: DictConfig) -> dict:
     transforms = [instantiate_at(node, f"defense.transforms[{i}]", **_normalization_arguments(node, preset))
                   for i, node in enumerate(defense.get("transforms") or [])]
     mixer = instantiate_at(defense.mixer, "defense.mixer") if defense.get("mixer") is not None else None
-    callback = None
-    if defense.get("callback") is not None:
-        extra = _normalization_arguments(defense.callback, preset)
-        callback = instantiate_at(defense.callback, "defense.callback", **extra)
+    # a callback working on pixels (PGD) reads the normalisation of the model it trains: its build config's
+    callback = instantiate_at(defense.callback, "defense.callback") if defense.get("callback") is not None else None
     return {"transforms": transforms, "mixer": mixer, "callback": callback}
 
 
 def _normalization_arguments(node, preset: Normalization) -> dict:
     """What a defense working on pixels must know of the input normalisation, unless its config says it: cutout's
-    fill is the preset's mean colour (0 after normalising, as DeVries & Taylor's holes), PGD's mean and std put its
-    [0, 1]-pixel eps-ball and valid range into the tensor's units."""
+    fill is the preset's mean colour (0 after normalising, as DeVries & Taylor's holes)."""
     from hydra.utils import get_class
 
-    from lanevil_train.callbacks import PGDAdversarialTraining
     from lanevil_train.data.defenses import LaneCutout
 
     try:
@@ -125,9 +136,6 @@ def _normalization_arguments(node, preset: Normalization) -> dict:
         return {}
     if issubclass(target, LaneCutout) and "fill" not in node:
         return {"fill": preset.mean_colour()}
-    if issubclass(target, PGDAdversarialTraining) and not {"mean", "std"} & set(node):
-        mean, std = preset.pixel_mean_std()
-        return {"mean": mean, "std": std}
     return {}
 
 

@@ -23,8 +23,6 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from lanevil_train.closed_loop.collisions import collision
-from lanevil_train.closed_loop.controller import LaneKeeper, lane_keeper
-from lanevil_train.closed_loop.controllers import Limits
 from lanevil_train.closed_loop.episode import (
     LoopSettings,
     Run,
@@ -33,15 +31,17 @@ from lanevil_train.closed_loop.episode import (
     ego_lane,
     run_obstacles,
 )
+from lanevil_train.closed_loop.lane_keeper import LaneKeeper, lane_keeper
+from lanevil_train.closed_loop.lateral_controllers import Limits
 from lanevil_train.closed_loop.policies import DetectorPolicy, TruthPolicy, VLMPolicy
 from lanevil_train.closed_loop.protocol import Protocol
-from lanevil_train.closed_loop.scoring import run_scores, twin_scores
+from lanevil_train.closed_loop.run_scores import run_scores, twin_scores
 from lanevil_train.evaluation.streaming import claim_results
 from lanevil_train.files.atomic import atomic_write_text
 from lanevil_train.progress import progress_counter
 from lanevil_train.results_log import ResultsLog
 from lanevil_train.sim.vehicle import VehicleParams
-from lanevil_train.tasks.builders import checkpoint_model, output_dir
+from lanevil_train.tasks.builders import checkpoint_model, model_label, output_dir
 from lanevil_train.tasks.kinds import is_vlm
 from lanevil_train.tasks.vlm.builders import build_defended_vlm
 from lanevil_train.taxonomy import ILLUSION_NAMES
@@ -109,8 +109,7 @@ def build_policies(cfg: DictConfig, settings: ClosedLoopSettings) -> list[tuple[
     out = []
     for label, path in models.items():
         model = checkpoint_model(OmegaConf.merge(cfg, {"ckpt_path": path}))
-        spec = model.build_config or {}
-        label = label or f"{spec['model']['name']}-{spec['backbone']['name']}"
+        label = model_label(model, label)
         policy = DetectorPolicy(model, settings.keeper(), name=label)
         out.append((policy, {"policy": "detector", **run_identity(model, {"model": label})}))
     return out

@@ -19,7 +19,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from lanevil_train.evaluation.scoring import read_records
+from lanevil_train.evaluation.lane_records import read_records
 from lanevil_train.files.atomic import atomic_write_text
 from lanevil_train.report.defenses import (
     REFERENCE,

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-from lanevil_train.evaluation.scoring import read_records
+from lanevil_train.evaluation.lane_records import read_records
 from lanevil_train.report.defenses import REFERENCE
 
 log = logging.getLogger(__name__)

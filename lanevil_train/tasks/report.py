@@ -6,11 +6,11 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
+from lanevil_train.evaluation.lane_records import RESULTS
 from lanevil_train.evaluation.results import log_results, write_results
-from lanevil_train.evaluation.scoring import RESULTS
 from lanevil_train.tasks.builders import build_logger, output_dir
 from lanevil_train.tasks.seed_report import relabels, seed_runs, write_seed_report
-from lanevil_train.vlm.scoring.evaluation import PER_ANSWER
+from lanevil_train.vlm.answer_scoring.evaluation import PER_ANSWER
 
 RESULT_FILES = (RESULTS, PER_ANSWER)  # a lane detector's per-image scores, a VLM's per-answer scores
 

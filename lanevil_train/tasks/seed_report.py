@@ -65,7 +65,7 @@ def write_seed_report(files: list[Path], out_dir: Path, baseline: str | None = N
     """seeds.{md,json,csv} and seed_gains.{json,csv,md} (+ seed_gains[_<dataset>].png) in out_dir when some model has
     several seeds on a dataset; the report's path, or None. Per dataset: models with one run take part as one seed,
     and every run must be scored on the same items."""
-    from lanevil_train.evaluation.scoring import read_records
+    from lanevil_train.evaluation.lane_records import read_records
     from lanevil_train.report.defenses import gain_plot
     from lanevil_train.report.intervals import SeedRuns, gain_rows, gain_text, mean_std_text, seed_rows
 

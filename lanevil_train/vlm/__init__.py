@@ -1,6 +1,6 @@
 """Driving vision-language models, around one contract (base.py: VLM) that every part uses:
 backends/ (the models: Hugging Face, OpenAI-compatible servers, the embedded VLM), clips/ (clips and QA from the
-simulator), training/ (fine-tuning), defenses/ (the textual defenses: PAT++, PAT, Self-Reminder) and scoring/
+simulator), training/ (fine-tuning), defenses/ (the textual defenses: PAT++, PAT, Self-Reminder) and answer_scoring/
 (answer evaluation, judges). http.py is the chat-completions client the OpenAI backend, the judges and the
-paraphraser share; tiny.py builds tiny random VLMs for tests and docs. Backends import their heavy libraries
-(transformers, HTTP) only when built."""
+paraphraser share; tokenizer.py trains the offline BPE tokenizers (the embedded VLM's). Backends import their
+heavy libraries (transformers, HTTP) only when built."""

@@ -178,17 +178,19 @@ def test_bad_layer_and_bad_parameters_are_named():
 
 
 @pytest.mark.parametrize("argument, value, expected", [
-    ("layer", "", "layer must be the dotted name of a module"),
-    ("output_index", 0.5, "output_index must be an integer"),
-    ("t_haa", "0.6", r"t_haa must be a number in \[0, 1\], got '0.6'"),
-    ("beta", -0.1, r"beta must be a number in \[0, 1\], got -0.1"),
-    ("sigma", -1.0, "sigma must be a number >= 0"),
-    ("lane_width", 0.0, r"lane_width must be a fraction of the image width in \(0, 1\], got 0.0"),
-    ("bank_size", 0, "bank_size must be an integer >= 1, got 0"),
-    ("start_step", -1, "start_step must be an integer >= 0, got -1"),
+    ("layer", "", "layer: expected the dotted name of a module"),
+    ("mode", "aam+++", r"mode: expected one of aam, aam\+\+, got 'aam\+\+\+'"),
+    ("output_index", 0.5, "output_index: expected an integer"),
+    ("t_haa", "0.6", r"t_haa: expected a number in \[0, 1\], got '0.6'"),
+    ("beta", -0.1, r"beta: expected a number in \[0, 1\], got -0.1"),
+    ("sigma", -1.0, "sigma: expected a number >= 0"),
+    ("sigma", float("nan"), "sigma: expected a number >= 0"),
+    ("lane_width", 0.0, r"lane_width: expected a fraction of the image width in \(0, 1\], got 0.0"),
+    ("bank_size", 0, "bank_size: expected an integer >= 1, got 0"),
+    ("start_step", -1, "start_step: expected an integer >= 0, got -1"),
 ])
 def test_each_bad_argument_is_named_with_its_range(argument, value, expected):
-    with pytest.raises(ValueError, match=f"AttentionAreaMixing: {expected}"):
+    with pytest.raises(ValueError, match=f"AttentionAreaMixing.{expected}"):
         make_callback(**{argument: value})
 
 

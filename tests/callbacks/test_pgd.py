@@ -1,15 +1,16 @@
 """PGD adversarial training: the perturbation stays in the eps-ball and the pixel range, and raises the loss."""
 
+import numpy as np
 import pytest
 import pytorch_lightning as pl
 import torch
 
 from lanevil_train.callbacks import BatchAdapter, PGDAdversarialTraining
-from lanevil_train.callbacks.pgd import IMAGENET_MEAN, IMAGENET_STD
+from lanevil_train.data.normalization import NORMALIZATIONS, Normalization, normalize_image
 from tests.callbacks.test_aam import TinySegmenter
 
-MEAN = torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1)
-STD = torch.tensor(IMAGENET_STD).view(1, 3, 1, 1)
+# a module recording no normalisation preset (TinySegmenter has no build config) is taken to be on imagenet's
+MEAN, STD = (torch.tensor(v).view(1, 3, 1, 1) for v in NORMALIZATIONS["imagenet"].pixel_mean_std())
 
 
 def batch(n=4, h=16, w=24):
@@ -72,17 +73,63 @@ def test_default_loss_uses_the_module_batch_loss_or_training_step():
 
 
 @pytest.mark.parametrize("arguments, expected", [
-    ({"eps": -1.0}, "eps must be a number >= 0"),
-    ({"step_size": 0.0}, "step_size must be a number > 0 "),
-    ({"steps": 0}, "steps must be an integer >= 1, got 0"),
-    ({"steps": 1.5}, "steps must be an integer >= 1, got 1.5"),
-    ({"fraction": 1.5}, r"fraction must be a number in \[0, 1\]"),
-    ({"mean": (0.5,)}, "mean and std must give one value per channel each, got 1 and 3"),
-    ({"std": (0.2, 0.0, 0.2)}, "std must be numbers > 0"),
+    ({"eps": -1.0}, r"\.eps: expected a number >= 0 \(the L-inf radius"),
+    ({"eps": float("nan")}, r"\.eps: expected a number >= 0"),
+    ({"step_size": 0.0}, r"\.step_size: expected a number > 0 "),
+    ({"steps": 0}, r"\.steps: expected an integer >= 1, got 0"),
+    ({"steps": 1.5}, r"\.steps: expected an integer >= 1, got 1.5"),
+    ({"fraction": 1.5}, r"\.fraction: expected a number in \[0, 1\]"),
+    ({"mean": (0.5,), "std": (0.2, 0.2, 0.2)}, ": mean and std must give one value per channel each, got 1 and 3"),
+    ({"mean": (0.5, 0.5, 0.5)}, ": give mean and std together"),
+    ({"mean": [0.0, 0.0, 0.0], "std": [0.2, 0.0, 0.2]},
+     r"\.std: expected null or a non-empty list of numbers > 0, got \[0.2, 0.0, 0.2\]"),
 ])
 def test_each_bad_argument_is_named_with_its_range(arguments, expected):
-    with pytest.raises(ValueError, match=f"PGDAdversarialTraining: {expected}"):
+    with pytest.raises(ValueError, match=f"PGDAdversarialTraining{expected}"):
         PGDAdversarialTraining(**arguments)
+
+
+class PresetSegmenter(TinySegmenter):
+    """A module whose build config records its normalisation preset, as a LaneDetector's does."""
+
+    def __init__(self, normalize: str):
+        super().__init__(seed=1)
+        self.build_config = {"normalize": normalize}
+
+
+@pytest.mark.parametrize("name", ["laneatt", "ganet", "half"])
+def test_the_adversarial_input_stays_within_the_model_presets_pixel_range_and_reaches_it(name, monkeypatch):
+    # laneatt: BGR / 255 with no mean or std (the tensor is [0, 1] pixels); ganet: 0..255 with its own mean and
+    # std; half: RGB / 255 with mean and std 0.5. ImageNet's range would let pixels go past 0 and 255 under each.
+    monkeypatch.setitem(NORMALIZATIONS, "half", Normalization("RGB", 255.0, (0.5,) * 3, (0.5,) * 3))
+    black, white = (torch.from_numpy(normalize_image(np.full((1, 1, 3), v, np.uint8), name)).view(1, 3, 1, 1)
+                    for v in (0, 255))
+    pixels = np.random.default_rng(0).integers(0, 256, (4, 16, 24, 3), dtype=np.uint8)
+    images = torch.from_numpy(np.stack([normalize_image(p, name) for p in pixels]))
+    masks = torch.zeros(4, 16, 24)
+    masks[:, :, 10:12] = 1
+    b, clean = (images, masks), images.clone()
+    eps = 16 / 255
+    pgd = PGDAdversarialTraining(eps=eps, step_size=4 / 255, steps=3,
+                                 adapter=BatchAdapter(images=0, lane_mask=1, lanes=None), loss_fn=loss_of)
+    pgd.on_train_batch_start(None, PresetSegmenter(name), b, 0)
+    adversarial = b[0]
+    assert not torch.equal(adversarial, clean)
+    tolerance = 1e-5 * (white - black)
+    assert torch.all(adversarial >= black - tolerance) and torch.all(adversarial <= white + tolerance)
+    # the pixels 0 and 255 themselves are reached in every channel
+    assert torch.all((adversarial - black).abs().amin(dim=(0, 2, 3), keepdim=True) <= tolerance)
+    assert torch.all((adversarial - white).abs().amin(dim=(0, 2, 3), keepdim=True) <= tolerance)
+    assert torch.all((adversarial - clean).abs() <= eps * (white - black) + tolerance)  # eps of the 0..255 range
+
+
+def test_mean_and_std_given_override_the_models_preset():
+    module = PresetSegmenter("laneatt")
+    images = torch.zeros(1, 3, 2, 2)
+    _, _, low, high = PGDAdversarialTraining().bounds(images, module)
+    assert low.flatten().tolist() == [0.0] * 3 and high.flatten().tolist() == [1.0] * 3
+    _, _, low, high = PGDAdversarialTraining(mean=(0.5,) * 3, std=(0.5,) * 3).bounds(images, module)
+    assert low.flatten().tolist() == [-1.0] * 3 and high.flatten().tolist() == [1.0] * 3
 
 
 def test_pgd_in_a_lightning_fit_under_bf16():

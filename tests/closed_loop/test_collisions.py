@@ -17,7 +17,7 @@ from lanevil_train.closed_loop.collisions import (
     obstacles,
 )
 from lanevil_train.closed_loop.episode import case_scene, ego_lane, illusion_region
-from lanevil_train.closed_loop.scoring import entry_time
+from lanevil_train.closed_loop.run_scores import entry_time
 from lanevil_train.illusions import traffic
 from lanevil_train.illusions.context import context_from_scene
 from lanevil_train.illusions.registry import get_illusion

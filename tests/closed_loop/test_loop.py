@@ -22,7 +22,7 @@ from lanevil_train.closed_loop import (
     wilson_interval,
 )
 from lanevil_train.closed_loop.episode import case_scene, ego_lane, illusion_region
-from lanevil_train.closed_loop.scoring import attack_fired_at, departures, entry_time
+from lanevil_train.closed_loop.run_scores import attack_fired_at, departures, entry_time
 from lanevil_train.closed_loop.tracker import FrameTracker
 from lanevil_train.sim import Camera
 from lanevil_train.vlm.base import VLM

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from lanevil_train.closed_loop import LoopSettings, Run, TruthPolicy, drive, lane_keeper
-from lanevil_train.closed_loop.controllers import LinearMPC, PurePursuit, Stanley
 from lanevil_train.closed_loop.episode import case_scene, illusion_region
 from lanevil_train.closed_loop.ground import GroundLane
+from lanevil_train.closed_loop.lateral_controllers import LinearMPC, PurePursuit, Stanley
 from lanevil_train.closed_loop.tracker import CentreLine, KalmanLaneTracker, Motion
 
 STEP = Motion(distance_m=2.0, yaw_rad=0.0, dt_s=0.1)  # 20 m/s at 10 Hz, straight

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from lanevil_train.closed_loop.scoring import attack_fired_at, run_scores, twin_deviation, twin_scores
+from lanevil_train.closed_loop.run_scores import attack_fired_at, run_scores, twin_deviation, twin_scores
 
 LANE_WIDTH_M = 3.5
 SPEED = 20.0  # m/s

@@ -87,13 +87,16 @@ def test_cutout_with_augmentation_is_seeded_and_picklable():
 
 
 def test_cutout_rejects_bad_arguments():
-    with pytest.raises(ValueError, match="hole_height"):
-        LaneCutout(hole_height=(0.5, 1.5))
-    with pytest.raises(ValueError, match="num_holes"):
+    with pytest.raises(ValueError, match=r"LaneCutout.hole_height: expected a fraction of the image height in "
+                                         r"\[0, 1\], or a \[min, max\] pair of them with min <= max, got \[0.5, 1.5\]"):
+        LaneCutout(hole_height=[0.5, 1.5])
+    with pytest.raises(ValueError, match="LaneCutout.num_holes: expected an integer >= 1, or a"):
         LaneCutout(num_holes=(3, 1))
-    with pytest.raises(ValueError, match="fill"):
+    with pytest.raises(ValueError, match="LaneCutout.num_holes"):
+        LaneCutout(num_holes=1.5)
+    with pytest.raises(ValueError, match="LaneCutout.fill: expected one grey level or an RGB triple"):
         LaneCutout(fill=(1, 2))
-    with pytest.raises(ValueError, match=r"LaneCutout: p must be a probability in \[0, 1\], got 1.5"):
+    with pytest.raises(ValueError, match=r"LaneCutout.p: expected a probability in \[0, 1\], got 1.5"):
         LaneCutout(p=1.5)
 
 
@@ -111,7 +114,7 @@ def test_hsv_jitter_changes_colour_deterministically_and_keeps_lanes():
     assert np.abs(outs[0].astype(int) - image.astype(int)).mean() > 3  # visibly changed
     t = hsv_jitter()
     assert t.hue_shift_limit == (-20, 20) and t.sat_shift_limit == (-40, 40) and t.p == 0.8
-    with pytest.raises(ValueError, match=r"hsv_jitter: value must be a shift limit in \[0, 255\], got -1"):
+    with pytest.raises(ValueError, match=r"hsv_jitter.value: expected a shift limit in \[0, 255\], got -1"):
         hsv_jitter(value=-1)
-    with pytest.raises(ValueError, match=r"hsv_jitter: hue must be a shift limit in \[0, 180\], got 'a'"):
+    with pytest.raises(ValueError, match=r"hsv_jitter.hue: expected a shift limit in \[0, 180\], got 'a'"):
         hsv_jitter(hue="a")

@@ -67,7 +67,8 @@ def test_mixup_p0_and_single_image_leave_images_untouched():
     assert all(a is b for a, b in zip(out, items))
     one = _batch(1)
     assert MixUp(p=1.0, seed=1)(one)[0] is one[0]
-    with pytest.raises(ValueError, match="MixUp: alpha must be a number > 0"):
+    with pytest.raises(ValueError, match=r"MixUp.alpha: expected a number > 0 \(lambda ~ Beta\(alpha, alpha\)\), "
+                                         r"got 0.0"):
         MixUp(alpha=0.0)
 
 
@@ -128,11 +129,11 @@ def test_copypaste_respects_max_lanes_and_max_paste():
     assert full is target
     with pytest.raises(ValueError, match="band"):
         LaneCopyPaste(band=10.0, min_gap=5.0)
-    with pytest.raises(ValueError, match="LaneCopyPaste: band must be a number of input pixels >= 0, got -1"):
+    with pytest.raises(ValueError, match="LaneCopyPaste.band: expected a number of input pixels >= 0, got -1"):
         LaneCopyPaste(band=-1)
-    with pytest.raises(ValueError, match="LaneCopyPaste: max_paste must be an integer >= 1, got 0"):
+    with pytest.raises(ValueError, match="LaneCopyPaste.max_paste: expected an integer >= 1, got 0"):
         LaneCopyPaste(max_paste=0)
-    with pytest.raises(ValueError, match=r"LaneCopyPaste: p must be a probability in \[0, 1\], got 2"):
+    with pytest.raises(ValueError, match=r"LaneCopyPaste.p: expected a probability in \[0, 1\], got 2"):
         LaneCopyPaste(p=2)
 
 

@@ -102,9 +102,10 @@ def test_a_cutout_fill_set_in_the_config_is_kept():
 
 @pytest.mark.parametrize("name", sorted(NORMALIZATIONS))
 def test_pgd_clamps_to_the_normalised_black_and_white_of_each_preset(name):
-    pgd = build_defense(_defense_cfg("pgd", name))["callback"]
+    # the preset is the trained model's (its build config's), whatever data.normalize says
+    pgd = build_defense(_defense_cfg("pgd", "imagenet"))["callback"]
     images = torch.zeros(1, 3, 2, 2)
-    eps, _, low, high = pgd.bounds(images)
+    eps, _, low, high = pgd.bounds(images, build_model({**SPEC, "normalize": name}))
     black, white = (normalize_image(np.full((1, 1, 3), v, np.uint8), name)[:, 0, 0] for v in (0, 255))
     np.testing.assert_allclose(low.flatten().numpy(), black, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(high.flatten().numpy(), white, rtol=1e-5, atol=1e-6)

@@ -11,6 +11,7 @@ import torch
 
 from lanevil_train.data.datasets import TuSimpleDataset
 from lanevil_train.data.formats import write_culane, write_tusimple
+from lanevil_train.evaluation.lane_records import lane_record, read_records
 from lanevil_train.evaluation.prediction_files import (
     CULANE_DIR,
     CULANE_LIST,
@@ -19,7 +20,6 @@ from lanevil_train.evaluation.prediction_files import (
     prediction_fields,
     write_prediction_files,
 )
-from lanevil_train.evaluation.scoring import lane_record, read_records
 from lanevil_train.evaluation.streaming import stream_evaluate
 from lanevil_train.metrics import evaluate_culane_dirs, evaluate_tusimple_files
 from lanevil_train.metrics.culane_files import read_lines_file

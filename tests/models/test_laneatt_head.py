@@ -7,10 +7,11 @@ import torch
 from lanevil_train.models.backbones import build_backbone
 from lanevil_train.models.laneatt import LaneATTHead
 from lanevil_train.models.laneatt.anchors import BOTTOM_ANGLES, LEFT_ANGLES, generate_anchors
-from lanevil_train.models.laneatt.frequency import FREQUENCY_FILE, top_anchors
+from lanevil_train.models.laneatt.frequency import top_anchors
 from lanevil_train.models.losses import focal_loss
 from lanevil_train.models.nms import lane_nms, lane_nms_batched
 from lanevil_train.models.rows import row_ys
+from lanevil_train.tasks.detector.anchor_use import FREQUENCY_FILE, choose_anchors
 
 from ._head_overfit import head_only_fit
 from ._lanes_fixture import synthetic_lanes, train_steps
@@ -109,10 +110,10 @@ def test_frequency_selection_keeps_the_anchors_the_lanes_use_most(tmp_path):
     # a 1 px (at 640) match threshold: a lane counts only for the anchor it lies on
     head = LaneATTHead(8, 16, image_size, anchor_selection="frequency", topk_anchors=2, frequency_threshold=1.0)
     assert not bool(head.anchors_chosen)
-    assert head.choose_anchors(scenes, cache_dir=tmp_path)
+    assert choose_anchors(head, scenes, cache_dir=tmp_path)
     assert head.anchor_index.tolist() == [a, b]  # most used first; the tie b / c goes to the earlier anchor
     np.testing.assert_allclose(head.anchor_xs.numpy(), anchors.xs[[a, b]], atol=1e-4)
-    assert bool(head.anchors_chosen) and not head.choose_anchors(scenes)  # chosen once
+    assert bool(head.anchors_chosen) and not choose_anchors(head, scenes)  # chosen once
     saved = np.load(tmp_path / FREQUENCY_FILE)["frequency"]
     assert saved[a] == 2 and saved[b] == 1 and saved[c] == 1 and saved.sum() == 4
     # top-k of counts: ties keep the official order
@@ -124,11 +125,11 @@ def test_frequency_selection_keeps_the_anchors_the_lanes_use_most(tmp_path):
     fresh.load_state_dict(head.state_dict())
     assert fresh.anchor_index.tolist() == [a, b] and bool(fresh.anchors_chosen)
     assert torch.equal(fresh.anchor_xs, head.anchor_xs) and torch.equal(fresh.cut_cols, head.cut_cols)
-    assert not fresh.choose_anchors(scenes)
+    assert not choose_anchors(fresh, scenes)
 
     scenes.unreadable = True  # a rerun in the same run directory reads the counts back
     cached = LaneATTHead(8, 16, image_size, anchor_selection="frequency", topk_anchors=2, frequency_threshold=1.0)
-    cached.choose_anchors(scenes, cache_dir=tmp_path)
+    choose_anchors(cached, scenes, cache_dir=tmp_path)
     assert cached.anchor_index.tolist() == [a, b]
 
 

@@ -202,7 +202,7 @@ def test_f1_count_columns_beside_the_papers_f1():
     assert type_table(recs)[0]["F1_count/Perturbed"] == pytest.approx(40.0)
     sev = severity_table(recs)[0]
     assert sev["F1_count"] == pytest.approx(40.0) and sev["F1_count/Original"] == pytest.approx(75.0)
-    from lanevil_train.report.scores import summary_rows
+    from lanevil_train.report.summary import summary_rows
 
     rows = {r["images_kind"]: r for r in summary_rows(recs)}
     assert list(rows["original"])[3:9] == ["images", "Accuracy", "FP", "FN", "F1", "F1_count"]

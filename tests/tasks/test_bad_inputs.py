@@ -202,7 +202,7 @@ def vlm_checkpoints(tmp_path_factory):
     tuned from a Hugging Face folder, one from the embedded VLM a run builds into its init/ folder."""
     import shutil
 
-    from lanevil_train.vlm.tiny import build_tiny_vlm
+    from lanevil_dev.tiny_vlm import build_tiny_vlm
     from lanevil_train.vlm.training.finetune import VLMFineTuner
 
     root = tmp_path_factory.mktemp("vlm_runs")

@@ -8,7 +8,7 @@ import json
 import pytest
 import torch
 
-from lanevil_train.evaluation.scoring import read_records
+from lanevil_train.evaluation.lane_records import read_records
 from tests.tasks.cli_helpers import TINY, run_cli, run_in_process
 
 

@@ -8,7 +8,7 @@ import json
 import pytest
 import torch
 
-from lanevil_train.closed_loop.scoring import run_scores
+from lanevil_train.closed_loop.run_scores import run_scores
 from lanevil_train.results_log import ResultsLog
 from lanevil_train.tasks import run_task
 from lanevil_train.tasks.builders import build_model, model_config
@@ -101,7 +101,7 @@ def test_bad_closed_loop_settings_fail_naming_the_key(override, message):
 
 
 def test_a_local_vlm_with_a_textual_defense_drives_the_loop_from_its_answers(tmp_path):
-    from lanevil_train.vlm.tiny import build_tiny_vlm
+    from lanevil_dev.tiny_vlm import build_tiny_vlm
 
     model = build_tiny_vlm("qwen2_vl", tmp_path / "tiny-qwen2-vl")
     out = tmp_path / "loop"

@@ -10,7 +10,7 @@ from hydra import compose, initialize_config_module
 from hydra.core.global_hydra import GlobalHydra
 from omegaconf import OmegaConf
 
-from lanevil_train.evaluation.scoring import read_records
+from lanevil_train.evaluation.lane_records import read_records
 from lanevil_train.tasks.compare import check_defenses, compare, compose_run, run_overrides
 from lanevil_train.tasks.finished_runs import records_from_runs
 from tests.report.test_defenses import RECORDS

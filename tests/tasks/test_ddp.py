@@ -11,7 +11,7 @@ import torch
 import torch.distributed as dist
 import torch.multiprocessing as mp
 
-from lanevil_train.evaluation.scoring import read_records
+from lanevil_train.evaluation.lane_records import read_records
 from lanevil_train.metrics import TuSimpleMetric
 from tests.tasks.cli_helpers import TINY, run_cli
 

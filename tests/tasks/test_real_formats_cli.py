@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 
 from lanevil_train.data.formats import write_culane, write_tusimple
-from lanevil_train.evaluation.scoring import read_records
+from lanevil_train.evaluation.lane_records import read_records
 from tests.tasks.cli_helpers import run_cli, write_photo_dataset
 
 COMMON = ["data.input_size=[64,160]", "data.batch_size=2", "data.num_workers=0", "trainer.accelerator=cpu",

@@ -7,8 +7,8 @@ import json
 import numpy as np
 import pytest
 
+from lanevil_train.evaluation.lane_records import lane_record
 from lanevil_train.evaluation.results import write_results
-from lanevil_train.evaluation.scoring import lane_record
 from lanevil_train.lanes import default_h_samples
 
 

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from lanevil_train.data.suites import SyntheticIllusionSuite
-from lanevil_train.evaluation.scoring import read_records
+from lanevil_train.evaluation.lane_records import read_records
 from lanevil_train.evaluation.streaming import stream_evaluate
 from lanevil_train.tasks.builders import build_model
 

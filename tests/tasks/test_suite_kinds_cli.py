@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 
-from lanevil_train.evaluation.scoring import read_records
+from lanevil_train.evaluation.lane_records import read_records
 from tests.tasks.cli_helpers import TINY, run_cli, run_in_process
 
 

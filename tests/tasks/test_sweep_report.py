@@ -7,7 +7,7 @@ import json
 import numpy as np
 from omegaconf import OmegaConf
 
-from lanevil_train.evaluation.scoring import lane_record
+from lanevil_train.evaluation.lane_records import lane_record
 from lanevil_train.tasks.sweep_report import ReportSweep
 
 

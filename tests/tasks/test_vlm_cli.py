@@ -9,10 +9,10 @@ import shutil
 
 import pytest
 
+from lanevil_dev.fake_server import FakeServer
+from lanevil_dev.tiny_vlm import build_tiny_vlm
 from lanevil_train.results_log import ResultsLog
-from lanevil_train.testing.fake_server import FakeServer
 from lanevil_train.vlm.clips.drivelm import read_drivelm
-from lanevil_train.vlm.tiny import build_tiny_vlm
 from tests.tasks.cli_helpers import run_cli, run_in_process
 
 CLIPS = ["data=clips", "data.size=[48,80]", "task.cases=1", "task.illusions=[road_repair]", "task.severities=[3]",

@@ -9,8 +9,8 @@ import json
 import pytest
 from omegaconf import OmegaConf
 
+from lanevil_dev.tiny_vlm import build_tiny_vlm
 from lanevil_train.results_log import ResultsLog
-from lanevil_train.vlm.tiny import build_tiny_vlm
 from tests.tasks.cli_helpers import composed, run_cli, run_in_process
 from tests.tasks.test_vlm_train_cli import ANSWERS, TINY_CLIPS
 

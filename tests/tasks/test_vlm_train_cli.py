@@ -8,8 +8,8 @@ import json
 
 import pytest
 
+from lanevil_dev.tiny_vlm import build_tiny_vlm
 from lanevil_train.results_log import ResultsLog
-from lanevil_train.vlm.tiny import build_tiny_vlm
 from tests.tasks.cli_helpers import run_cli, run_in_process
 
 # model=vlm/<backend> selects data=clips itself: the commands below are the natural forms, with tiny sizes

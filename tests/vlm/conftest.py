@@ -7,7 +7,7 @@ import importlib.util
 import numpy as np
 import pytest
 
-from lanevil_train.vlm.tiny import build_tiny_vlm
+from lanevil_dev.tiny_vlm import build_tiny_vlm
 
 # SmolVLM's processor refuses to start without the num2words package.
 NEEDS = {"smolvlm": "num2words"}

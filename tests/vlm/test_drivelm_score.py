@@ -1,5 +1,5 @@
-"""DriveLM's challenge score (vlm/scoring/drivelm_score.py) on constructed parts: the match F1 of points, the final
-score's weights, a missing match counted 0, and the tags a DriveLM file carries read and written."""
+"""DriveLM's challenge score (vlm/answer_scoring/drivelm_score.py) on constructed parts: the match F1 of points, the
+final score's weights, a missing match counted 0, and the tags a DriveLM file carries read and written."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ import json
 import pytest
 
 from lanevil_train.report.specs import language_part
+from lanevil_train.vlm.answer_scoring.drivelm_score import drivelm_parts, final_score, match_f1
+from lanevil_train.vlm.answer_scoring.evaluation import answer_records
 from lanevil_train.vlm.clips.drivelm import read_drivelm, to_drivelm
-from lanevil_train.vlm.scoring.drivelm_score import drivelm_parts, final_score, match_f1
-from lanevil_train.vlm.scoring.evaluation import answer_records
 
 
 def test_match_f1_pairs_points_greedily_within_an_l1_distance_of_16():

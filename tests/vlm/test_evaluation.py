@@ -13,10 +13,10 @@ from lanevil_train.metrics.vqa import language_scores
 from lanevil_train.report.robustness import main_table
 from lanevil_train.report.specs import VQA_SPEC, record_set
 from lanevil_train.results_log import ResultsLog
+from lanevil_train.vlm.answer_scoring.evaluation import ANSWERS, PER_ANSWER, evaluate_clips, pair_key
 from lanevil_train.vlm.base import VLM, BlindVLM
 from lanevil_train.vlm.clips.clip_set import SyntheticClipSuite
 from lanevil_train.vlm.clips.qa_records import answer_is_correct, prompt_text
-from lanevil_train.vlm.scoring.evaluation import ANSWERS, PER_ANSWER, evaluate_clips, pair_key
 
 LABEL = {"model": "brightness", "dataset": "tiny-clips"}
 

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
+from lanevil_dev.tiny_vlm import FAMILIES, make_tiny_vlm
 from lanevil_train.vlm.backends.hf import HFVLM, IGNORE_INDEX, model_dir_hash
-from lanevil_train.vlm.tiny import FAMILIES, make_tiny_vlm
 
 QUESTIONS = ["How many lanes does the road have in front of the ego vehicle?", "Is it wet?"]
 ANSWERS = ["The road has three lanes.", "Yes."]

@@ -5,8 +5,8 @@ import json
 
 import pytest
 
-from lanevil_train.testing.fake_server import FakeServer
-from lanevil_train.vlm.scoring.judge import EmbeddingJudge, OpenAIJudge, judge_prompt, parse_score
+from lanevil_dev.fake_server import FakeServer
+from lanevil_train.vlm.answer_scoring.judge import EmbeddingJudge, OpenAIJudge, judge_prompt, parse_score
 
 
 @pytest.fixture

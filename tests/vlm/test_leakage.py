@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from lanevil_train.report.reliance import reliance_rows
+from lanevil_train.vlm.answer_scoring.leakage import audit, read_qa_file, template_of
 from lanevil_train.vlm.backends.text_only import TextOnlyReader, TextOnlyVLM, split_prompt
 from lanevil_train.vlm.clips.qa_records import answer_is_correct, prompt_text
-from lanevil_train.vlm.scoring.leakage import audit, read_qa_file, template_of
 
 LEAKY_YES_NO = "Are the dark straight lines on the right shoulder part of the lane markings?"  # always No
 LEAKY_CHOICE = "What should the ego vehicle do next?"  # the safe action always the same

@@ -1,4 +1,4 @@
-"""The OpenAI-compatible backend against a real local HTTP server process (testing/fake_server.py), not a mock."""
+"""The OpenAI-compatible backend against a real local HTTP server process (lanevil_dev/fake_server.py), not a mock."""
 
 import hashlib
 import json
@@ -6,11 +6,11 @@ import json
 import numpy as np
 import pytest
 
+from lanevil_dev.fake_server import FakeServer
 from lanevil_train.results_log import ResultsLog
-from lanevil_train.testing.fake_server import FakeServer
+from lanevil_train.vlm.answer_scoring.judge import OpenAIJudge
 from lanevil_train.vlm.backends.openai import OpenAIVLM
 from lanevil_train.vlm.http import EndpointError, reply_text
-from lanevil_train.vlm.scoring.judge import OpenAIJudge
 
 
 @pytest.fixture

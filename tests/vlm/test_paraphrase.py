@@ -2,7 +2,7 @@
 
 import pytest
 
-from lanevil_train.testing.fake_server import FakeServer
+from lanevil_dev.fake_server import FakeServer
 from lanevil_train.vlm.clips.paraphrase import OpenAIParaphraser, clean_reply, is_yes_no, option_letters, rejection
 
 

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from lanevil_dev.tiny_vlm import FAMILIES
 from lanevil_train.vlm.backends.hf import HFVLM, IGNORE_INDEX
 from lanevil_train.vlm.defenses.gcg import (
     Examples,
@@ -19,7 +20,6 @@ from lanevil_train.vlm.defenses.gcg import (
     splice_prefix,
 )
 from lanevil_train.vlm.defenses.pat import RES_GOAL, PrefixObjective, hard_mask, hard_target, load_prefix, save_prefix
-from lanevil_train.vlm.tiny import FAMILIES
 
 QUESTIONS = ["How many lanes does the road have in front of the ego vehicle?", "Is it wet?"]
 ANSWERS = ["The road has three lanes.", "Yes."]

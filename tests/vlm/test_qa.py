@@ -363,7 +363,7 @@ def test_the_audit_finds_no_leak_in_the_suite(suite):
     """task=audit_qa's cross-fitted reader on this benchmark's own QA: no template gives its answer away, and the
     reader does no better than chance (it does worse: each template is exactly balanced over the suite, so the
     scenes it is fitted on hold the opposite majority of the ones it answers)."""
-    from lanevil_train.vlm.scoring.leakage import audit
+    from lanevil_train.vlm.answer_scoring.leakage import audit
 
     records = [{**qa, "scene": t["case_id"]} for t, qas in suite for qa in qas]
     result = audit(records, folds=2, seed=0, min_count=8, alpha=0.01)

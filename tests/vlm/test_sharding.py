@@ -18,7 +18,7 @@ import pytest
 import torch
 from torch import nn
 
-from lanevil_train.vlm.tiny import FAMILIES, make_tiny_vlm
+from lanevil_dev.tiny_vlm import FAMILIES, make_tiny_vlm
 from lanevil_train.vlm.training.sharding import (
     LayerWrapFSDPStrategy,
     checkpointed_blocks,

@@ -10,12 +10,12 @@ import pytorch_lightning as pl
 import torch
 from torch.utils.data import DataLoader
 
+from lanevil_dev.tiny_vlm import FAMILIES
 from lanevil_train.callbacks import AttentionAreaMixing, BatchAdapter, PGDAdversarialTraining
 from lanevil_train.data.mixers import MixUp
 from lanevil_train.vlm.backends.hf import HFVLM
 from lanevil_train.vlm.clips.clip_set import SyntheticClipSuite
 from lanevil_train.vlm.clips.qa_data import ClipQADataset, MixingClipCollate, clip_images, collate_clip_qa
-from lanevil_train.vlm.tiny import FAMILIES
 from lanevil_train.vlm.training.finetune import VLMFineTuner
 from lanevil_train.vlm.training.vision_maps import VISION_LAYERS, VisionMaps
 

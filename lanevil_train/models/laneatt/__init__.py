@@ -1,5 +1,6 @@
 """LaneATT (Tabelini et al., CVPR 2021): the head (head.py), its line anchors and target encoding (anchors.py),
-and the anchors the train split uses most (frequency.py, anchor_selection=frequency).
+and the choice of the anchors the train split uses most from their counts (frequency.py,
+anchor_selection=frequency; the counting: tasks/detector/anchor_use.py).
 """
 
 from lanevil_train.models.laneatt.head import LaneATTHead

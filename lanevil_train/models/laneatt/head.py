@@ -7,7 +7,8 @@ tensors only (ONNX-exportable); NMS and lane assembly live in ``decode``.
 Distance thresholds (matching, NMS) are given in pixels at ``reference_width`` (640, the
 official input width) and scaled by W / reference_width, so the defaults fit any input size.
 As the official (lucastabelini/LaneATT, lib/models/laneatt.py): the anchors can be the topk most
-used by the train split's lanes (anchor_selection=frequency, frequency.py), and the loss
+used by the train split's lanes (anchor_selection=frequency, frequency.py; the task counts them,
+tasks/detector/anchor_use.py), and the loss
 is computed on the proposals a lane NMS keeps (15 px, top 3,000, no score threshold).
 ``fraction_scale`` (anchors.FRACTION_SCALES) says how the anchors' fractions of the image become pixels, and the
 decoding's ``lane_points`` (decoding.LANE_POINTS) which points of a proposal make its lane: this
@@ -16,8 +17,6 @@ the official's (f x W, its proposals_to_pred).
 """
 
 from __future__ import annotations
-
-import logging
 
 import numpy as np
 import torch
@@ -34,19 +33,11 @@ from lanevil_train.models.laneatt.anchors import (
     generate_anchors,
 )
 from lanevil_train.models.laneatt.decoding import check_lane_points, official_lane_points
-from lanevil_train.models.laneatt.frequency import (
-    anchor_use_frequency,
-    cached_frequency,
-    dataset_fingerprint,
-    top_anchors,
-    train_lane_sets,
-)
+from lanevil_train.models.laneatt.frequency import top_anchors
 from lanevil_train.models.losses import anchor_target_distances, focal_loss
 from lanevil_train.models.nms import lane_ends, lane_nms, lane_nms_batched
 from lanevil_train.models.rows import FRACTION_SCALES, row_ys
 from lanevil_train.rules import check_settings, existing_file, integer, null_or, number, one_of
-
-log = logging.getLogger(__name__)
 
 # all: every anchor of the grid; frequency: the topk_anchors most used by the train split's lanes (the official)
 ANCHOR_SELECTIONS = ("all", "frequency")
@@ -158,7 +149,7 @@ class LaneATTHead(LaneHead):
         if anchor_selection == "all" and topk_anchors is not None and topk_anchors < total:
             raise ValueError(f"topk_anchors: {topk_anchors} of the {total} anchors with anchor_selection=all; "
                              "choose them with anchor_selection=frequency, or set topk_anchors=null")
-        # frequency selection: until the train split's counts arrive (choose_anchors), an even spread over the
+        # frequency selection: until the train split's counts arrive (use_frequency), an even spread over the
         # anchor list stands in; the chosen indices are a persistent buffer, so a checkpoint rebuilds the same net
         self.anchor_selection = anchor_selection if topk_anchors is not None and topk_anchors < total else "all"
         n_kept = total if self.anchor_selection == "all" else topk_anchors
@@ -230,28 +221,30 @@ class LaneATTHead(LaneHead):
             self._set_anchors(top_anchors(freq, self.n_anchors, ties))
         self.anchors_chosen.fill_(1)
 
-    def choose_anchors(self, train_dataset, crop_top: float = 0.0, cache_dir=None) -> bool:
-        """Before training: count how often the train split's lanes use each anchor and keep the most used
-        (anchor_selection=frequency). Nothing to do, and False, when every anchor is kept or the anchors are
-        chosen already (a checkpoint's). The counts are cached in cache_dir (the run directory)."""
-        if self.anchor_selection != "frequency" or bool(self.anchors_chosen) or train_dataset is None:
-            return False
+    def wants_anchor_use(self) -> bool:
+        """Whether the head waits for the train split's anchor-use counts (use_frequency): anchor_selection=frequency
+        and the anchors not chosen yet (a checkpoint's or a frequency file's are kept)."""
+        return self.anchor_selection == "frequency" and not bool(self.anchors_chosen)
+
+    def anchor_use_settings(self) -> dict:
+        """What anchors_used's counts depend on besides the images' lanes (a cached count's fingerprint): the full
+        anchor set, the rows, the match distance and the fraction scale."""
         full = self.all_anchors
+        return {"anchors": len(full), "n_offsets": self.n_offsets, "threshold": self.frequency_threshold,
+                "scale": self.fraction_scale, "first_xs": full.xs[:, 0].round(3).tolist()[:8]}
+
+    def anchors_used(self, lanes: list[np.ndarray]) -> np.ndarray:
+        """Per anchor of the full set, whether one image's lanes (input pixels) use it: its mean x distance to one of
+        them, over their common rows, is below frequency_threshold (a positive of the official's matching at
+        t_pos, as utils/gen_anchor_mask.py's save_mask counts it)."""
+        full = self.all_anchors
+        if not lanes:
+            return np.zeros(len(full), dtype=bool)
         xs, starts = torch.from_numpy(full.xs).float(), torch.from_numpy(full.starts)
-        key = dataset_fingerprint(train_dataset, self.image_size, crop_top,
-                                  {"anchors": len(full), "n_offsets": self.n_offsets,
-                                   "threshold": self.frequency_threshold, "scale": self.fraction_scale,
-                                   "first_xs": full.xs[:, 0].round(3).tolist()[:8]})
-
-        def count():
-            log.info("LaneATT: counting how often the %d train images' lanes use each of the %d anchors",
-                     len(train_dataset), len(full))
-            lanes = train_lane_sets(train_dataset, self.image_size, crop_top)
-            return anchor_use_frequency(xs, starts, lanes, self.image_size, self.n_offsets, self.frequency_threshold,
-                                        total=len(train_dataset), scale=self.fraction_scale)
-
-        self.use_frequency(cached_frequency(cache_dir, key, count))
-        return True
+        t = torch.from_numpy(encode_lanes(lanes, self.image_size, self.n_offsets, len(lanes),
+                                          self.fraction_scale))[None].float()
+        dist = anchor_target_distances(xs, starts, t[..., 0], t[..., 1], t[..., 2], t[..., TARGET_META:])
+        return (dist[0].min(dim=-1).values < self.frequency_threshold).numpy()
 
     # ------------------------------------------------------------------ forward
     def forward(self, features: list[torch.Tensor]) -> dict[str, torch.Tensor]:

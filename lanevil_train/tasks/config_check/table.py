@@ -9,9 +9,9 @@ from typing import Any
 from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
 
-from lanevil_train.closed_loop.controller import KEEPER_SETTINGS
-from lanevil_train.closed_loop.controllers import CONTROLLERS
 from lanevil_train.closed_loop.episode import LoopSettings
+from lanevil_train.closed_loop.lane_keeper import KEEPER_SETTINGS
+from lanevil_train.closed_loop.lateral_controllers import CONTROLLERS
 from lanevil_train.closed_loop.policies import VLMPolicy
 from lanevil_train.closed_loop.protocol import Protocol
 from lanevil_train.closed_loop.tracker import TRACKERS
@@ -19,6 +19,7 @@ from lanevil_train.data.illusion_set import Plan
 from lanevil_train.data.normalization import NORMALIZATIONS
 from lanevil_train.data.resize import RESIZE_FILTERS
 from lanevil_train.illusions import SEVERITIES
+from lanevil_train.illusions.registry import ILLUSIONS
 from lanevil_train.lanes import ROW_SAMPLINGS
 from lanevil_train.models.backbones import OUTPUT_STRIDES
 from lanevil_train.models.schedules import LR_SCALINGS
@@ -371,5 +372,12 @@ RULES.update({
     "task.format": one_of("tusimple", "culane", "both"),
     "task.write_frames": boolean(),
     "task.jpeg_quality": integer(1, 100),
+    "task.illusion": null_or(one_of(*ILLUSIONS)),
+    "task.severity": integer(1, 5),
+    "task.seed": integer(0),
+    "task.labels": null_or(existing_file("TuSimple label file")),
+    "task.speed_kmh": number(0, 300, low_open=True),
+    "task.relayout_m": number(0, 1000, low_open=True),
+    "task.smoothing": number(0, 1, low_open=True),
 })
 TASK_RULES["predict"] = {"data.root": None}

@@ -16,14 +16,21 @@ from omegaconf import DictConfig, OmegaConf
 
 from lanevil_train.data.suites import IllusionSetDataset, SyntheticIllusionSuite
 from lanevil_train.errors import prefixed
+from lanevil_train.evaluation.lane_records import RESULTS, read_records
 from lanevil_train.evaluation.prediction_files import write_prediction_files
 from lanevil_train.evaluation.results import log_results, write_results
-from lanevil_train.evaluation.scoring import RESULTS, read_records
 from lanevil_train.evaluation.streaming import stream_evaluate
 from lanevil_train.models.detector import LaneDetector
 from lanevil_train.models.head import check_decode_options
 from lanevil_train.report.specs import LANE_SPEC
-from lanevil_train.tasks.builders import build_logger, build_split, checkpoint_model, inference_device, output_dir
+from lanevil_train.tasks.builders import (
+    build_logger,
+    build_split,
+    checkpoint_model,
+    inference_device,
+    model_label,
+    output_dir,
+)
 from lanevil_train.tasks.detector.export import OnnxLaneDetector
 
 log = logging.getLogger(__name__)
@@ -103,7 +110,7 @@ def evaluate(cfg: DictConfig) -> float:
     dataset, dataset_name = test_dataset(cfg)
     scoring = Scoring.from_config(cfg)
     out = Path(cfg.task.out_dir) if cfg.task.out_dir else output_dir(cfg)
-    results = stream_dataset(model, dataset, dataset_name, out, model_label(cfg, model), scoring)
+    results = stream_dataset(model, dataset, dataset_name, out, model_label(model, cfg.task.label), scoring)
     value = write_results([results], out, baseline=scoring.baseline)
     log_results(build_logger(cfg), out)
     return value
@@ -115,7 +122,7 @@ def cross_domain(cfg: DictConfig) -> float:
     pl.seed_everything(cfg.seed, workers=True)
     model = load_checkpoint(cfg)
     real_set, suite = build_split(cfg, "test"), synthetic_suite(cfg)
-    scoring, label = Scoring.from_config(cfg), model_label(cfg, model)
+    scoring, label = Scoring.from_config(cfg), model_label(model, cfg.task.label)
     out = Path(cfg.task.out_dir) if cfg.task.out_dir else output_dir(cfg)
     real = stream_dataset(model, real_set, cfg.data.name, out / cfg.data.name, label, scoring)
     perturbed = stream_dataset(model, suite, "synthetic-illusions", out / "synthetic-illusions", label, scoring)
@@ -124,21 +131,14 @@ def cross_domain(cfg: DictConfig) -> float:
     return LANE_SPEC.headline.aggregate(read_records(real, keep_lanes=False))
 
 
-def model_label(cfg: DictConfig, model: LaneDetector) -> str:
-    """The model's name in the tables: task.label, else <model>-<backbone> of the checkpoint's network."""
-    spec = model.build_config
-    return cfg.task.label or f"{spec['model']['name']}-{spec['backbone']['name']}"
-
-
-def stream_dataset(model: LaneDetector, dataset, dataset_name: str, out: Path, model_label: str,
+def stream_dataset(model: LaneDetector, dataset, dataset_name: str, out: Path, label: str,
                    scoring: Scoring) -> Path:
     """Score `model` on `dataset` into out/per_image.jsonl (resumes a partial file), and with scoring.predictions
     write the official prediction files beside it; returns the per_image.jsonl path."""
-    label = {"model": model_label, "dataset": dataset_name}
     model.to(scoring.device)
-    results = stream_evaluate(model, dataset, out / RESULTS, label, batch_size=scoring.batch_size,
-                              num_workers=scoring.num_workers, progress=scoring.progress,
-                              predictions=scoring.predictions)
+    results = stream_evaluate(model, dataset, out / RESULTS, {"model": label, "dataset": dataset_name},
+                              batch_size=scoring.batch_size, num_workers=scoring.num_workers,
+                              progress=scoring.progress, predictions=scoring.predictions)
     if scoring.predictions:
         files = write_prediction_files(results, out)
         log.info("prediction files: %s (TuSimple JSON lines), %s/ (CULane .lines.txt)", files["tusimple"],

@@ -25,7 +25,14 @@ from lanevil_train.files.atomic import atomic_write_text
 from lanevil_train.models.detector import LaneDetector
 from lanevil_train.models.profile import FLOP_CONVENTION, FLOP_COUNTER, markdown_table, profile_network
 from lanevil_train.sim import render_scene
-from lanevil_train.tasks.builders import build_model, checkpoint_model, inference_device, model_config, output_dir
+from lanevil_train.tasks.builders import (
+    build_model,
+    checkpoint_model,
+    inference_device,
+    model_config,
+    model_label,
+    output_dir,
+)
 
 log = logging.getLogger(__name__)
 
@@ -78,7 +85,7 @@ def road_image(model: LaneDetector, seed: int = 0) -> torch.Tensor:
 
 def measure(cfg: DictConfig, model: LaneDetector, device: torch.device, settings: dict) -> dict:
     spec = model.build_config
-    row = {"label": f"{spec['model']['name']}-{spec['backbone']['name']}", "family": spec["model"]["name"],
+    row = {"label": model_label(model), "family": spec["model"]["name"],
            "backbone": spec["backbone"]["name"], "checkpoint": cfg.get("ckpt_path")}
     row.update(profile_network(model, spec["input_size"], device, settings["batch_sizes"], settings["warmup"],
                                settings["runs"], image=road_image(model, cfg.seed)))

@@ -19,8 +19,8 @@ from lanevil_train.checkpoints import (
 )
 from lanevil_train.data.normalization import spec_normalization
 from lanevil_train.data.resize import spec_resize
+from lanevil_train.evaluation.lane_records import RESULTS, PerImageWriter
 from lanevil_train.evaluation.results import score_test_set, write_results
-from lanevil_train.evaluation.scoring import RESULTS, PerImageWriter
 from lanevil_train.models.official import load_detector_weights, official_state_dict
 from lanevil_train.tasks.builders import (
     build_callbacks,
@@ -29,8 +29,10 @@ from lanevil_train.tasks.builders import (
     build_model,
     build_trainer,
     model_config,
+    model_label,
     output_dir,
 )
+from lanevil_train.tasks.detector.anchor_use import choose_anchors
 from lanevil_train.tasks.detector.evaluate import Scoring, stream_dataset, test_dataset
 
 log = logging.getLogger(__name__)
@@ -68,16 +70,17 @@ def train(cfg: DictConfig) -> float | None:
     defense = build_defense(cfg)
     callbacks = build_callbacks(cfg)
     remove_stale_checkpoint_temporaries(callbacks)
-    writer = PerImageWriter(out / RESULTS, {"model": run_label(cfg), "dataset": cfg.data.name})
+    label = model_label(model, cfg.task.get("label"), cfg.defense.name)
+    writer = PerImageWriter(out / RESULTS, {"model": label, "dataset": cfg.data.name})
     callbacks.append(writer)
     if defense["callback"] is not None:
         callbacks.append(defense["callback"])
     trainer = build_trainer(cfg, callbacks=callbacks)  # before the data: Lightning checks its arguments here
     splits = ("train", "val", "test") if cfg.task.test_after_fit else ("train", "val")
     datamodule = build_datamodule(cfg, splits, model, defense)
-    choose_anchors = getattr(model.head, "choose_anchors", None)
-    if choose_anchors is not None:  # LaneATT: its anchors from the train split's lanes (kept in the checkpoint)
-        choose_anchors(datamodule.sets["train"], crop_top=model.build_config.get("crop_top", 0.0), cache_dir=out)
+    # LaneATT: its anchors from the train split's lanes (kept in the checkpoint)
+    crop_top = model.build_config.get("crop_top", 0.0)
+    choose_anchors(model.head, datamodule.sets["train"], crop_top=crop_top, cache_dir=out)
     suite = test_dataset(cfg) if cfg.task.get("suite") is not None else None  # read and checked before training
     trainer.fit(model, datamodule=datamodule, ckpt_path=cfg.ckpt_path)
     result = None
@@ -119,17 +122,10 @@ def check_same_network(checkpoint: dict, spec: dict, path) -> None:
                          f"task.init_from={path}")
 
 
-def run_label(cfg: DictConfig) -> str:
-    """The model's name in robustness tables: <model>-<backbone>, plus +<defense> when there is one."""
-    if cfg.task.get("label"):
-        return cfg.task.label
-    name = f"{cfg.model.name}-{cfg.backbone.name}"
-    return name if cfg.defense.name == "none" else f"{name}+{cfg.defense.name}"
-
-
 def score_robustness(cfg: DictConfig, model, suite, out: Path) -> float:
     """Stream the trained model over the task.suite dataset into `out` (resumable); the perturbed Accuracy (%)."""
     dataset, dataset_name = suite
     scoring = Scoring.from_config(cfg)
-    results = stream_dataset(model, dataset, dataset_name, out, run_label(cfg), scoring)
+    results = stream_dataset(model, dataset, dataset_name, out,
+                             model_label(model, cfg.task.get("label"), cfg.defense.name), scoring)
     return write_results([results], out, baseline=scoring.baseline)

@@ -25,10 +25,10 @@ from lanevil_train.tasks.vlm.builders import (
     build_judge,
     clip_suite,
 )
+from lanevil_train.vlm.answer_scoring.evaluation import ANSWERS, PER_ANSWER, evaluate_clips
 from lanevil_train.vlm.backends.text_only import TextOnlyReader, TextOnlyVLM
 from lanevil_train.vlm.base import VLM, BlindVLM
 from lanevil_train.vlm.clips.qa_records import QA_CATEGORIES
-from lanevil_train.vlm.scoring.evaluation import ANSWERS, PER_ANSWER, evaluate_clips
 
 
 def run_identity(vlm: VLM, judge, label: dict) -> dict:
@@ -111,7 +111,7 @@ def write_gap_intervals(results: Path, out: Path) -> Path | None:
     """gap_intervals.json and a section of report.md: the model's yes/no and choice accuracy on perturbed clips
     minus that on the same questions' clean clips, per QA category, with a paired bootstrap 95 % interval over the
     scenes (report/reliance.py gap_rows); None without a closed question."""
-    from lanevil_train.evaluation.scoring import read_records
+    from lanevil_train.evaluation.lane_records import read_records
     from lanevil_train.report.reliance import gap_markdown, gap_rows
 
     records = read_records(results, keep_lanes=False)
@@ -131,7 +131,7 @@ def write_visual_reliance(results: list[Path], out: Path) -> Path | None:
     """visual_reliance.{json,md} and a section of report.md: the model's (results[0]) yes/no and choice accuracy
     beside its blind baselines' (the other files) and the reliance on the frames with intervals
     (report/reliance.py); None without a baseline."""
-    from lanevil_train.evaluation.scoring import read_records
+    from lanevil_train.evaluation.lane_records import read_records
     from lanevil_train.report.reliance import reliance_markdown, reliance_rows
 
     if len(results) < 2:
@@ -156,11 +156,11 @@ def write_visual_reliance(results: list[Path], out: Path) -> Path | None:
 
 def write_drivelm_score(results: list[Path], out: Path) -> Path | None:
     """drivelm_score.json and a section of report.md: DriveLM's challenge score of each model's original and
-    perturbed answers and its parts (vlm/scoring/drivelm_score.py); None where no answer has a GPT score (no LLM
+    perturbed answers and its parts (vlm/answer_scoring/drivelm_score.py); None where no answer has a GPT score (no LLM
     judge)."""
-    from lanevil_train.evaluation.scoring import read_records
+    from lanevil_train.evaluation.lane_records import read_records
     from lanevil_train.report.tables import markdown_table
-    from lanevil_train.vlm.scoring.drivelm_score import drivelm_parts
+    from lanevil_train.vlm.answer_scoring.drivelm_score import drivelm_parts
 
     rows = []
     for path in results:
@@ -196,7 +196,7 @@ def write_worst_answers(results: Path, out: Path, k: int = 12) -> Path | None:
     """worst_answers.md: the k questions whose answer got most worse under an illusion (by the judge's score,
     else by accuracy), each with its reference, the clean clip's answer and the perturbed clip's; None when no
     answer got worse."""
-    from lanevil_train.evaluation.scoring import read_records
+    from lanevil_train.evaluation.lane_records import read_records
     from lanevil_train.report.tables import markdown_table
 
     records = read_records(results, keep_lanes=False)
@@ -228,7 +228,7 @@ def write_language_summary(results: list[Path], out: Path) -> Path:
     """language_scores.json: every COCO caption score (METEOR too, which needs Java) of the original and the
     perturbed answers of each model, with the Language score beside its parts; SPICE is not computed (its
     Stanford models cannot be had offline)."""
-    from lanevil_train.evaluation.scoring import read_records
+    from lanevil_train.evaluation.lane_records import read_records
     from lanevil_train.metrics.vqa import language_scores
 
     groups: dict[tuple, dict] = {}

@@ -17,7 +17,7 @@ Choices (defaults; every size is a keyword of `build_embedded_vlm`):
   * decoder: Qwen2 with M-RoPE, width 128, 4 layers, 4 heads (2 key/value heads), MLP 384; its M-RoPE base and
     sections (ROPE_THETA) let it tell the 7 columns and 4 rows of a frame's tokens apart.
   * vocabulary: a byte-level BPE tokenizer of 1024 ids trained here on the QA corpus given (the training
-    split's questions, options and answers) plus tiny.py's base corpus, with Qwen2-VL's special tokens; any
+    split's questions, options and answers) plus vlm/tokenizer.py's base corpus, with Qwen2-VL's special tokens; any
     text still encodes (byte fallback), so no question is ever unknown.
   * parameters: 1,434,496 with the defaults (vision 0.38 M, decoder 0.92 M, head 0.13 M; PARAMETER_RANGE
     bounds it; `count_parameters` tells).
@@ -48,7 +48,7 @@ import numpy as np
 from lanevil_train.progress import progress_counter
 from lanevil_train.vlm.clips.qa import SCENE_CLASSES, UNKNOWN_CLASS, mirror_scene_classes
 from lanevil_train.vlm.clips.qa_records import prompt_text
-from lanevil_train.vlm.tiny import _qwen_ids, _token_roles, train_tokenizer
+from lanevil_train.vlm.tokenizer import qwen_ids, token_roles, train_tokenizer
 
 FAMILY = "qwen2_vl"
 DEFAULT_FRAME_SIZE = (64, 112)
@@ -145,8 +145,8 @@ def make_config(tokenizer, sizes: dict):
                 num_attention_heads=sizes["heads"], num_key_value_heads=sizes["kv_heads"],
                 max_position_embeddings=2048, rope_parameters={"rope_type": "default", "rope_theta": ROPE_THETA,
                                                                "mrope_section": section},
-                **_token_roles(tokenizer), bos_token_id=None)
-    return Qwen2VLConfig(vision_config=vision, text_config=text, **_qwen_ids(tokenizer), **_token_roles(tokenizer),
+                **token_roles(tokenizer), bos_token_id=None)
+    return Qwen2VLConfig(vision_config=vision, text_config=text, **qwen_ids(tokenizer), **token_roles(tokenizer),
                          bos_token_id=None)
 
 
@@ -164,7 +164,7 @@ def make_embedded_vlm(corpus: Sequence[str], frame_size=DEFAULT_FRAME_SIZE, seed
     config = make_config(tokenizer, sizes)
     torch.manual_seed(seed)
     model = AutoModelForImageTextToText.from_config(config).eval()
-    model.generation_config = GenerationConfig(**_token_roles(tokenizer))
+    model.generation_config = GenerationConfig(**token_roles(tokenizer))
     return model, processor
 
 

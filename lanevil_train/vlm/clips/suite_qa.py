@@ -15,7 +15,7 @@ way, and one the suite's balance allows:
   (all of them when the domain has at most qa_closed.CHOICE_OPTIONS), so no option is one a reader can rule out, and the
   correct letter is dealt from shuffled decks, so every letter is equally often right.
 
-A slot no candidate fits becomes open. Records carry their `template` (vlm/scoring/leakage.py audits by it). In a
+A slot no candidate fits becomes open. Records carry their `template` (vlm/answer_scoring/leakage.py audits by it). In a
 corruption suite, which draws no illusion and changes how weather and light look, the kinds that read those facts
 of the truth are not asked, and a slot whose category has no open kind left is dropped (the others keep their qa_id
 numbers). Which facts a kind reads is found by running it on a probe truth that logs the keys read

@@ -84,8 +84,8 @@ def answer_records(pairs: Sequence[tuple[dict, dict]], answers: Sequence[str], l
     """The scored VQA records of (clip meta, QA) pairs and their answers: accuracy for yes/no and choice
     questions, the judge's score, and the PTB tokens of answer and reference (from which the Language score of any
     group is computed later)."""
+    from lanevil_train.vlm.answer_scoring.drivelm_score import MATCH_TAG, match_f1
     from lanevil_train.vlm.clips.qa_records import answer_is_correct
-    from lanevil_train.vlm.scoring.drivelm_score import MATCH_TAG, match_f1
 
     if tokenize is None:
         from lanevil_train.metrics.vqa import ptb_tokenize as tokenize

@@ -1,6 +1,7 @@
-"""A fake OpenAI-compatible server for tests and benchmarks: a real HTTP process on 127.0.0.1.
+"""A fake OpenAI-compatible server for tests and benchmarks: a real HTTP process on 127.0.0.1 (a test double of
+the source checkout, not in the wheel).
 
-    python -m lanevil_train.testing.fake_server [--port 0] [--mode answer|judge|paraphrase] [--delay-ms 50]
+    python -m lanevil_dev.fake_server [--port 0] [--mode answer|judge|paraphrase] [--delay-ms 50]
         [--fail-every N] [--fail-first N] [--rate-limit-first N --retry-after S] [--max-images N]
         [--require-key KEY] [--no-decode] [--idle-exit-s S]
 
@@ -22,6 +23,7 @@ import argparse
 import base64
 import hashlib
 import json
+import os
 import re
 import socket
 import struct
@@ -30,7 +32,10 @@ import sys
 import threading
 import time
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
 
+# the checkout root (lanevil_dev's parent): the server process finds `lanevil_dev` there from any working directory
+CHECKOUT = Path(__file__).resolve().parent.parent
 JUDGE_SPLIT = re.compile(r"This is the correct answer: (.*)This is my answer: (.*)", re.S)
 
 
@@ -222,7 +227,7 @@ class Handler(BaseHTTPRequestHandler):
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     """The server's command line."""
-    parser = argparse.ArgumentParser(prog="python -m lanevil_train.testing.fake_server",
+    parser = argparse.ArgumentParser(prog="python -m lanevil_dev.fake_server",
                                      description=__doc__.split("\n")[0])
     parser.add_argument("--port", type=int, default=0, help="0: any free port (printed on the first line)")
     parser.add_argument("--mode", choices=("answer", "judge", "paraphrase"), default="answer")
@@ -263,9 +268,11 @@ class FakeServer:
     API root, `.stats()` its counters."""
 
     def __init__(self, *options: str, idle_exit_s: float = 120.0, start_timeout_s: float = 30.0):
-        command = [sys.executable, "-m", "lanevil_train.testing.fake_server", "--idle-exit-s", str(idle_exit_s),
+        command = [sys.executable, "-m", "lanevil_dev.fake_server", "--idle-exit-s", str(idle_exit_s),
                    *options]
-        self.process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join(
+            [str(CHECKOUT)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]))
+        self.process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
         line = _read_line(self.process, start_timeout_s)
         if not line.strip().isdigit():
             self.kill()

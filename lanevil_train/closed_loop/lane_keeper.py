@@ -2,7 +2,7 @@
 
 `LaneKeeper.steer` back-projects one frame's detected lanes onto the ground (closed_loop/ground.py), gives them to
 its tracker with the car's motion since the last frame (closed_loop/tracker.py: `kalman` or `none`), and steers
-to the tracked centre line with its controller (closed_loop/controllers.py: `pure_pursuit`, `stanley`, `mpc`).
+to the tracked centre line with its controller (closed_loop/lateral_controllers.py: `pure_pursuit`, `stanley`, `mpc`).
 The motion is what the car knows of itself: its speed and its front-wheel angle give the distance and the yaw
 (v tan(steer) / L per second). With no centre line (nothing seen, or the tracker lost the lane), the last steering
 angle is held: the car keeps its arc, as a driver assist keeps its last plan for a moment.
@@ -15,8 +15,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from lanevil_train.closed_loop.controllers import CONTROLLERS, Limits, PurePursuit
 from lanevil_train.closed_loop.ground import MAX_WIDTH_M, MIN_WIDTH_M, ground_lanes
+from lanevil_train.closed_loop.lateral_controllers import CONTROLLERS, Limits, PurePursuit
 from lanevil_train.closed_loop.tracker import TRACKERS, FrameTracker, Motion
 from lanevil_train.rules import check_group, check_settings, number
 from lanevil_train.sim import Camera

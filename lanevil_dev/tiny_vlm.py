@@ -1,11 +1,13 @@
 """Tiny random-weight vision-language models of each Hugging Face family, built offline.
 
-Nothing is downloaded: a byte-level BPE tokenizer is trained here on a small driving-QA corpus with the family's
-special tokens, the family's processor (image/video processor + tokenizer + a chat template in the family's
-layout) is built around it, and a model with hidden size 32, 2 layers and a tiny vision tower is made from the
-family's config classes with its image/video/bos/eos/pad ids taken from that tokenizer. Everything is saved with
-`save_pretrained`, so the directory loads back through AutoProcessor + AutoModelForImageTextToText like a real
-checkpoint: tests, benchmarks and users smoke-testing a setup (`model=vlm/hf model.path=DIR`) build on it.
+Nothing is downloaded: a byte-level BPE tokenizer is trained on a small driving-QA corpus with the family's
+special tokens (lanevil_train/vlm/tokenizer.py, as the embedded VLM's is), the family's processor (image/video
+processor + tokenizer + a chat template in the family's layout) is built around it, and a model with hidden size
+32, 2 layers and a tiny vision tower is made from the family's config classes with its image/video/bos/eos/pad ids
+taken from that tokenizer. Everything is saved with `save_pretrained`, so the directory loads back through
+AutoProcessor + AutoModelForImageTextToText like a real checkpoint: tests, benchmarks and users smoke-testing a
+setup from a source checkout (`model=vlm/hf model.path=DIR`) build on it. A test double: it lives in lanevil_dev/,
+not in the wheel.
 """
 
 from __future__ import annotations
@@ -16,40 +18,11 @@ import tempfile
 from pathlib import Path
 from typing import Sequence
 
-FAMILIES = ("llava", "llava_onevision", "qwen2_vl", "qwen2_5_vl", "idefics3", "smolvlm")
+from lanevil_train.vlm.tokenizer import FAMILIES, family_spec, qwen_ids, token_roles, train_tokenizer
 
-VOCAB_SIZE = 640
+__all__ = ["FAMILIES", "HIDDEN", "build_tiny_vlm", "make_tiny_vlm", "train_tokenizer"]
+
 HIDDEN = 32
-
-_BASE_CORPUS = (
-    "How many lanes does the road have? The road has three lanes.",
-    "Is the dark straight line in the left lane a lane marking? No, it is the shadow of a pole.",
-    "What colour is the marking on the right of the ego lane? It is a solid white line.",
-    "Which lane is the ego vehicle in? The ego vehicle is in the middle lane.",
-    "Is there a crack in the road surface ahead? Yes, a long crack crosses the lane.",
-    "What should the ego vehicle do next? Keep the lane and keep a safe distance.",
-    "Describe the scene. A sunny highway with light traffic and a truck ahead.",
-    "Is the car in front moving or stopped? The car in front is moving slowly.",
-    "Does the lane marking continue after the repair patch? Yes, the dashed line continues.",
-    "What is the weather? It is cloudy and the road is wet after rain.",
-    "A. Turn left B. Keep lane C. Stop D. Change to the right lane. The answer is B.",
-    "Frame 1 2 3 4 5 6 before over alongside the illusion; yes no maybe 0 1 2 3 4 5 6 7 8 9.",
-)
-
-# The family's special tokens (image/video placeholders, turn markers) and which of them play bos/eos/pad.
-_SPECIALS = {
-    "llava": dict(tokens=["<s>", "</s>", "<pad>", "<image>"], bos="<s>", eos="</s>", pad="<pad>"),
-    "llava_onevision": dict(tokens=["<|endoftext|>", "<|im_start|>", "<|im_end|>", "<image>", "<video>"],
-                            bos=None, eos="<|im_end|>", pad="<|endoftext|>"),
-    "qwen2_vl": dict(tokens=["<|endoftext|>", "<|im_start|>", "<|im_end|>", "<|vision_start|>", "<|vision_end|>",
-                             "<|image_pad|>", "<|video_pad|>"], bos=None, eos="<|im_end|>", pad="<|endoftext|>"),
-    "idefics3": dict(tokens=["<|begin_of_text|>", "<|end_of_text|>", "<pad>", "<image>", "<fake_token_around_image>",
-                             "<global-img>", "<end_of_utterance>"]
-                     + [f"<row_{r}_col_{c}>" for r in range(1, 7) for c in range(1, 7)],
-                     bos="<|begin_of_text|>", eos="<end_of_utterance>", pad="<pad>"),
-}
-_SPECIALS["qwen2_5_vl"] = _SPECIALS["qwen2_vl"]
-_SPECIALS["smolvlm"] = _SPECIALS["idefics3"]
 
 # Chat templates in each family's published layout (images first in the user turn, then the text).
 _LLAVA_TEMPLATE = (
@@ -83,31 +56,12 @@ _DEFAULT_IMAGE_SIZE = {"llava": 16, "llava_onevision": 16, "qwen2_vl": 32, "qwen
                        "smolvlm": 16}
 
 
-def train_tokenizer(family: str, corpus: Sequence[str] = (), vocab_size: int = VOCAB_SIZE):
-    """A byte-level BPE tokenizer of `vocab_size` ids trained here on driving QA text (+ `corpus`) with `family`'s
-    special tokens."""
-    from tokenizers import Tokenizer, decoders, models, pre_tokenizers, processors, trainers
-    from transformers import PreTrainedTokenizerFast
-
-    spec = _family_spec(family)
-    core = Tokenizer(models.BPE())
-    core.pre_tokenizer = pre_tokenizers.ByteLevel(add_prefix_space=False)
-    core.decoder = decoders.ByteLevel()
-    core.post_processor = processors.ByteLevel(trim_offsets=False)
-    trainer = trainers.BpeTrainer(vocab_size=vocab_size, special_tokens=list(spec["tokens"]), show_progress=False,
-                                  initial_alphabet=pre_tokenizers.ByteLevel.alphabet())
-    core.train_from_iterator(list(_BASE_CORPUS) + [str(text) for text in corpus], trainer)
-    roles = {name: spec[name] for name in ("bos", "eos", "pad") if spec[name] is not None}
-    return PreTrainedTokenizerFast(tokenizer_object=core, **{f"{k}_token": v for k, v in roles.items()},
-                                   additional_special_tokens=[t for t in spec["tokens"] if t not in roles.values()])
-
-
 def make_tiny_vlm(family: str, corpus: Sequence[str] = (), seed: int = 0, image_size: int | None = None):
     """(model, processor) of a tiny random-weight `family` VLM in memory; the same seed gives the same weights."""
     import torch
     from transformers import AutoModelForImageTextToText, GenerationConfig
 
-    _family_spec(family)
+    family_spec(family)
     size = _DEFAULT_IMAGE_SIZE[family] if image_size is None else image_size
     if isinstance(size, bool) or not isinstance(size, int) or size < 8 or size % 8:
         raise ValueError(f"image_size: expected a multiple of 8 that is at least 8, got {image_size!r}")
@@ -116,7 +70,7 @@ def make_tiny_vlm(family: str, corpus: Sequence[str] = (), seed: int = 0, image_
     config = _BUILDERS[family][1](tokenizer, size)
     torch.manual_seed(seed)
     model = AutoModelForImageTextToText.from_config(config).eval()
-    model.generation_config = GenerationConfig(**_token_roles(tokenizer))
+    model.generation_config = GenerationConfig(**token_roles(tokenizer))
     return model, processor
 
 
@@ -139,20 +93,6 @@ def build_tiny_vlm(family: str, out_dir: str | os.PathLike, corpus: Sequence[str
         shutil.rmtree(staging, ignore_errors=True)
         raise
     return out
-
-
-def _family_spec(family: str) -> dict:
-    """The special-token spec of `family`, else a ValueError listing the known families."""
-    if family not in FAMILIES:
-        raise ValueError(f"family: expected one of {', '.join(FAMILIES)}, got {family!r}")
-    return _SPECIALS[family]
-
-
-def _token_roles(tokenizer) -> dict:
-    """bos/eos/pad token ids of `tokenizer` under the config's names (a None id is left out)."""
-    roles = {"bos_token_id": tokenizer.bos_token_id, "eos_token_id": tokenizer.eos_token_id,
-             "pad_token_id": tokenizer.pad_token_id}
-    return {key: value for key, value in roles.items() if value is not None}
 
 
 def _text_config(tokenizer, model_type: str, **extra) -> dict:
@@ -183,7 +123,7 @@ def _llava_config(tokenizer, size: int):
     vision = dict(_vision_tower("clip_vision_model", size, size // 4), projection_dim=HIDDEN)
     return LlavaConfig(vision_config=vision, text_config=_text_config(tokenizer, "llama"),
                        image_token_index=tokenizer.convert_tokens_to_ids("<image>"), image_seq_length=16,
-                       vision_feature_select_strategy="default", vision_feature_layer=-1, **_token_roles(tokenizer))
+                       vision_feature_select_strategy="default", vision_feature_layer=-1, **token_roles(tokenizer))
 
 
 def _onevision_processor(tokenizer, size: int):
@@ -209,7 +149,7 @@ def _onevision_config(tokenizer, size: int):
         vision_config=_vision_tower("siglip_vision_model", size, size // 4),
         text_config=_text_config(tokenizer, "qwen2"), image_token_index=tokenizer.convert_tokens_to_ids("<image>"),
         video_token_index=tokenizer.convert_tokens_to_ids("<video>"), vision_feature_select_strategy="full",
-        vision_feature_layer=-1, image_grid_pinpoints=_onevision_pinpoints(size), **_token_roles(tokenizer))
+        vision_feature_layer=-1, image_grid_pinpoints=_onevision_pinpoints(size), **token_roles(tokenizer))
 
 
 def _qwen_processor(tokenizer, size: int, family: str):
@@ -225,20 +165,13 @@ def _qwen_processor(tokenizer, size: int, family: str):
     return Processor(images, tokenizer, videos, chat_template=_TEMPLATES[family])
 
 
-def _qwen_ids(tokenizer) -> dict:
-    """The Qwen configs' placeholder and vision-bracket token ids from `tokenizer`."""
-    ids = tokenizer.convert_tokens_to_ids
-    return dict(image_token_id=ids("<|image_pad|>"), video_token_id=ids("<|video_pad|>"),
-                vision_start_token_id=ids("<|vision_start|>"), vision_end_token_id=ids("<|vision_end|>"))
-
-
 def _qwen2_vl_config(tokenizer, size: int):
     """Qwen2-VL: a 2-block vision transformer (patch 4, merge 2) and an M-RoPE Qwen2 decoder."""
     from transformers import Qwen2VLConfig
     vision = dict(depth=2, embed_dim=HIDDEN, hidden_size=HIDDEN, num_heads=4, mlp_ratio=2, patch_size=4,
                   spatial_merge_size=2, temporal_patch_size=2)
     text = _text_config(tokenizer, "qwen2_vl_text", rope_parameters={"rope_type": "mrope", "mrope_section": [2, 1, 1]})
-    return Qwen2VLConfig(vision_config=vision, text_config=text, **_qwen_ids(tokenizer), **_token_roles(tokenizer))
+    return Qwen2VLConfig(vision_config=vision, text_config=text, **qwen_ids(tokenizer), **token_roles(tokenizer))
 
 
 def _qwen2_5_vl_config(tokenizer, size: int):
@@ -249,7 +182,7 @@ def _qwen2_5_vl_config(tokenizer, size: int):
                   fullatt_block_indexes=[1])
     text = _text_config(tokenizer, "qwen2_5_vl_text",
                         rope_parameters={"rope_type": "mrope", "mrope_section": [2, 1, 1]})
-    return Qwen2_5_VLConfig(vision_config=vision, text_config=text, **_qwen_ids(tokenizer), **_token_roles(tokenizer))
+    return Qwen2_5_VLConfig(vision_config=vision, text_config=text, **qwen_ids(tokenizer), **token_roles(tokenizer))
 
 
 def _idefics_processor(tokenizer, size: int, family: str):
@@ -270,7 +203,7 @@ def _idefics_config(tokenizer, size: int, family: str):
     """Idefics3 / SmolVLM: a SigLIP-style vision tower (4x4 patches, pixel shuffle 2) and a Llama decoder."""
     vision = {key: value for key, value in _vision_tower("", size, size // 4).items() if key != "model_type"}
     kwargs = dict(vision_config=vision, text_config=_text_config(tokenizer, "llama"), scale_factor=2,
-                  image_token_id=tokenizer.convert_tokens_to_ids("<image>"), **_token_roles(tokenizer))
+                  image_token_id=tokenizer.convert_tokens_to_ids("<image>"), **token_roles(tokenizer))
     if family == "idefics3":
         from transformers import Idefics3Config
         return Idefics3Config(**kwargs)
