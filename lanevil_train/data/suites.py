@@ -99,6 +99,9 @@ class SyntheticIllusionSuite(Dataset):
                  kind: str = "illusions"):
         names = suite_names(kind, illusions if isinstance(illusions, str) else list(illusions))
         _check_num_cases(num_cases)
+        self._arguments = {"num_cases": num_cases, "first_seed": first_seed, "size": list(size),
+                           "illusions": illusions if isinstance(illusions, str) else list(illusions),
+                           "severities": list(severities), "repeats": repeats, "kind": kind}
         self.plan = Plan(illusions=names, severities=tuple(severities), repeats=repeats, size=tuple(size), kind=kind)
         self.items = [(case, record) for case in synthetic_cases(num_cases, first_seed)
                       for record in variants(case, self.plan)]
@@ -106,6 +109,18 @@ class SyntheticIllusionSuite(Dataset):
 
     def __len__(self) -> int:
         return len(self.items)
+
+    def description(self) -> dict:
+        """What rebuilds this suite (from_description): its constructor's arguments, as JSON values. An evaluation
+        writes it beside its results (per_image.suite.json), so the report page can render a record's image again."""
+        return {"suite": "synthetic", **self._arguments}
+
+    @classmethod
+    def from_description(cls, description: dict) -> SyntheticIllusionSuite:
+        """The suite a description() names."""
+        args = {k: v for k, v in description.items() if k != "suite"}
+        return cls(args["num_cases"], args["first_seed"], tuple(args["size"]), args["illusions"],
+                   tuple(args["severities"]), args["repeats"], kind=args["kind"])
 
     def item_key(self, index: int) -> str:
         return self.items[index][1]["image"]

@@ -14,13 +14,14 @@ from lanevil_train.report.tables import print_table, write_table
 
 
 def write_results(result_files: list[Path], out_dir: Path, baseline: str | None = None,
-                  labels: dict[Path, str] | None = None) -> float:
+                  labels: dict[Path, str] | None = None, html: bool = True) -> float:
     """Tables (and plots) from per-image results files; returns the headline score (Accuracy % for lanes) of the
     perturbed images (of all images if none is perturbed): the value a sweep optimises.
 
     Records are read without their stored lanes, then read again keeping lanes only for the few
     worst cases that get drawn, so memory stays small however many images were scored. `labels`: a model label
-    for the records of some files (a seed run's "<label> (seed s)"), replacing their own.
+    for the records of some files (a seed run's "<label> (seed s)"), replacing their own. `html`: also write
+    report.html beside report.md (report/page.py; task.html), when there is a robustness report.
     """
     labels = labels or {}
 
@@ -51,6 +52,10 @@ def write_results(result_files: list[Path], out_dir: Path, baseline: str | None 
                     title=f"Robustness ({rs.spec.unit}): Perturbed / Original / Gap — full table in main.md")
         plots = ", ".join(p.name for p in paths.values() if p.suffix == ".png")
         print(f"Robustness report: {paths['report']} (per type, per severity, relative); plots: {plots}")
+        if html:
+            from lanevil_train.report.page import write_robustness_page
+
+            print(f"Report page: {write_robustness_page(out_dir, result_files, rs, labels)}")
     return rs.headline.aggregate(perturbed or rs.records)
 
 

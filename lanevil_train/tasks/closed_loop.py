@@ -250,7 +250,8 @@ def closed_loop(cfg: DictConfig) -> float:
 
 
 def write_report(cfg: DictConfig, out: Path, settings: ClosedLoopSettings) -> float:
-    """closed_loop.md with its tables and plots, and worst_run.gif (task.animate); the first model's ASR (%)."""
+    """closed_loop.md with its tables and plots, worst_run.gif (task.animate) and report.html (task.html); the
+    first model's ASR (%)."""
     from lanevil_train.report.closed_loop import asr_rows, worst_pairs, write_closed_loop_report
     from lanevil_train.report.tables import print_table
 
@@ -269,6 +270,10 @@ def write_report(cfg: DictConfig, out: Path, settings: ClosedLoopSettings) -> fl
         worst, twin = max(pairs, key=lambda pair: pair[0]["max_deviation_m"])
         write_animation([(_run_of(r), read_trace(out / r["trace"]), r["entry_s"]) for r in (worst, twin)],
                         loop.size, out / "worst_run.gif", fps=loop.control_hz)
+    if cfg.task.get("html", True):
+        from lanevil_train.report.page import write_closed_loop_page
+
+        print(f"Report page: {write_closed_loop_page(out, shown)}")
     first = next(row for row in rows if row["category"] == "all")
     return float(first["ASR (%)"])
 

@@ -42,7 +42,7 @@ from lanevil_train.tasks.vlm.builders import MODEL_FOLDER, check_vlm_run, is_pro
 log = logging.getLogger(__name__)
 
 DONE = "done.json"  # written beside a run's suite results (robustness/ of a detector, test/ of a VLM) once complete
-SUITE_KEYS = ("suite", "cases", "illusions", "severities", "repeats", "test_after_fit", "init_from")
+SUITE_KEYS = ("suite", "cases", "illusions", "severities", "repeats", "test_after_fit", "init_from", "html")
 
 
 def check_defenses(defenses: list[str]) -> list[str]:
@@ -354,6 +354,12 @@ def write_compare_report(cfg: DictConfig, records: dict[str, dict[int, list[dict
             + (f" **Not included: runs that failed** ({', '.join(f'{d}@{s}' for d, s in failed)}); rerun the compare "
                f"to finish them." if failed else ""))
     write_defense_report(scores, gains, out, spec, runs, interval_note=note)
+    if cfg.task.get("html", True):
+        from lanevil_train.report.page import write_compare_page
+
+        files = [path for by_seed in runs.values() for run in by_seed.values()
+                 if (path := results_of(Path(run))) is not None]
+        log.info("compare: report page %s", write_compare_page(out, scores, gains, spec, runs, note, files))
     headline = headline_of(scores, spec).name
     print_table(gain_pivot(gains, headline, text=True),
                 title=f"{headline} gain over {REFERENCE} (points) [{confidence:.0%} interval] — {out / 'compare.md'}")

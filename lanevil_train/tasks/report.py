@@ -44,15 +44,17 @@ def report(cfg: DictConfig) -> float:
                          "per_answer.jsonl)")
     value = write_run_reports(results_files(list(cfg.task.runs)), output_dir(cfg), baseline=cfg.task.baseline,
                               replicates=int(cfg.task.get("bootstrap", 1000)),
-                              confidence=float(cfg.task.get("confidence", 0.95)), seed=int(cfg.seed))
+                              confidence=float(cfg.task.get("confidence", 0.95)), seed=int(cfg.seed),
+                              html=bool(cfg.task.get("html", True)))
     log_results(build_logger(cfg), output_dir(cfg))
     return value
 
 
 def write_run_reports(files: list[Path], out: Path, baseline: str | None = None, replicates: int = 1000,
-                      confidence: float = 0.95, seed: int = 0) -> float:
+                      confidence: float = 0.95, seed: int = 0, html: bool = True) -> float:
     """The report of several runs' results (write_results), each seed run of a repeated label as its own row, and
-    seeds.md when labels repeat; returns write_results' headline value."""
+    seeds.md when labels repeat, and with `html` report.html (its tables, seeds and gallery: report/page.py);
+    returns write_results' headline value."""
     groups = seed_runs(files)
     labels = relabels(groups)
     repeated = {label for label, _ in groups}
@@ -60,8 +62,15 @@ def write_run_reports(files: list[Path], out: Path, baseline: str | None = None,
     if baseline in repeated:  # the relative table's mCE baseline: that model's first seed run
         first = next(runs for (label, _), runs in groups.items() if label == baseline)
         table_baseline = labels[next(iter(first.values()))]
-    value = write_results(files, out, baseline=table_baseline, labels=labels)
+    value = write_results(files, out, baseline=table_baseline, labels=labels, html=False)
+    from lanevil_train.tasks.cards import write_report_cards
+
+    write_report_cards(files, out, labels, table_baseline, replicates, confidence, seed)
     path = write_seed_report(files, out, baseline, replicates, confidence, seed)
     if path is not None:
         print(f"Seeds: {path} (mean ± std over seeds; gains with {confidence:.0%} intervals)")
+    if html and (out / "report.md").is_file():  # a report of perturbed results (write_report wrote one)
+        from lanevil_train.report.page import write_robustness_page
+
+        print(f"Report page: {write_robustness_page(out, files, labels=labels)}")
     return value

@@ -45,7 +45,7 @@ def test_a_detector_checkpoint_drives_clean_and_perturbed_runs_and_the_report_is
     row = next(r for r in table if r["category"] == "shadow")
     assert row["runs"] == 2 and row["ASR (%)"] == pytest.approx(50.0 * sum(r["success"] for r in records[1:]))
     assert row["clean ASR (%)"] == pytest.approx(100.0 * records[0]["success"])
-    for name in ("closed_loop.md", "asr.png", "deviation.png", "worst_run.gif", "asr_by_illusion.csv"):
+    for name in ("closed_loop.md", "asr.png", "deviation.png", "worst_run.gif", "asr_by_illusion.csv", "report.html"):
         assert (out / name).is_file(), name
     from PIL import Image
 

@@ -304,6 +304,8 @@ BAD = [
     (["task.cases=0"], "task.cases: expected an integer >= 1, the number of simulated scenes (0, every image, is "
                        "only for task=build on a real dataset), got 0"),
     (["task.test_after_fit=no"], "task.test_after_fit: expected true or false, got 'no'"),
+    (["task.html=no"], "task.html: expected true or false, got 'no'"),
+    (["task=report", "task.html=1"], "task.html: expected true or false, got 1"),
     (["task.init_from=/no/such/init.ckpt"],
      "task.init_from: expected null or the path of an existing checkpoint file, got '/no/such/init.ckpt' "
      "(no such file)"),

@@ -43,6 +43,8 @@ def test_evaluate_on_the_synthetic_illusion_suite_resumes_in_place(tmp_path):
     run_in_process([*TINY, "trainer.max_steps=1", "trainer.limit_val_batches=0", "task.test_after_fit=false"],
                    train_dir)
     ckpt = train_dir / "checkpoints" / "last.ckpt"
+    (train_dir / ".hydra").mkdir()  # what Hydra saves beside a command-line run: the card's training data
+    (train_dir / ".hydra" / "config.yaml").write_text("task: {name: train}\ndata: {name: synthetic}\n")
     out = tmp_path / "eval"
     args = ["task=evaluate", f"ckpt_path={ckpt}", *TINY, "task.suite=synthetic", "task.cases=2",
             "task.illusions=[fence_shadow,pedestrian]", "task.severities=[2,4]", f"task.out_dir={out}"]
@@ -50,6 +52,10 @@ def test_evaluate_on_the_synthetic_illusion_suite_resumes_in_place(tmp_path):
     records = read_records(out / "per_image.jsonl")
     assert len(records) == 2 * (1 + 2 * 2)
     assert (out / "report.md").is_file()
+    card = json.loads((out / "robustness_card.json").read_text())  # validated when written (report/card.py)
+    assert (card["model"]["family"], card["suite"]["cases"], card["suite"]["severities"]) == ("laneatt", 2, [2, 4])
+    assert card["model"]["training_data"] == "synthetic" and len(card["model"]["checkpoint_sha256"]) == 64
+    assert card["suite"]["plan"]["illusions"] == ["fence_shadow", "pedestrian"]
     run_in_process(args, tmp_path / "run2")  # everything is already there: nothing is added
     assert len(read_records(out / "per_image.jsonl")) == 10
 

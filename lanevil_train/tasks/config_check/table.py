@@ -25,6 +25,7 @@ from lanevil_train.models.backbones import OUTPUT_STRIDES
 from lanevil_train.models.schedules import LR_SCALINGS
 from lanevil_train.perturbations import SUITE_KINDS
 from lanevil_train.progress import MODES
+from lanevil_train.report.leaderboard import SETTINGS as LEADERBOARD_SETTINGS
 from lanevil_train.rules import (
     Rule,
     any_of,
@@ -218,6 +219,7 @@ RULES: dict[str, Rule] = {
     "task.kind": one_of(*SUITE_KINDS),
     "task.onnx": null_or(existing_file("ONNX model written by task=export")),
     "task.predictions": boolean(),
+    "task.html": boolean(),  # report.html beside report.md (report/page.py)
     "task.out": null_or(text()),
     "task.opset": integer(9),
     "task.tolerance": number(0, low_open=True),
@@ -381,3 +383,6 @@ RULES.update({
     "task.smoothing": number(0, 1, low_open=True),
 })
 TASK_RULES["predict"] = {"data.root": None}
+
+# task=leaderboard (tasks/leaderboard.py): its keys' rules are report/leaderboard.py's own
+RULES.update({f"task.{key}": rule for key, rule in LEADERBOARD_SETTINGS.items()})

@@ -6,6 +6,7 @@ out_dir continues where it stopped); the tables and plots are then built from th
 
 from __future__ import annotations
 
+import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,8 +21,10 @@ from lanevil_train.evaluation.lane_records import RESULTS, read_records
 from lanevil_train.evaluation.prediction_files import write_prediction_files
 from lanevil_train.evaluation.results import log_results, write_results
 from lanevil_train.evaluation.streaming import stream_evaluate
+from lanevil_train.files.atomic import atomic_write_text
 from lanevil_train.models.detector import LaneDetector
 from lanevil_train.models.head import check_decode_options
+from lanevil_train.report.page import suite_file
 from lanevil_train.report.specs import LANE_SPEC
 from lanevil_train.tasks.builders import (
     build_logger,
@@ -59,8 +62,8 @@ ON_THE_FLY = {"synthetic": "illusions", "corruptions": "corruptions", "combined"
 @dataclass(frozen=True)
 class Scoring:
     """How a detector is streamed over a test set, read once from the config: the loader's batch and workers, the
-    device, the progress display, whether the official prediction files are written (task.predictions) and the
-    baseline model of the tables (task.baseline)."""
+    device, the progress display, whether the official prediction files are written (task.predictions), the
+    baseline model of the tables (task.baseline) and whether report.html is written (task.html)."""
 
     batch_size: int
     num_workers: int
@@ -68,12 +71,13 @@ class Scoring:
     progress: str = "auto"
     predictions: bool = False
     baseline: str | None = None
+    html: bool = True
 
     @classmethod
     def from_config(cls, cfg: DictConfig) -> Scoring:
         return cls(batch_size=cfg.data.batch_size, num_workers=cfg.data.num_workers, device=inference_device(cfg),
                    progress=cfg.progress, predictions=bool(cfg.task.get("predictions", False)),
-                   baseline=cfg.task.get("baseline"))
+                   baseline=cfg.task.get("baseline"), html=bool(cfg.task.get("html", True)))
 
 
 def test_dataset(cfg: DictConfig):
@@ -111,7 +115,10 @@ def evaluate(cfg: DictConfig) -> float:
     scoring = Scoring.from_config(cfg)
     out = Path(cfg.task.out_dir) if cfg.task.out_dir else output_dir(cfg)
     results = stream_dataset(model, dataset, dataset_name, out, model_label(model, cfg.task.label), scoring)
-    value = write_results([results], out, baseline=scoring.baseline)
+    value = write_results([results], out, baseline=scoring.baseline, html=scoring.html)
+    from lanevil_train.tasks.cards import detector_identity, suite_plan, write_evaluation_card
+
+    write_evaluation_card(results, out, detector_identity(cfg, model), suite_plan(dataset), scoring.baseline)
     log_results(build_logger(cfg), out)
     return value
 
@@ -126,7 +133,7 @@ def cross_domain(cfg: DictConfig) -> float:
     out = Path(cfg.task.out_dir) if cfg.task.out_dir else output_dir(cfg)
     real = stream_dataset(model, real_set, cfg.data.name, out / cfg.data.name, label, scoring)
     perturbed = stream_dataset(model, suite, "synthetic-illusions", out / "synthetic-illusions", label, scoring)
-    write_results([real, perturbed], out, baseline=scoring.baseline)
+    write_results([real, perturbed], out, baseline=scoring.baseline, html=scoring.html)
     log_results(build_logger(cfg), out)
     return LANE_SPEC.headline.aggregate(read_records(real, keep_lanes=False))
 
@@ -134,11 +141,14 @@ def cross_domain(cfg: DictConfig) -> float:
 def stream_dataset(model: LaneDetector, dataset, dataset_name: str, out: Path, label: str,
                    scoring: Scoring) -> Path:
     """Score `model` on `dataset` into out/per_image.jsonl (resumes a partial file), and with scoring.predictions
-    write the official prediction files beside it; returns the per_image.jsonl path."""
+    write the official prediction files beside it; returns the per_image.jsonl path. A suite made on the fly also
+    gets per_image.suite.json, its description (what renders its images again for the report page's gallery)."""
     model.to(scoring.device)
     results = stream_evaluate(model, dataset, out / RESULTS, {"model": label, "dataset": dataset_name},
                               batch_size=scoring.batch_size, num_workers=scoring.num_workers,
                               progress=scoring.progress, predictions=scoring.predictions)
+    if isinstance(dataset, SyntheticIllusionSuite):
+        atomic_write_text(suite_file(results), json.dumps(dataset.description(), indent=1) + "\n")
     if scoring.predictions:
         files = write_prediction_files(results, out)
         log.info("prediction files: %s (TuSimple JSON lines), %s/ (CULane .lines.txt)", files["tusimple"],

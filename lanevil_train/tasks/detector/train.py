@@ -128,4 +128,4 @@ def score_robustness(cfg: DictConfig, model, suite, out: Path) -> float:
     scoring = Scoring.from_config(cfg)
     results = stream_dataset(model, dataset, dataset_name, out,
                              model_label(model, cfg.task.get("label"), cfg.defense.name), scoring)
-    return write_results([results], out, baseline=scoring.baseline)
+    return write_results([results], out, baseline=scoring.baseline, html=scoring.html)

@@ -18,6 +18,7 @@ from omegaconf import DictConfig, open_dict
 from lanevil_train.evaluation.results import log_results, write_results
 from lanevil_train.evaluation.streaming import claim_results
 from lanevil_train.files.atomic import atomic_write_text
+from lanevil_train.report.page import suite_file, write_vlm_page
 from lanevil_train.tasks.builders import build_logger, build_split, output_dir
 from lanevil_train.tasks.vlm.builders import (
     add_defense_to_report,
@@ -48,13 +49,18 @@ def evaluate_vlm(cfg: DictConfig) -> float:
     name = cfg.task.label or vlm.name
     results = evaluate_into(vlm, dataset, judge, out, {"model": name, "dataset": dataset_name}, cfg.progress)
     files = [results, *blind_baselines(cfg, vlm, reader, dataset, judge, out, name, dataset_name)]
-    value = write_results(files, out, baseline=cfg.task.baseline)
+    value = write_results(files, out, baseline=cfg.task.baseline, html=False)
+    from lanevil_train.tasks.cards import suite_plan, vlm_identity, write_evaluation_card
+
+    write_evaluation_card(results, out, vlm_identity(cfg, vlm), suite_plan(dataset), cfg.task.baseline)
     write_gap_intervals(results, out)
     write_visual_reliance(files, out)
     write_drivelm_score(files, out)
     add_defense_to_report(out, vlm)
     write_language_summary(files, out)
     write_worst_answers(results, out)
+    if cfg.task.get("html", True) and (out / "report.md").is_file():
+        print(f"Report page: {write_vlm_page(out, files)}")
     log_results(build_logger(cfg), out)
     return value
 
@@ -92,12 +98,16 @@ def blind_baselines(cfg: DictConfig, vlm: VLM, reader: TextOnlyReader | None, da
 
 
 def evaluate_into(vlm: VLM, dataset, judge, out: Path, label: dict, progress: str) -> Path:
-    """evaluate_clips into `out`, after checking that results already there come from this same evaluation."""
+    """evaluate_clips into `out`, after checking that results already there come from this same evaluation; the
+    suite's description (per_answer.suite.json: how to render or find its clips' frames) beside the results."""
     identity = run_identity(vlm, judge, label)
     for name in (ANSWERS, PER_ANSWER):
         path = out / name
         claim_results(path, identity, resuming=path.is_file() and path.stat().st_size > 0)
-    return evaluate_clips(vlm, dataset, out, label, judge=judge, progress=progress)
+    results = evaluate_clips(vlm, dataset, out, label, judge=judge, progress=progress)
+    if hasattr(dataset, "description"):  # where the report page finds the clips' frames (report/page.py)
+        atomic_write_text(suite_file(results), json.dumps(dataset.description()) + "\n")
+    return results
 
 
 def append_to_report(out: Path, section: str) -> None:
@@ -197,28 +207,18 @@ def write_worst_answers(results: Path, out: Path, k: int = 12) -> Path | None:
     else by accuracy), each with its reference, the clean clip's answer and the perturbed clip's; None when no
     answer got worse."""
     from lanevil_train.evaluation.lane_records import read_records
+    from lanevil_train.report.page import worst_answer_pairs
     from lanevil_train.report.tables import markdown_table
 
-    records = read_records(results, keep_lanes=False)
-    field = next((f for f in ("gpt_score", "minilm_score", "correct") if any(r.get(f) is not None for r in records)),
-                 None)
-    if field is None:
-        return None
-    clean = {(r["model"], r["dataset"], r["case_id"], r["qa_id"]): r for r in records if r["severity"] == 0}
-    drops = []
-    for r in records:
-        c = clean.get((r["model"], r["dataset"], r["case_id"], r["qa_id"]))
-        if r["severity"] > 0 and c is not None and r.get(field) is not None and c.get(field) is not None \
-                and r[field] < c[field]:
-            drops.append((c[field] - r[field], r["key"], c, r))
-    if not drops:
+    field, pairs = worst_answer_pairs(read_records(results, keep_lanes=False), k)
+    if not pairs:
         return None
     scale = 100.0 if field == "correct" else 1.0
     rows = [{"model": r["model"], "illusion": f"{r['illusion']} s{r['severity']}", "segment": r.get("segment"),
              "QA category": r["qa_category"], "question": _cell(r["question"]), "reference": _cell(r["reference"]),
              "clean answer": _cell(c["answer"]), "perturbed answer": _cell(r["answer"]),
              f"{field} clean -> perturbed": f"{scale * c[field]:.0f} -> {scale * r[field]:.0f}"}
-            for _, _, c, r in sorted(drops, key=lambda d: (-d[0], d[1]))[:k]]
+            for c, r in pairs]
     path = out / "worst_answers.md"
     atomic_write_text(path, f"# The {len(rows)} answers an illusion hurt most ({field})\n\n{markdown_table(rows)}\n")
     return path
@@ -259,7 +259,9 @@ def test_vlm(cfg: DictConfig, vlm, name: str, out: Path) -> float:
     reader = text_reader(cfg) if "text" in blind_kinds(cfg) else None
     files = [evaluate_into(vlm, dataset, judge, out, {"model": name, "dataset": dataset_name}, cfg.progress),
              *blind_baselines(cfg, vlm, reader, dataset, judge, out, name, dataset_name)]
-    value = write_results(files, out)
+    value = write_results(files, out, html=False)
     write_gap_intervals(files[0], out)
     write_visual_reliance(files, out)
+    if cfg.task.get("html", True) and (out / "report.md").is_file():
+        print(f"Report page: {write_vlm_page(out, files)}")
     return value

@@ -375,6 +375,11 @@ class ClipSetDataset(Dataset):
     def __len__(self) -> int:
         return len(self.clips)
 
+    def description(self) -> dict:
+        """Where each clip variant's frames are (absolute paths), for the report page (per_answer.suite.json)."""
+        return {"suite": "clip_frames", "frames": {c["clip_id"]: [str(self.root / p) for p in c["frames"]]
+                                                  for c in self.clips}}
+
     def item_key(self, index: int) -> str:
         return self.clips[index]["clip_id"]
 
@@ -425,6 +430,22 @@ class SyntheticClipSuite(Dataset):
         self._planned: dict[str, list[dict]] | None = None
         self.cache_clips = cache_clips
         self._renders: OrderedDict[tuple, dict] = OrderedDict()  # (case, segment) -> severity -> frames, LRU
+        self._arguments = {"num_cases": num_cases, "first_seed": first_seed,
+                           "illusions": illusions if isinstance(illusions, str) else list(illusions),
+                           "severities": list(self.severities), "size": list(self.size), "per_clip": per_clip,
+                           "kind": kind}
+
+    def description(self) -> dict:
+        """What rebuilds this suite (from_description): its constructor's arguments, as JSON values. An evaluation
+        writes it beside its results (per_answer.suite.json), so the report page can render a clip's frames again."""
+        return {"suite": "synthetic_clips", **self._arguments}
+
+    @classmethod
+    def from_description(cls, description: dict) -> "SyntheticClipSuite":
+        """The suite a description() names."""
+        args = {k: v for k, v in description.items() if k != "suite"}
+        return cls(args["num_cases"], args["first_seed"], args["illusions"], tuple(args["severities"]),
+                   tuple(args["size"]), args["per_clip"], kind=args["kind"])
 
     def __len__(self) -> int:
         return len(self.items)
