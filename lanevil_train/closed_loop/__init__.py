@@ -19,7 +19,8 @@ from lanevil_train.closed_loop.policies import (
                                                 parse_direction,
 )
 from lanevil_train.closed_loop.protocol import Protocol
-from lanevil_train.closed_loop.run_scores import ASR_THRESHOLD_M, ASR_WINDOW_S, run_scores, wilson_interval
+from lanevil_train.closed_loop.run_scores import ASR_THRESHOLD_M, ASR_WINDOW_S, run_scores
+from lanevil_train.stats import wilson_interval
 
 __all__ = ["LaneKeeper", "lane_keeper", "LinearMPC", "PurePursuit", "Stanley", "LoopSettings", "Run", "drive",
            "Protocol", "DRIVING_QUESTION", "DetectorPolicy", "Observation", "TruthPolicy", "VLMPolicy",

@@ -16,7 +16,6 @@ stays inside the 0.285 m lane margin but leaves the twin's path does.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -24,7 +23,6 @@ import numpy as np
 ASR_THRESHOLD_M = 0.285
 ASR_WINDOW_S = 2.5
 HALF_CAR_WIDTH_M = 0.9
-Z95 = 1.959963984540054
 
 
 def entry_time(trace: Sequence[dict], region_start_m: float) -> float | None:
@@ -91,16 +89,6 @@ def run_scores(trace: Sequence[dict], region_start_m: float, lane_width_m: float
         "departures_per_km": round(len(times) / distance_km, 3),
         "distance_m": round(distance_km * 1000.0, 3),
     }
-
-
-def wilson_interval(successes: int, runs: int, z: float = Z95) -> tuple[float, float]:
-    """Wilson score interval of a success proportion (in [0, 1]); (0, 1) for no runs."""
-    if runs <= 0:
-        return 0.0, 1.0
-    p = successes / runs
-    centre = (p + z * z / (2 * runs)) / (1 + z * z / runs)
-    half = z * math.sqrt(p * (1 - p) / runs + z * z / (4 * runs * runs)) / (1 + z * z / runs)
-    return max(0.0, centre - half), min(1.0, centre + half)
 
 
 def twin_deviation(trace: Sequence[dict], twin_trace: Sequence[dict]) -> list[float]:

@@ -44,6 +44,7 @@ from lanevil_train.report.records import (
     ordered,
 )
 from lanevil_train.report.specs import record_set
+from lanevil_train.stats import wilson_interval
 from lanevil_train.taxonomy import CATEGORIES, ILLUSION_NAMES, PAIR
 
 CARD_FILE = "robustness_card.json"
@@ -279,17 +280,6 @@ def _mce(rs: RecordSet, model: str, reference: str, replicates: int, confidence:
                                           scaled([v for k, v in ce.items() if category_of[k] == cat]), confidence)
                            for cat in rs.categories if any(c == cat for c in category_of.values())},
             "types": len(category_of), "n_cases": len(boot.index)}
-
-
-def wilson_interval(successes: int, runs: int, z: float = 1.959963984540054) -> tuple[float, float]:
-    """The Wilson score interval of a proportion, as closed_loop/run_scores.py computes it for closed_loop.md (kept
-    here so that a card does not import the closed loop and its simulator)."""
-    if runs <= 0:
-        return 0.0, 1.0
-    p = successes / runs
-    centre = (p + z * z / (2 * runs)) / (1 + z * z / runs)
-    half = z * math.sqrt(p * (1 - p) / runs + z * z / (4 * runs * runs)) / (1 + z * z / runs)
-    return max(0.0, centre - half), min(1.0, centre + half)
 
 
 def _closed_loop(records: Sequence[dict]) -> dict | None:

@@ -19,11 +19,12 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from lanevil_train.closed_loop.run_scores import ASR_THRESHOLD_M, ASR_WINDOW_S, wilson_interval  # noqa: E402
+from lanevil_train.closed_loop.run_scores import ASR_THRESHOLD_M, ASR_WINDOW_S  # noqa: E402
 from lanevil_train.files.atomic import atomic_write_text  # noqa: E402
 from lanevil_train.report.plots import save_figure  # noqa: E402
 from lanevil_train.report.records import ordered  # noqa: E402
 from lanevil_train.report.tables import markdown_table, write_table  # noqa: E402
+from lanevil_train.stats import wilson_interval  # noqa: E402
 from lanevil_train.taxonomy import CATEGORIES, ILLUSION_NAMES  # noqa: E402
 
 ALL = "all"

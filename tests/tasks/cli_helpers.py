@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -84,3 +85,17 @@ def write_photo_dataset(root: Path, names: list[str]) -> list[dict]:
         records.append({"raw_file": name, "rel_path": name, "image_path": path, "lanes": sample["lanes"],
                         "h_samples": default_h_samples(180)})
     return records
+
+
+def write_fake_run(path, model: str, original: float, perturbed: float):
+    """Per-image results of one model (its per_image.jsonl, as task=evaluate writes them): 2 cases, each an original
+    and a shadow + a vehicle variant."""
+    path.mkdir(parents=True)
+    lines = []
+    for case in ("c1", "c2"):
+        for illusion, category, severity, acc in ((None, None, 0, original), ("rail_shadow", "shadow", 3, perturbed),
+                                                  ("vehicle", "traffic_obstruction", 3, perturbed)):
+            lines.append({"model": model, "dataset": "sim", "key": f"{case}/{illusion}", "case_id": case,
+                          "image": None, "illusion": illusion, "category": category, "severity": severity,
+                          "accuracy": acc, "fp": 0.0, "fn": 0.0, "num_pred": 4, "num_gt": 4})
+    (path / "per_image.jsonl").write_text("".join(json.dumps(line) + "\n" for line in lines))

@@ -10,7 +10,7 @@ import pytest
 
 from lanevil_train.report.card import CARD_FILE, CardError, build_card, write_card
 from lanevil_train.report.leaderboard import leaderboard_rows, write_leaderboard
-from tests.tasks.cli_helpers import composed, run_in_process
+from tests.tasks.cli_helpers import composed, run_in_process, write_fake_run
 
 FS, SR = "fence_shadow", "sunlight_reflection"
 
@@ -103,22 +103,9 @@ def test_the_config_check_names_bad_leaderboard_keys(tmp_path):
         run_in_process(["task=leaderboard"], tmp_path / "board")  # the default: no card yet
 
 
-def _fake_run(path, model: str, original: float, perturbed: float):
-    """Per-image results of one model: 2 cases, each an original and a shadow + a vehicle variant."""
-    path.mkdir(parents=True)
-    lines = []
-    for case in ("c1", "c2"):
-        for illusion, category, severity, acc in ((None, None, 0, original), ("rail_shadow", "shadow", 3, perturbed),
-                                                  ("vehicle", "traffic_obstruction", 3, perturbed)):
-            lines.append({"model": model, "dataset": "sim", "key": f"{case}/{illusion}", "case_id": case,
-                          "image": None, "illusion": illusion, "category": category, "severity": severity,
-                          "accuracy": acc, "fp": 0.0, "fn": 0.0})
-    (path / "per_image.jsonl").write_text("".join(json.dumps(line) + "\n" for line in lines))
-
-
 def test_task_report_writes_each_models_card_and_the_leaderboard_ranks_them_by_mce(tmp_path):
-    _fake_run(tmp_path / "runs" / "0", "laneatt", original=0.9, perturbed=0.6)
-    _fake_run(tmp_path / "runs" / "1", "ufld", original=0.8, perturbed=0.7)
+    write_fake_run(tmp_path / "runs" / "0", "laneatt", original=0.9, perturbed=0.6)
+    write_fake_run(tmp_path / "runs" / "1", "ufld", original=0.8, perturbed=0.7)
     out = tmp_path / "report"
     run_in_process(["task=report", f"task.runs=[{tmp_path / 'runs'}]", "task.baseline=laneatt", "progress=none",
                     "task.bootstrap=100", "task.html=false"], out)

@@ -7,25 +7,12 @@ import json
 import pytest
 
 from lanevil_train.evaluation.lane_records import read_records
-from tests.tasks.cli_helpers import TINY, run_cli, run_in_process
-
-
-def _fake_run(path, model: str, original: float, perturbed: float):
-    """Per-image results of one model: 2 cases, each an original and a shadow + a vehicle variant."""
-    path.mkdir(parents=True)
-    lines = []
-    for case in ("c1", "c2"):
-        for illusion, category, severity, acc in ((None, None, 0, original), ("rail_shadow", "shadow", 3, perturbed),
-                                                  ("vehicle", "traffic_obstruction", 3, perturbed)):
-            lines.append({"model": model, "dataset": "sim", "key": f"{case}/{illusion}", "case_id": case,
-                          "image": None, "illusion": illusion, "category": category, "severity": severity,
-                          "accuracy": acc, "fp": 0.0, "fn": 0.0, "num_pred": 4, "num_gt": 4})
-    (path / "per_image.jsonl").write_text("".join(json.dumps(line) + "\n" for line in lines))
+from tests.tasks.cli_helpers import TINY, run_cli, run_in_process, write_fake_run
 
 
 def test_report_combines_run_directories(tmp_path):
-    _fake_run(tmp_path / "runs" / "0", "laneatt", original=0.9, perturbed=0.6)
-    _fake_run(tmp_path / "runs" / "1", "ufld", original=0.8, perturbed=0.7)
+    write_fake_run(tmp_path / "runs" / "0", "laneatt", original=0.9, perturbed=0.6)
+    write_fake_run(tmp_path / "runs" / "1", "ufld", original=0.8, perturbed=0.7)
     out = tmp_path / "report"
     run_in_process(["task=report", f"task.runs=[{tmp_path / 'runs'}]", "task.baseline=laneatt", "progress=none"], out)
     scores = json.loads((out / "test_scores.json").read_text())
@@ -80,7 +67,7 @@ def test_cross_domain_scores_a_real_folder_beside_the_suite(tmp_path):
 
 
 def test_report_goes_to_wandb_offline_as_tables_and_images(tmp_path):
-    _fake_run(tmp_path / "runs" / "0", "laneatt", original=0.9, perturbed=0.6)
+    write_fake_run(tmp_path / "runs" / "0", "laneatt", original=0.9, perturbed=0.6)
     out = tmp_path / "report"
     run_cli(["task=report", f"task.runs=[{tmp_path / 'runs'}]", "logger=wandb", "progress=none"], out)
     run = next((out / "wandb").glob("offline-run-*"))
@@ -108,7 +95,7 @@ def test_evaluate_a_built_set_draws_the_worst_cases(tmp_path):
 
 def _seed_run(path, model: str, seed: int, perturbed: float):
     """A Hydra run directory of `model` trained with `seed`: its config and its suite results."""
-    _fake_run(path, model, original=0.9, perturbed=perturbed)
+    write_fake_run(path, model, original=0.9, perturbed=perturbed)
     (path / ".hydra").mkdir()
     (path / ".hydra" / "config.yaml").write_text(f"seed: {seed}\n")
 
