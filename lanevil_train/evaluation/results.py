@@ -21,7 +21,7 @@ def write_results(result_files: list[Path], out_dir: Path, baseline: str | None 
     Records are read without their stored lanes, then read again keeping lanes only for the few
     worst cases that get drawn, so memory stays small however many images were scored. `labels`: a model label
     for the records of some files (a seed run's "<label> (seed s)"), replacing their own. `html`: also write
-    report.html beside report.md (report/page.py; task.html), when there is a robustness report.
+    report.html beside report.md (report/page/; task.html), when there is a robustness report.
     """
     labels = labels or {}
 

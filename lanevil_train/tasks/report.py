@@ -53,7 +53,7 @@ def report(cfg: DictConfig) -> float:
 def write_run_reports(files: list[Path], out: Path, baseline: str | None = None, replicates: int = 1000,
                       confidence: float = 0.95, seed: int = 0, html: bool = True) -> float:
     """The report of several runs' results (write_results), each seed run of a repeated label as its own row, and
-    seeds.md when labels repeat, and with `html` report.html (its tables, seeds and gallery: report/page.py);
+    seeds.md when labels repeat, and with `html` report.html (its tables, seeds and gallery: report/page/);
     returns write_results' headline value."""
     groups = seed_runs(files)
     labels = relabels(groups)

@@ -1,4 +1,4 @@
-"""report.html (report/page.py): built from constructed records and table rows, read back with html.parser: the
+"""report.html (report/page/): built from constructed records and table rows, read back with html.parser: the
 tables' cells are main.json's numbers, headers are grouped, every image exists, nothing points elsewhere, the
 gallery shows the largest drops, task.html=false writes no page."""
 

@@ -219,7 +219,7 @@ RULES: dict[str, Rule] = {
     "task.kind": one_of(*SUITE_KINDS),
     "task.onnx": null_or(existing_file("ONNX model written by task=export")),
     "task.predictions": boolean(),
-    "task.html": boolean(),  # report.html beside report.md (report/page.py)
+    "task.html": boolean(),  # report.html beside report.md (report/page/)
     "task.out": null_or(text()),
     "task.opset": integer(9),
     "task.tolerance": number(0, low_open=True),

@@ -105,7 +105,7 @@ def evaluate_into(vlm: VLM, dataset, judge, out: Path, label: dict, progress: st
         path = out / name
         claim_results(path, identity, resuming=path.is_file() and path.stat().st_size > 0)
     results = evaluate_clips(vlm, dataset, out, label, judge=judge, progress=progress)
-    if hasattr(dataset, "description"):  # where the report page finds the clips' frames (report/page.py)
+    if hasattr(dataset, "description"):  # where the report page finds the clips' frames (report/page/)
         atomic_write_text(suite_file(results), json.dumps(dataset.description()) + "\n")
     return results
 
