@@ -318,24 +318,35 @@ def test_vlm_page_worst_answers_beside_frames(tmp_path):
     assert all((out / src).is_file() for src in sources)
 
 
-def test_closed_loop_page_rates_with_intervals(tmp_path):
-    """The closed-loop page: asr_by_category.json's ASR in its cells, the Wilson interval folded into each rate's
-    cell, time metrics kept, the plots shown from disk."""
-    from lanevil_train.report.closed_loop import write_closed_loop_report
+TRACE = [{"t": t / 10, "s": float(t), "deviation": 0.01 * t} for t in range(30)]  # one trace for every run
 
+
+def closed_loop_runs(cases, categories: dict[str, str], hits: dict[str, set]) -> list[dict]:
+    """runs.jsonl-style records of a closed loop: per case and illusion (its category) a clean and a perturbed run,
+    the perturbed one an attack success where `hits[illusion]` holds the case."""
     records = []
-    for case in ("c1", "c2"):
-        for illusion, category in (("fence_shadow", "shadow"), ("vehicle", "traffic_obstruction")):
+    for case in cases:
+        for illusion, category in categories.items():
             for perturbed in (False, True):
-                hit = perturbed and case == "c1"
+                hit = perturbed and case in hits[illusion]
                 records.append({"model": "M", "key": f"{case}/{illusion}/{int(perturbed)}", "case_id": case,
                                 "illusion": illusion, "category": category, "severity": 3 if perturbed else 0,
                                 "perturbed": perturbed, "repeat": 0, "success": hit, "twin_success": hit,
                                 "max_deviation_m": 0.5 if hit else 0.1, "first_departure_s": 1.5 if hit else None,
                                 "departures_per_km": 2.0 if hit else 0.0, "collision": False, "entry_s": 0.5,
                                 "region_m": [5.0, 15.0]})
-    trace = [{"t": t / 10, "s": float(t), "deviation": 0.01 * t} for t in range(30)]
-    write_closed_loop_report(records, lambda record: trace, tmp_path, {"cases": 2})
+    return records
+
+
+def test_closed_loop_page_rates_with_intervals(tmp_path):
+    """The closed-loop page: asr_by_category.json's ASR in its cells, the Wilson interval folded into each rate's
+    cell, time metrics kept, the plots shown from disk."""
+    from lanevil_train.report.closed_loop import write_closed_loop_report
+
+    hits = {"fence_shadow": {"c1"}, "vehicle": {"c1"}}
+    categories = {"fence_shadow": "shadow", "vehicle": "traffic_obstruction"}
+    write_closed_loop_report(closed_loop_runs(("c1", "c2"), categories, hits), lambda record: TRACE, tmp_path,
+                             {"cases": 2})
     parsed = Parsed(page_module.write_closed_loop_page(tmp_path, {"cases": 2}).read_text())
     rows = json.loads((tmp_path / "asr_by_category.json").read_text())
     table = parsed.tables["table-asr_by_category"]

@@ -20,7 +20,7 @@ import pytest
 
 from lanevil_train.report import page as page_module
 from lanevil_train.report.robustness import write_report
-from tests.report.test_page import _answer, _keyed, _run, _with_images
+from tests.report.test_page import TRACE, _answer, _keyed, _run, _with_images, closed_loop_runs
 from tests.report.test_robustness import RECORDS
 
 BROWSERS = ("chromium", "chromium-browser", "google-chrome")
@@ -114,19 +114,8 @@ def _closed_loop_page(folder: Path) -> Path:
 
     hits = {"vehicle": {"c1", "c2", "c3", "c4"}, "fence_shadow": {"c1"}, "sunlight_reflection": {"c1", "c2"}}
     categories = {"vehicle": "traffic_obstruction", "fence_shadow": "shadow", "sunlight_reflection": "reflection"}
-    records = []
-    for case in ("c1", "c2", "c3", "c4"):
-        for illusion, category in categories.items():
-            for perturbed in (False, True):
-                hit = perturbed and case in hits[illusion]
-                records.append({"model": "M", "key": f"{case}/{illusion}/{int(perturbed)}", "case_id": case,
-                                "illusion": illusion, "category": category, "severity": 3 if perturbed else 0,
-                                "perturbed": perturbed, "repeat": 0, "success": hit, "twin_success": hit,
-                                "max_deviation_m": 0.5 if hit else 0.1, "first_departure_s": 1.5 if hit else None,
-                                "departures_per_km": 2.0 if hit else 0.0, "collision": False, "entry_s": 0.5,
-                                "region_m": [5.0, 15.0]})
-    trace = [{"t": t / 10, "s": float(t), "deviation": 0.01 * t} for t in range(30)]
-    write_closed_loop_report(records, lambda record: trace, folder, {"cases": 4})
+    write_closed_loop_report(closed_loop_runs(("c1", "c2", "c3", "c4"), categories, hits), lambda record: TRACE,
+                             folder, {"cases": 4})
     return page_module.write_closed_loop_page(folder, {"cases": 4})
 
 
