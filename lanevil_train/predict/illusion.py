@@ -37,6 +37,7 @@ from lanevil_train.illusions.recover import GroundPlaneError, context_from_lanes
 from lanevil_train.illusions.registry import check_seed, check_severity, get_illusion
 from lanevil_train.lanes import default_h_samples
 from lanevil_train.metrics.tusimple import tusimple_lane_scores
+from lanevil_train.rules import check_settings, number
 from lanevil_train.sim import Camera
 from lanevil_train.sim.sequence import FrameView, PoseCamera
 
@@ -57,17 +58,14 @@ class IllusionSettings:
     relayout_m: float = RELAYOUT_M
     smoothing: float = SMOOTHING
 
+    SETTINGS = {"speed_kmh": number(0, 300, low_open=True), "relayout_m": number(0, 1000, low_open=True),
+                "smoothing": number(0, 1, low_open=True)}  # smoothing: the newest frame's weight
+
     def __post_init__(self) -> None:
         get_illusion(self.name)  # a ValueError listing the names
         check_severity(self.severity)
         check_seed(self.seed)
-        for key, low, high in (("speed_kmh", 0.0, 300.0), ("relayout_m", 0.0, 1000.0)):
-            value = getattr(self, key)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not low < value <= high:
-                raise ValueError(f"{key}: expected a number in ({low:g}, {high:g}], got {value!r}")
-        if isinstance(self.smoothing, bool) or not isinstance(self.smoothing, (int, float)) \
-                or not 0.0 < self.smoothing <= 1.0:
-            raise ValueError(f"smoothing: expected the newest frame's weight in (0, 1], got {self.smoothing!r}")
+        check_settings(self.SETTINGS, vars(self), "")
 
     def identity(self) -> dict:
         """What a resumed run must share with the one it resumes."""

@@ -62,6 +62,7 @@ from lanevil_train.predict.illusion import IllusionSettings, RoadIllusion, lane_
 from lanevil_train.predict.sources import FrameSource
 from lanevil_train.progress import MODES, progress_counter
 from lanevil_train.results_log import ResultsLog
+from lanevil_train.rules import boolean, check_settings, integer, one_of
 
 log = logging.getLogger(__name__)
 
@@ -88,18 +89,11 @@ class PredictSettings:
     jpeg_quality: int = 95
     illusion: IllusionSettings | None = None
 
+    SETTINGS = {"batch_size": integer(1), "format": one_of(*FORMATS), "progress": one_of(*MODES),
+                "write_frames": boolean(), "jpeg_quality": integer(1, 100)}
+
     def __post_init__(self) -> None:
-        if isinstance(self.batch_size, bool) or not isinstance(self.batch_size, int) or self.batch_size < 1:
-            raise ValueError(f"batch_size: expected an integer >= 1, got {self.batch_size!r}")
-        if self.format not in FORMATS:
-            raise ValueError(f"format: expected one of {', '.join(FORMATS)}, got {self.format!r}")
-        if not isinstance(self.write_frames, bool):
-            raise ValueError(f"write_frames: expected true or false, got {self.write_frames!r}")
-        if self.progress not in MODES:
-            raise ValueError(f"progress: expected one of {', '.join(MODES)}, got {self.progress!r}")
-        if isinstance(self.jpeg_quality, bool) or not isinstance(self.jpeg_quality, int) \
-                or not 1 <= self.jpeg_quality <= 100:
-            raise ValueError(f"jpeg_quality: expected an integer from 1 to 100, got {self.jpeg_quality!r}")
+        check_settings(self.SETTINGS, vars(self), "")
 
 
 @dataclass
@@ -291,6 +285,19 @@ def predict_source(detector, source: FrameSource, out_dir: str | Path, settings:
             results.append(new)  # after their drawn frames: a line in the file means its frame is on disk
         timing["write_s"] += time.perf_counter() - start
 
+    def predict_batch(inputs: list[np.ndarray], frames: list[_Frame], image: str) -> list[dict]:
+        """LaneDetector.predict on the network inputs of `frames` (their `image` attribute: the frame or its
+        perturbed twin): each one's per_frame record, the batch's time shared out."""
+        start = time.perf_counter()
+        with torch.inference_mode():
+            predicted = detector.decode_lanes(detector(torch.from_numpy(np.stack(inputs)).to(device)),
+                                              preprocessor.input_size, [frame.image.shape[:2] for frame in frames],
+                                              with_scores=True)
+        elapsed = time.perf_counter() - start
+        timing["predict_s"] += elapsed
+        return [frame_record(frame.key, getattr(frame, image), lanes, elapsed * 1000 / len(frames), detector)
+                for frame, lanes in zip(frames, predicted)]
+
     def with_illusion(new: list[_Frame]) -> None:
         """Every pending frame in order with the illusion on its ground; a new one's lanes predicted on it."""
         start = time.perf_counter()
@@ -306,15 +313,8 @@ def predict_source(detector, source: FrameSource, out_dir: str | Path, settings:
         drawn = [frame for frame in new if frame.perturbed is not None]
         if not drawn:
             return
-        start = time.perf_counter()
-        with torch.inference_mode():
-            inputs = torch.from_numpy(np.stack([preprocessor.image(frame.perturbed, "bgr") for frame in drawn]))
-            predicted = detector.decode_lanes(detector(inputs.to(device)), preprocessor.input_size,
-                                              [frame.image.shape[:2] for frame in drawn], with_scores=True)
-        elapsed = time.perf_counter() - start
-        timing["predict_s"] += elapsed
-        for frame, lanes in zip(drawn, predicted):
-            lanes_record = frame_record(frame.key, frame.perturbed, lanes, elapsed * 1000 / len(drawn), detector)
+        inputs = [preprocessor.image(frame.perturbed, "bgr") for frame in drawn]
+        for frame, lanes_record in zip(drawn, predict_batch(inputs, drawn, "perturbed")):
             height, width = frame.image.shape[:2]
             changes = lane_changes([points for points, _ in record_lanes(frame.record)],
                                    [points for points, _ in record_lanes(lanes_record)], height, width)
@@ -328,17 +328,9 @@ def predict_source(detector, source: FrameSource, out_dir: str | Path, settings:
     def flush() -> None:
         nonlocal writing
         new = [frame for frame in pending if frame.record is None]
-        if new:
-            start = time.perf_counter()
-            with torch.inference_mode():  # LaneDetector.predict, its preprocessing done in the reading thread
-                inputs = torch.from_numpy(np.stack([frame.input for frame in new])).to(device)
-                predicted = detector.decode_lanes(detector(inputs), preprocessor.input_size,
-                                                  [frame.image.shape[:2] for frame in new], with_scores=True)
-            elapsed = time.perf_counter() - start
-            timing["predict_s"] += elapsed
-            for frame, lanes in zip(new, predicted):
-                frame.record = frame_record(frame.key, frame.image, lanes, elapsed * 1000 / len(new), detector)
-                frame.input = None
+        if new:  # their preprocessing done in the reading thread
+            for frame, record in zip(new, predict_batch([frame.input for frame in new], new, "image")):
+                frame.record, frame.input = record, None
             counts["predicted"] += len(new)
         if road is not None:
             with_illusion(new)

@@ -24,6 +24,7 @@ from lanevil_train.lanes import ROW_SAMPLINGS
 from lanevil_train.models.backbones import OUTPUT_STRIDES
 from lanevil_train.models.schedules import LR_SCALINGS
 from lanevil_train.perturbations import SUITE_KINDS
+from lanevil_train.predict.illusion import IllusionSettings
 from lanevil_train.progress import MODES
 from lanevil_train.report.leaderboard import SETTINGS as LEADERBOARD_SETTINGS
 from lanevil_train.rules import (
@@ -378,9 +379,7 @@ RULES.update({
     "task.severity": integer(1, 5),
     "task.seed": integer(0),
     "task.labels": null_or(existing_file("TuSimple label file")),
-    "task.speed_kmh": number(0, 300, low_open=True),
-    "task.relayout_m": number(0, 1000, low_open=True),
-    "task.smoothing": number(0, 1, low_open=True),
+    **{f"task.{name}": rule for name, rule in IllusionSettings.SETTINGS.items()},  # their owner's ranges
 })
 TASK_RULES["predict"] = {"data.root": None}
 
