@@ -33,6 +33,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from lanevil_train.files.atomic import atomic_write_text
+from lanevil_train.report.intervals import case_key
 from lanevil_train.report.records import (
     NAN,
     ModelRecords,
@@ -147,10 +148,6 @@ def _estimate(value: float, replicates: np.ndarray | None, confidence: float) ->
     return {"value": _number(value), "low": _number(low), "high": _number(high)}
 
 
-def _case(record: dict) -> tuple:
-    return record["dataset"], record["case_id"]
-
-
 class _Bootstrap:
     """Case weights of `replicates` draws of the cases with replacement, and scores under them."""
 
@@ -170,7 +167,7 @@ class _Bootstrap:
             return np.full(len(self.weights), np.nan)
         table = np.zeros((len(self.index), len(additive.parts(records[0]))))
         for r in records:
-            table[self.index[_case(r)]] += additive.parts(r)
+            table[self.index[case_key(r)]] += additive.parts(r)
         return additive.combine(self.weights @ table)
 
 
@@ -212,7 +209,7 @@ def _group(index: ModelRecords, rs: RecordSet, groups: dict[str, list[dict]], bo
             scores[score.name] = {k: _estimate(point[k], rep[k], confidence) for k in KINDS}
             reps[score.name] = (point, rep)
         categories[cat] = {"n_perturbed": len(pert), "n_original": len(orig),
-                           "n_cases": len({_case(r) for r in pert}), "scores": scores}
+                           "n_cases": len({case_key(r) for r in pert}), "scores": scores}
         parts[cat] = reps
     all_pert = index.pert
     overall_scores = {}
@@ -223,7 +220,7 @@ def _group(index: ModelRecords, rs: RecordSet, groups: dict[str, list[dict]], bo
             rep = _nanmean([parts[cat][score.name][1][kind] for cat in rs.categories])
             overall_scores[score.name][kind] = _estimate(point, rep, confidence)
     overall = {"n_perturbed": len(all_pert), "n_original": len(index.originals(all_pert)),
-               "n_cases": len({_case(r) for r in all_pert}), "scores": overall_scores}
+               "n_cases": len({case_key(r) for r in all_pert}), "scores": overall_scores}
     return categories, overall
 
 
@@ -235,7 +232,7 @@ def _mce(rs: RecordSet, model: str, reference: str, replicates: int, confidence:
     row = next(r for r in relative_table(rs, reference) if r["model"] == model)
     score, higher = rs.headline, rs.headline.higher_is_better
     own, base = rs.by_model[model], rs.by_model[reference]
-    boot = _Bootstrap([_case(r) for r in own.pert + base.pert], replicates, seed)
+    boot = _Bootstrap([case_key(r) for r in own.pert + base.pert], replicates, seed)
 
     def error(values):
         return None if values is None else (100.0 - values if higher else values)
@@ -381,7 +378,7 @@ def build_card(records, model: str | None = None, identity: dict | None = None, 
                          f"describes robustness to an illusion suite")
     identity = dict(identity or {})
     groups = {cat: pert for (cat,), pert in rs.groups(model, ("category",))}
-    boot = _Bootstrap([_case(r) for r in index.pert], replicates, seed)
+    boot = _Bootstrap([case_key(r) for r in index.pert], replicates, seed)
     categories, overall = _group(index, rs, groups, boot, confidence)
     mce = None
     if reference is not None:

@@ -38,7 +38,8 @@ CONFIDENCE = 0.95
 SLOW_REPLICATES = 200  # at most this many replicates for a score re-aggregated per replicate (no additive form)
 
 
-def _case(record: dict) -> tuple:
+def case_key(record: dict) -> tuple:
+    """The case a record belongs to, what the bootstraps draw: (dataset, case_id)."""
     return record["dataset"], record["case_id"]
 
 
@@ -61,12 +62,12 @@ class _RunStats:
                 elif additive is not None:
                     table = np.zeros((len(cases), len(additive.parts(records[0]))))
                     for r in records:
-                        table[cases[_case(r)]] += additive.parts(r)
+                        table[cases[case_key(r)]] += additive.parts(r)
                     self.stats[group, score.name] = (additive.combine, table)
                 else:
                     per_case: list[list[dict]] = [[] for _ in cases]
                     for r in records:
-                        per_case[cases[_case(r)]].append(r)
+                        per_case[cases[case_key(r)]].append(r)
                     self.stats[group, score.name] = (score.aggregate, per_case)
 
     def values(self, group: str, score: str, weights: np.ndarray) -> np.ndarray:
@@ -103,7 +104,7 @@ class SeedRuns:
                     raise ValueError(f"{name} seed {seed}: expected the records of one model, got {rs.models}")
                 self.sets[name][seed] = rs
         all_sets = [rs for seeds in self.sets.values() for rs in seeds.values()]
-        case_sets = {frozenset(_case(r) for r in rs.records) for rs in all_sets}
+        case_sets = {frozenset(case_key(r) for r in rs.records) for rs in all_sets}
         if len(case_sets) != 1:
             raise ValueError("seed runs: the runs were scored on different test cases; intervals pair the same cases "
                              "across runs, so score every run on the same suite (cases, illusions, severities)")
