@@ -1,8 +1,9 @@
-"""Datasets yielding samples {"image", "lanes", "meta"}: simulated scenes, TuSimple, CULane and LLAMAS folders.
+"""Datasets yielding samples {"image", "lanes", "meta"}: simulated scenes, TuSimple, CULane, LLAMAS and CurveLanes
+folders.
 
 Every sample's meta carries a stable "case_id" and the "h_samples" rows at which the TuSimple
 metric scores it; a dataset scored by another CULane-style procedure than CULane's says which in "culane_metric"
-(LLAMAS: "llamas", see lanevil_train/metrics/llamas.py).
+(LLAMAS: "llamas", see lanevil_train/metrics/llamas.py; CurveLanes: "curvelanes", lanevil_train/metrics/curvelanes.py).
 
 A split's labels alone, without its images where the labels suffice: `labelled_lanes` (each item's lanes and image
 size) and `input_lane_sets` (each item's lanes in a network input's pixels, e.g. for counting which LaneATT anchors a
@@ -18,6 +19,7 @@ import numpy as np
 from torch.utils.data import Dataset
 
 from lanevil_train.data.formats import load_image, read_culane, read_tusimple
+from lanevil_train.data.formats.curvelanes import image_size_of, read_curvelanes
 from lanevil_train.data.formats.llamas import read_llamas
 from lanevil_train.data.preprocessor import lanes_to_input
 from lanevil_train.errors import prefixed
@@ -207,3 +209,27 @@ class LLAMASDataset(_RecordDataset):
             where = root / ("color_images/test" if split == "test" else f"labels/{split}")
             raise EmptySplitError(f"the LLAMAS {split} split ({where}) holds no "
                                   f"{'images' if split == 'test' else 'labels'}", "split")
+
+
+class CurveLanesDataset(_RecordDataset):
+    """A CurveLanes folder: ``<split>/<split>.txt`` listing ``images/<name>.jpg``, labels at
+    ``<split>/labels/<name>.lines.json`` (data/formats/curvelanes.py).
+
+    ``split`` is the folder name (train, valid; test has no public labels); ``list_file`` (under root) replaces the
+    official list, e.g. a subset. Images differ in size (2560x1440, 1570x660, 1280x720); each is scored with the
+    CurveLanes procedure (metrics/curvelanes.py: 5 px lanes on a 224x224 canvas)."""
+
+    culane_metric = "curvelanes"
+
+    def __init__(self, root: str | Path, split: str = "valid", check_images: bool = True,
+                 list_file: str | Path | None = None):
+        root = Path(root)
+        super().__init__(read_curvelanes(root, split, check_images=check_images, list_file=list_file))
+        if not self.records:
+            where = root / (list_file if list_file is not None else f"{split}/{split}.txt")
+            raise EmptySplitError(f"the CurveLanes list file {where} lists no images", "list_file")
+
+    def labelled_lanes(self) -> Iterator[tuple[list[np.ndarray], tuple[int, int]]]:
+        """Each record's lanes and its image's (H, W), read from the image's header (the sizes differ)."""
+        for record in self.records:
+            yield [np.asarray(lane, dtype=np.float64) for lane in record["lanes"]], image_size_of(record["image_path"])

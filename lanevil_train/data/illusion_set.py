@@ -75,6 +75,8 @@ class Plan:
     image_ext: str = ".png"
     kind: str = "illusions"        # perturbations.SUITE_KINDS: illusions | corruptions | combined (`illusions` are
                                    # then corruption names, or the illusions a combined case draws its pairs from)
+    culane_metric: str | None = None  # the photos' dataset's CULane-style procedure, when not CULane's (datasets.py
+                                      # culane_metric: "llamas", "curvelanes"); the set's images are scored with it
 
     def __post_init__(self) -> None:
         check_settings(self.SETTINGS, {name: getattr(self, name) for name in self.SETTINGS}, "task")
@@ -257,6 +259,8 @@ def plan_record(plan: Plan) -> dict:
     record = asdict(plan)
     if plan.kind == "illusions":
         record.pop("kind")
+    if plan.culane_metric is None:  # nor `culane_metric` when CULane's, as sets were written before it existed
+        record.pop("culane_metric")
     return record
 
 

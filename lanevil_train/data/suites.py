@@ -32,8 +32,11 @@ class IllusionSetDataset(Dataset):
     def __init__(self, root: str | Path):
         self.root = Path(root)
         self.manifest = read_manifest(self.root / "manifest.jsonl")
+        self.culane_metric = None  # the photos' dataset's CULane-style procedure (build.json's plan), if not CULane's
         if (self.root / BUILD_FILE).exists():
-            self._check_complete(read_build_record(self.root))
+            build = read_build_record(self.root)
+            self._check_complete(build)
+            self.culane_metric = (build.get("plan") or {}).get("culane_metric")
         if not self.manifest:
             raise EmptySplitError(f"the illusion set's manifest {self.root / 'manifest.jsonl'} lists no images "
                                   f"(an empty set; task=build writes one)", "root")
@@ -76,6 +79,8 @@ class IllusionSetDataset(Dataset):
         meta.update(key=entry["image"], image_path=str(self.root / entry["image"]), height=image.shape[0],
                     width=image.shape[1], h_samples=np.asarray(h_samples if h_samples is not None
                                                                else default_h_samples(image.shape[0]), float))
+        if self.culane_metric is not None:
+            meta["culane_metric"] = self.culane_metric
         return {"image": image, "lanes": label["lanes"], "meta": meta}
 
 

@@ -1,4 +1,4 @@
-"""Lane metrics (TuSimple, CULane, LLAMAS; VQA later): plain numpy scores plus torchmetrics wrappers.
+"""Lane metrics (TuSimple, CULane, LLAMAS, CurveLanes; VQA later): plain numpy scores plus torchmetrics wrappers.
 
 Every name loads on first use (module ``__getattr__``), so ``python -m lanevil_train.metrics`` and other
 torch-free users import only what they touch: ``tusimple`` needs numpy, ``culane`` numpy and OpenCV, and
@@ -15,7 +15,12 @@ _EXPORTS = {
     "CULaneMetric": "wrappers",
     "TuSimpleMetric": "wrappers",
     "culane_image_counts": "culane",
+    "culane_image_counts_multi": "culane",
+    "culane_leaderboard_scores": "culane",
     "culane_summary": "culane",
+    "curvelanes_image_counts": "curvelanes",
+    "evaluate_curvelanes_dirs": "curvelanes",
+    "culane_sweep_summary": "culane",
     "evaluate_culane_dirs": "culane_files",
     "evaluate_tusimple_files": "tusimple",
     "llamas_image_counts": "llamas",

@@ -1,7 +1,8 @@
 """Command line scoring: ``python -m lanevil_train.metrics tusimple --pred P.json --gt G.json``.
 
 Each benchmark is one ``_add_<name>(subparsers)`` function that registers its subcommand and
-sets ``func`` (args -> result dict); add it to ``_SUBCOMMANDS`` to expose it. ``func`` imports its scorer
+sets ``func`` (args -> result dict, printed as JSON, or a str printed as is); add it to ``_SUBCOMMANDS`` to
+expose it. ``func`` imports its scorer
 when it runs, and the package exports lazily, so a command loads what its scorer needs (numpy; OpenCV for
 CULane) and never torch (tests/metrics/test_commands.py checks this in a fresh process).
 """
@@ -34,8 +35,10 @@ def _add_tusimple(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _add_culane(subparsers: argparse._SubParsersAction) -> None:
-    """`culane`: the official CULane evaluation (TP, FP, FN, Precision, Recall, F1) of .lines.txt folders."""
-    p = subparsers.add_parser("culane", help="CULane TP/FP/FN/Precision/Recall/F1 of .lines.txt directories")
+    """`culane`: the official CULane evaluation (TP, FP, FN, Precision, Recall, F1; F1@50, F1@75, mF1; with
+    --categories the nine official scenario lists) of .lines.txt folders."""
+    p = subparsers.add_parser("culane", help="CULane TP/FP/FN/Precision/Recall/F1, F1@50/F1@75/mF1 (and per "
+                                             "category) of .lines.txt directories")
     p.add_argument("--pred-dir", required=True, help="predictions, <dir>/<image path sans ext>.lines.txt")
     p.add_argument("--gt-dir", required=True, help="annotations in the same layout")
     p.add_argument("--list", required=True, help="image list, one relative image path per line")
@@ -45,13 +48,18 @@ def _add_culane(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--iou", type=float, default=0.5, help="IoU threshold, strict '>' (official: 0.5)")
     p.add_argument("--workers", type=int, default=None,
                    help="processes (default: one per CPU for long lists, >= 250 images each; 1: no extra process)")
+    p.add_argument("--categories", default=None, metavar="LIST_DIR",
+                   help="folder of the nine official category lists (CULane's list/test_split/: test0_normal.txt "
+                        "... test8_night.txt): F1 per category, cross as its FP count")
+    p.add_argument("--table", action="store_true",
+                   help="print a markdown table (F1@50, F1@75, mF1 in %%, per category) instead of the JSON")
 
-    def run(args: argparse.Namespace) -> dict:
-        from lanevil_train.metrics.culane_files import evaluate_culane_dirs
+    def run(args: argparse.Namespace) -> dict | str:
+        from lanevil_train.metrics.culane_files import category_table, evaluate_culane_dirs
 
-        return evaluate_culane_dirs(
-            args.pred_dir, args.gt_dir, args.list, args.width, args.height, args.lane_width, args.iou, args.workers
-        )
+        result = evaluate_culane_dirs(args.pred_dir, args.gt_dir, args.list, args.width, args.height,
+                                      args.lane_width, args.iou, args.workers, args.categories)
+        return category_table(result) if args.table else result
 
     p.set_defaults(func=run)
 
@@ -71,7 +79,45 @@ def _add_vqa(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-_SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [_add_tusimple, _add_culane, _add_vqa]
+def _image_size(text: str) -> tuple[int, int]:
+    """``WxH`` (e.g. 2560x1440) -> (H, W)."""
+    try:
+        width, height = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, e.g. 2560x1440, got {text!r}") from None
+    if width < 1 or height < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive WIDTHxHEIGHT, got {text!r}")
+    return height, width
+
+
+def _add_curvelanes(subparsers: argparse._SubParsersAction) -> None:
+    """`curvelanes`: the CurveLanes evaluation (CULane's IoU F1 at 224x224, 5 px lanes: metrics/curvelanes.py) of a
+    .lines.txt tree against the official .lines.json labels."""
+    p = subparsers.add_parser("curvelanes", help="CurveLanes TP/FP/FN/Precision/Recall/F1 of a .lines.txt tree")
+    p.add_argument("--pred-dir", required=True,
+                   help="predictions, <dir>/<split>/images/<name>.lines.txt (task=evaluate task.predictions=true "
+                        "writes them in predictions/culane)")
+    p.add_argument("--root", required=True, help="the CurveLanes folder (<root>/<split>/<split>.txt, labels/, images/)")
+    p.add_argument("--split", default="valid", help="train or valid (default: valid; test has no public labels)")
+    p.add_argument("--list", default=None, help="a list file under root instead of <split>/<split>.txt")
+    p.add_argument("--image-size", type=_image_size, default=None,
+                   help="WIDTHxHEIGHT of every image (default: each image's own, read from its header)")
+    p.add_argument("--width", type=int, default=224, help="evaluation canvas width (official: 224)")
+    p.add_argument("--height", type=int, default=224, help="evaluation canvas height (official: 224)")
+    p.add_argument("--lane-width", type=int, default=5, help="drawn lane width in px (official: 5)")
+    p.add_argument("--iou", type=float, default=0.5, help="IoU threshold, strict '>' (official: 0.5)")
+
+    def run(args: argparse.Namespace) -> dict:
+        from lanevil_train.metrics.curvelanes import evaluate_curvelanes_dirs
+
+        return evaluate_curvelanes_dirs(args.pred_dir, args.root, args.split, args.list, args.image_size,
+                                        args.width, args.height, args.lane_width, args.iou)
+
+    p.set_defaults(func=run)
+
+
+_SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [_add_tusimple, _add_culane, _add_vqa,
+                                                                    _add_curvelanes]
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -95,7 +141,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 1
     for warning in caught:  # e.g. prediction lines the official arithmetic reads in its own way
         print(f"warning: {warning.message}", file=sys.stderr)
-    print(json.dumps(result))
+    print(result if isinstance(result, str) else json.dumps(result))  # a str: a table the command asked for
     return 0
 
 

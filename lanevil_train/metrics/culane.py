@@ -18,6 +18,24 @@ Procedure of the official tool (evaluate.cpp, counter.cpp, lane_compare.cpp, spl
   ``cvRound`` turns into INT_MIN on x86; this is reproduced (the lane then draws a stray long line), not fixed.
 * A matched pair is a TP when IoU > threshold (strict); FP = #pred - TP, FN = #gt - TP, summed over images.
 
+Several thresholds from one pass (cfzd/Ultra-Fast-Lane-Detection 353df10, ``evaluation/culane/``): the matching
+never sees the threshold. ``counter.cpp:77-90`` fills the raw-IoU matrix and calls ``makeMatch``; only afterwards,
+``counter.cpp:97``, is a matched pair a TP when ``similarity > sim_threshold``, the only use of the threshold
+(``counter.hpp:22,39``). So ``culane_matched_ious`` computes the masks, IoUs and matching once per image and
+``culane_image_counts_multi`` counts the TP at every threshold from them, each count equal to a separate
+``evaluate -t <threshold>`` run (tests/metrics/test_culane_categories.py; benchmarks/RESULTS.md, "CULane as
+leaderboards report it"). mF1 is CLRNet's (Turoad/CLRNet 7269e9d ``clrnet/utils/culane_metric.py:166-203`` with
+``np.linspace(0.5, 0.95, 10)`` from ``clrnet/datasets/culane.py:140``): the mean of the ten F1 values at
+0.50, 0.55, ..., 0.95, each from the counts summed over the list. ``MF1_THRESHOLDS`` are the decimal literals,
+which ``evaluate -t 0.90`` reads with atof; linspace's ninth value is 0.8999999999999999, so a pair with IoU
+exactly 0.9 would be a TP at "0.9" in CLRNet's Python and not in the C++ (and not here).
+
+Categories (``culane_files.CATEGORIES``): the official scripts run the evaluator once per list of
+``list/test_split/`` (``run-full.sh:10-36``, ``evaluation/eval_wrapper.py:185-237``) and sum the nine lists'
+counts for the total (``calTotal.m:11-23``). Cross images have no GT lanes, so TP = FN = 0 and FP = #pred
+(``counter.cpp:65-68``); the evaluator prints recall -1 (``counter.cpp:23-27``) and F 0, and leaderboards give
+cross's FP count. Here one pass over the scored list gives every image's TP at every threshold, summed per list.
+
 Why the widely copied Python port (``culane_metric`` with scipy ``splprep``) gives different counts:
 it fits FITPACK's interpolating B-spline (``splprep(s=0)``: its own end conditions, parameter =
 normalised cumulative chord length) instead of the natural cubic spline, samples 5 points per segment instead of 50 (a
@@ -37,7 +55,7 @@ from __future__ import annotations
 
 import math
 import threading
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import cv2
 import numpy as np
@@ -45,6 +63,9 @@ import numpy as np
 SAMPLES_PER_SEGMENT = 50
 _TIGHT_EPS = 1e-2  # hungarianGraph.hpp equality tolerance
 _INT_MIN = np.iinfo(np.int32).min
+# mF1's IoU thresholds 0.50:0.05:0.95 as decimal literals (what `evaluate -t 0.90` reads with atof; CLRNet's
+# np.linspace(0.5, 0.95, 10) gives 0.8999999999999999 for the ninth, see the module docstring)
+MF1_THRESHOLDS = (0.5, 0.55, 0.6, 0.65, 0.7, 0.75, 0.8, 0.85, 0.9, 0.95)
 
 
 def lane_points(lane: object, name: str) -> np.ndarray:
@@ -257,19 +278,19 @@ def official_km_match(sim: Sequence[Sequence[float]]) -> tuple[list[int], list[i
     return (rmatch, lmatch) if swap else (lmatch, rmatch)
 
 
-def culane_image_counts(
+def culane_matched_ious(
     pred_lanes: Sequence[object],
     gt_lanes: Sequence[object],
     width: int = 1640,
     height: int = 590,
     lane_width: int = 30,
-    iou_threshold: float = 0.5,
-) -> tuple[int, int, int]:
-    """(TP, FP, FN) of one image exactly as the official CULane evaluator counts them."""
-    if not gt_lanes:
-        return 0, len(pred_lanes), 0
-    if not pred_lanes:
-        return 0, 0, len(gt_lanes)
+) -> list[float]:
+    """IoU of every (GT, prediction) pair the official matching pairs in one image (NaN for two empty masks).
+
+    The matching maximises the summed raw IoU and never sees the threshold (counter.cpp makeMatch), so these IoUs
+    give the TP count at every threshold: TP(t) = the number of them > t."""
+    if not gt_lanes or not pred_lanes:
+        return []
     if width < 1 or height < 1 or lane_width < 1:
         raise ValueError(f"width, height, lane_width must be positive, got {width}, {height}, {lane_width}")
     canvases = _canvases(height, width)
@@ -291,8 +312,37 @@ def culane_image_counts(
     finally:
         canvases.clear(drawn)
     gt_match, _ = official_km_match(sim)
-    tp = sum(1 for i, j in enumerate(gt_match) if j >= 0 and sim[i][j] > iou_threshold)
-    return tp, len(pred_lanes) - tp, len(gt_lanes) - tp
+    return [sim[i][j] for i, j in enumerate(gt_match) if j >= 0]
+
+
+def culane_image_counts_multi(
+    pred_lanes: Sequence[object],
+    gt_lanes: Sequence[object],
+    width: int = 1640,
+    height: int = 590,
+    lane_width: int = 30,
+    iou_thresholds: Sequence[float] = MF1_THRESHOLDS,
+) -> list[tuple[int, int, int]]:
+    """(TP, FP, FN) of one image at each of ``iou_thresholds``, from one IoU matrix and one matching: each equal
+    to ``culane_image_counts`` at that threshold (a TP is a matched pair with IoU > threshold, strict)."""
+    ious = culane_matched_ious(pred_lanes, gt_lanes, width, height, lane_width)
+    out = []
+    for threshold in iou_thresholds:
+        tp = sum(1 for iou in ious if iou > threshold)  # NaN > t is False, as in the C++
+        out.append((tp, len(pred_lanes) - tp, len(gt_lanes) - tp))
+    return out
+
+
+def culane_image_counts(
+    pred_lanes: Sequence[object],
+    gt_lanes: Sequence[object],
+    width: int = 1640,
+    height: int = 590,
+    lane_width: int = 30,
+    iou_threshold: float = 0.5,
+) -> tuple[int, int, int]:
+    """(TP, FP, FN) of one image exactly as the official CULane evaluator counts them."""
+    return culane_image_counts_multi(pred_lanes, gt_lanes, width, height, lane_width, (iou_threshold,))[0]
 
 
 def culane_summary(tp: int, fp: int, fn: int) -> dict:
@@ -301,3 +351,20 @@ def culane_summary(tp: int, fp: int, fn: int) -> dict:
     recall = tp / (tp + fn) if tp + fn else 0.0
     f1 = 2 * precision * recall / (precision + recall) if precision + recall else 0.0
     return {"TP": int(tp), "FP": int(fp), "FN": int(fn), "Precision": precision, "Recall": recall, "F1": f1}
+
+
+def culane_leaderboard_scores(counts: Mapping[float, Sequence[int]]) -> dict:
+    """F1@50, F1@75 and mF1 (fractions) from summed (TP, FP, FN) per IoU threshold; ``counts`` must hold every
+    threshold of MF1_THRESHOLDS. mF1 is the mean of the ten F1 values at 0.50, 0.55, ..., 0.95 (CLRNet's), each
+    F1 from the counts summed over all images at that threshold."""
+    missing = [t for t in MF1_THRESHOLDS if t not in counts]
+    if missing:
+        raise ValueError(f"counts lack the IoU thresholds {missing}; mF1 needs {list(MF1_THRESHOLDS)}")
+    f1 = {t: culane_summary(*counts[t])["F1"] for t in MF1_THRESHOLDS}
+    return {"F1@50": f1[0.5], "F1@75": f1[0.75], "mF1": sum(f1.values()) / len(f1)}
+
+
+def culane_sweep_summary(counts: Mapping[float, Sequence[int]]) -> dict:
+    """TP, FP, FN, Precision, Recall at IoU 0.5 and F1@50, F1@75, mF1 (culane_leaderboard_scores)."""
+    at50 = culane_summary(*counts[0.5])
+    return {**{k: at50[k] for k in ("TP", "FP", "FN", "Precision", "Recall")}, **culane_leaderboard_scores(counts)}

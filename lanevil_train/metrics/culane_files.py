@@ -12,9 +12,23 @@ from typing import Sequence
 
 import numpy as np
 
-from lanevil_train.metrics.culane import culane_image_counts, culane_summary
+from lanevil_train.metrics.culane import (
+    MF1_THRESHOLDS,
+    culane_image_counts,
+    culane_image_counts_multi,
+    culane_leaderboard_scores,
+    culane_summary,
+)
 
-__all__ = ["OddCountWarning", "read_lines_file", "lines_file_path", "count_images", "evaluate_culane_dirs"]
+__all__ = ["OddCountWarning", "read_lines_file", "lines_file_path", "count_images", "evaluate_culane_dirs",
+           "CATEGORIES", "read_category_lists", "category_scores", "category_table"]
+
+# The official per-scenario lists (list/test_split/ of CULane; run-full.sh runs the evaluator once per file), in
+# the leaderboards' order. Cross images have no lanes: their row is the FP count.
+CATEGORIES = (("normal", "test0_normal.txt"), ("crowd", "test1_crowd.txt"), ("hlight", "test2_hlight.txt"),
+              ("shadow", "test3_shadow.txt"), ("noline", "test4_noline.txt"), ("arrow", "test5_arrow.txt"),
+              ("curve", "test6_curve.txt"), ("cross", "test7_cross.txt"), ("night", "test8_night.txt"))
+FP_ONLY = "cross"
 
 IMAGES_PER_WORKER = 250  # below this a worker's start-up (~0.2-0.4 s: numpy + OpenCV) outweighs its share
 CHUNKS_PER_WORKER = 4  # a few chunks per worker even out uneven images without much pickling
@@ -84,6 +98,31 @@ def count_images(pred_dir: str, gt_dir: str, names: Sequence[str], width: int = 
     return tp, fp, fn, odd
 
 
+def image_counts(pred_dir: str, gt_dir: str, names: Sequence[str], width: int = 1640, height: int = 590,
+                 lane_width: int = 30,
+                 iou_thresholds: Sequence[float] = MF1_THRESHOLDS) -> tuple[np.ndarray, list[str]]:
+    """Per image of ``names``: its TP at each of ``iou_thresholds``, then its predicted and its GT lane counts (an
+    (images, thresholds + 2) int64 array; FP = predicted - TP, FN = GT - TP), one matching per image; and the
+    notes on lines with an odd count of numbers."""
+    rows = np.zeros((len(names), len(iou_thresholds) + 2), np.int64)
+    odd: list[str] = []
+    for i, name in enumerate(names):
+        rel = lines_file_path(name)
+        pred = read_lines_file(os.path.join(pred_dir, rel), "prediction", odd)
+        gt = read_lines_file(os.path.join(gt_dir, rel), "ground truth", odd)
+        counts = culane_image_counts_multi(pred, gt, width, height, lane_width, iou_thresholds)
+        rows[i, :-2] = [tp for tp, _, _ in counts]
+        rows[i, -2:] = len(pred), len(gt)
+    return rows, odd
+
+
+def totals_by_threshold(rows: np.ndarray, iou_thresholds: Sequence[float]) -> dict[float, tuple[int, int, int]]:
+    """Summed (TP, FP, FN) per threshold of ``image_counts`` rows (all of them, or a category's)."""
+    total = rows.sum(axis=0)
+    n_pred, n_gt = int(total[-2]), int(total[-1])
+    return {t: (int(tp), n_pred - int(tp), n_gt - int(tp)) for t, tp in zip(iou_thresholds, total[:-2])}
+
+
 def available_cpus() -> int:
     """CPUs this process may run on (its affinity mask where the OS has one)."""
     if hasattr(os, "sched_getaffinity"):
@@ -123,6 +162,79 @@ def _read_list(list_file: str) -> list[str]:
         raise ValueError(f"list file {list_file} has no image paths; expected one image path per line, "
                          f"like /driver_100_30frame/05251517_0433.MP4/00000.jpg")
     return names
+
+
+def image_key(name: str) -> str:
+    """An image's name in every list, its `.lines.txt` path: `/d/v.MP4/00000.jpg` -> `d/v.MP4/00000.lines.txt`."""
+    return os.path.normpath(lines_file_path(name))
+
+
+def read_category_lists(list_dir: str, scored: Sequence[str], arg: str = "--categories") -> dict[str, list[str]]:
+    """The nine official category lists of ``list_dir`` (CATEGORIES: ``test0_normal.txt`` ... ``test8_night.txt``),
+    each as the image keys (image_key) it names, in CATEGORIES order; checked before any scoring. Raises naming
+    the folder (``arg``: the option that gave it), a missing file, or file:line of an image that is not among the
+    ``scored`` list entries or is listed twice in its file."""
+    if not os.path.isdir(list_dir):
+        raise FileNotFoundError(f"{arg} {list_dir} is not a directory; expected CULane's list/test_split/ folder "
+                                f"holding {', '.join(f for _, f in CATEGORIES)}")
+    missing = [f for _, f in CATEGORIES if not os.path.isfile(os.path.join(list_dir, f))]
+    if missing:
+        raise FileNotFoundError(f"{arg} {list_dir} lacks the category list(s) {', '.join(missing)}; expected the "
+                                f"nine official files {', '.join(f for _, f in CATEGORIES)}")
+    known = {image_key(n) for n in scored}
+    out = {}
+    for category, filename in CATEGORIES:
+        path = os.path.join(list_dir, filename)
+        seen: dict[str, int] = {}
+        with open(path) as f:
+            numbered = [(lineno, line.strip()) for lineno, line in enumerate(f, 1) if line.strip()]
+        _read_list(path)  # the list checks of the scored list: one path per line, '/' separators, not empty
+        for lineno, entry in numbered:
+            key = image_key(entry)
+            if key not in known:
+                raise ValueError(f"{path}:{lineno}: image {entry!r} is not in the scored list; a category list may "
+                                 f"only name images that are scored (the test list's {len(known)} images)")
+            if key in seen:
+                raise ValueError(f"{path}:{lineno}: image {entry!r} is listed twice (first at line {seen[key]})")
+            seen[key] = lineno
+        out[category] = list(seen)
+    return out
+
+
+def category_scores(rows: np.ndarray, names: Sequence[str], categories: dict[str, list[str]],
+                    iou_thresholds: Sequence[float]) -> dict[str, dict]:
+    """Per category (read_category_lists): its images, TP/FP/FN at IoU 0.5, F1@50, F1@75 and mF1 (fractions), as
+    the official evaluator run on its list alone would count them; cross: its images and FP only."""
+    index = {}
+    for i, name in enumerate(names):
+        index.setdefault(image_key(name), i)
+    out = {}
+    for category, keys in categories.items():
+        totals = totals_by_threshold(rows[[index[k] for k in keys]], iou_thresholds)
+        tp, fp, fn = totals[0.5]
+        if category == FP_ONLY:
+            out[category] = {"images": len(keys), "FP": fp}
+        else:
+            out[category] = {"images": len(keys), "TP": tp, "FP": fp, "FN": fn, **culane_leaderboard_scores(totals)}
+    return out
+
+
+def category_table(result: dict) -> str:
+    """Markdown of an evaluate_culane_dirs result: F1@50, F1@75 and mF1 (%) of the scored list and, when it has
+    them, of each category (cross: its FP count only) and their total (IoU 0.5 for the FP column)."""
+    def pct(value: float) -> str:
+        return f"{100 * value:.2f}"
+
+    rows = result.get("categories") or {"total": result}
+    lines = ["| list | images | F1@50 | F1@75 | mF1 | FP |", "|---|---|---|---|---|---|"]
+    for name, row in rows.items():
+        fp = row["FP"] if "categories" in result else ""  # without categories, FP is at --iou: left out
+        if name == FP_ONLY:
+            lines.append(f"| {name} | {row['images']} | - | - | - | {fp} |")
+        else:
+            lines.append(f"| {name} | {row['images']} | {pct(row['F1@50'])} | {pct(row['F1@75'])} | "
+                         f"{pct(row['mF1'])} | {fp} |")
+    return "\n".join(lines)
 
 
 def _check_dir(path: str, arg: str, holds: str) -> None:
@@ -167,35 +279,53 @@ def evaluate_culane_dirs(
     lane_width: int = 30,
     iou_threshold: float = 0.5,
     workers: int | None = None,
+    categories: str | None = None,
 ) -> dict:
     """Official file-level evaluation: for each image path in ``list_file``, ``<dir>/<path sans ext>.lines.txt``.
+
+    Returns TP, FP, FN, Precision, Recall, F1 at ``iou_threshold`` (culane_summary), the number of images, and
+    F1@50, F1@75, mF1 (culane_leaderboard_scores), all from one pass: each image's IoU matrix and matching are
+    computed once and its TP counted at every threshold. ``categories``: a folder holding the nine official
+    category lists (CATEGORIES, CULane's list/test_split/): adds "categories", {name: category_scores row} for the
+    nine and a "total" row (every scored image, counts at IoU 0.5), each as the official evaluator counts that list.
 
     Images are split into contiguous chunks scored by ``workers`` processes (default: one per CPU for long
     lists, see ``worker_count``; 1 scores in this process). The counts are integers summed over images, so
     the result is the same for any number of workers.
 
-    Inputs are checked before any scoring (``_check_inputs``): a missing prediction file is an image with no
-    lanes, as officially, but a list none of whose entries has a GT file, or none a prediction file, is refused.
+    Inputs are checked before any scoring (``_check_inputs``, ``read_category_lists``): a missing prediction file
+    is an image with no lanes, as officially, but a list none of whose entries has a GT file, or none a prediction
+    file, is refused, and so is a category list that is missing or names an image outside ``list_file``.
     Lines with an odd count of numbers are scored as officially (the last number dropped) and reported in one
     OddCountWarning naming the first files and lines.
     """
     names = _check_inputs(pred_dir, gt_dir, list_file, width, height, lane_width, iou_threshold)
+    lists = read_category_lists(categories, names) if categories is not None else None
+    thresholds = tuple(dict.fromkeys((*MF1_THRESHOLDS, iou_threshold)))
     n_proc = worker_count(workers, len(names))
-    score = partial(count_images, pred_dir, gt_dir, width=width, height=height, lane_width=lane_width,
-                    iou_threshold=iou_threshold)
+    score = partial(image_counts, pred_dir, gt_dir, width=width, height=height, lane_width=lane_width,
+                    iou_thresholds=thresholds)
     if n_proc == 1:
-        counts = [score(names)]
+        parts = [score(names)]
     else:
         size = -(-len(names) // (n_proc * CHUNKS_PER_WORKER))
         chunks = [names[i : i + size] for i in range(0, len(names), size)]
         # spawn, not fork: a fresh interpreter per worker is safe whatever threads the caller runs (torch,
         # OpenMP); it costs one numpy + OpenCV import per worker, paid in parallel.
         with ProcessPoolExecutor(n_proc, mp_context=multiprocessing.get_context("spawn")) as pool:
-            counts = list(pool.map(score, chunks))
-    odd = [note for c in counts for note in c[3]]
+            parts = list(pool.map(score, chunks))
+    odd = [note for part in parts for note in part[1]]
     if odd:
         verb = "hold" if len(odd) > 1 else "holds"
         warnings.warn(f"{len(odd)} line{'s' * (len(odd) > 1)} of the .lines.txt files {verb} an odd count of numbers, "
                       f"each scored as the official tool scores it (its last number dropped): "
                       f"{'; '.join(odd[:3])}{'; ...' if len(odd) > 3 else ''}", OddCountWarning, stacklevel=2)
-    return culane_summary(*(sum(c[k] for c in counts) for k in range(3)))
+    rows = np.concatenate([part[0] for part in parts])
+    totals = totals_by_threshold(rows, thresholds)
+    result = {**culane_summary(*totals[iou_threshold]), "images": len(names), **culane_leaderboard_scores(totals)}
+    if lists is not None:
+        tp, fp, fn = totals[0.5]
+        result["categories"] = {**category_scores(rows, names, lists, thresholds),
+                                "total": {"images": len(names), "TP": tp, "FP": fp, "FN": fn,
+                                          **culane_leaderboard_scores(totals)}}
+    return result

@@ -13,7 +13,12 @@ import torch
 from torchmetrics import Metric
 
 from lanevil_train.lanes import check_row_sampling
-from lanevil_train.metrics.culane import culane_image_counts, culane_summary
+from lanevil_train.metrics.culane import (
+    MF1_THRESHOLDS,
+    culane_image_counts_multi,
+    culane_leaderboard_scores,
+    culane_summary,
+)
 from lanevil_train.metrics.tusimple import tusimple_lane_scores, tusimple_summary
 
 __all__ = ["TuSimpleMetric", "CULaneMetric"]
@@ -115,7 +120,8 @@ class TuSimpleMetric(Metric):
 
 
 class CULaneMetric(Metric):
-    """Streaming CULane F1: TP/FP/FN summed over images (sum-reduced across processes)."""
+    """Streaming CULane scores: TP/FP/FN at ``iou_threshold`` and the TP at each mF1 threshold (F1@50, F1@75,
+    mF1), summed over images (sum-reduced across processes); one matching per image for all thresholds."""
 
     full_state_update = False
     higher_is_better = True
@@ -124,22 +130,35 @@ class CULaneMetric(Metric):
                  **kwargs: object) -> None:
         super().__init__(**kwargs)
         self.width, self.height, self.lane_width, self.iou_threshold = width, height, lane_width, iou_threshold
-        for name in ("tp", "fp", "fn"):
+        self.thresholds = tuple(dict.fromkeys((*MF1_THRESHOLDS, iou_threshold)))
+        for name in ("tp", "fp", "fn", "num_images", "num_pred", "num_gt"):
             self.add_state(name, default=torch.tensor(0, dtype=torch.long), dist_reduce_fx="sum")
+        self.add_state("tp_at", default=torch.zeros(len(self.thresholds), dtype=torch.long), dist_reduce_fx="sum")
 
     def update(self, preds: Sequence[Sequence[object]], targets: Sequence[Sequence[object]]) -> None:
         """Add the counts of a batch: ``preds``/``targets`` are per-image lists of (N, 2) pixel lanes."""
         if len(preds) != len(targets):
             raise ValueError(f"preds has {len(preds)} images but targets has {len(targets)}")
-        tp = fp = fn = 0
+        tp_at = [0] * len(self.thresholds)
+        n_pred = n_gt = 0
         for p, g in zip(preds, targets):
-            a, b, c = culane_image_counts([_to_numpy(lane) for lane in p], [_to_numpy(lane) for lane in g],
-                                          self.width, self.height, self.lane_width, self.iou_threshold)
-            tp, fp, fn = tp + a, fp + b, fn + c
+            counts = culane_image_counts_multi([_to_numpy(lane) for lane in p], [_to_numpy(lane) for lane in g],
+                                               self.width, self.height, self.lane_width, self.thresholds)
+            tp_at = [total + tp for total, (tp, _, _) in zip(tp_at, counts)]
+            n_pred, n_gt = n_pred + len(p), n_gt + len(g)
+        tp = tp_at[self.thresholds.index(self.iou_threshold)]
         self.tp += tp
-        self.fp += fp
-        self.fn += fn
+        self.fp += n_pred - tp
+        self.fn += n_gt - tp
+        self.num_images += len(targets)
+        self.num_pred += n_pred
+        self.num_gt += n_gt
+        self.tp_at += torch.tensor(tp_at, dtype=torch.long)
 
     def compute(self) -> dict:
-        """``culane_summary`` of the accumulated counts."""
-        return culane_summary(int(self.tp), int(self.fp), int(self.fn))
+        """``culane_summary`` of the counts at ``iou_threshold``, the image count, and F1@50, F1@75, mF1: the keys
+        of ``evaluate_culane_dirs`` (without categories)."""
+        n_pred, n_gt = int(self.num_pred), int(self.num_gt)
+        totals = {t: (int(tp), n_pred - int(tp), n_gt - int(tp)) for t, tp in zip(self.thresholds, self.tp_at)}
+        return {**culane_summary(int(self.tp), int(self.fp), int(self.fn)), "images": int(self.num_images),
+                **culane_leaderboard_scores(totals)}

@@ -65,6 +65,39 @@ TUSIMPLE_F1 = Score("F1", _tusimple_f1)
 COUNT_FIELDS = ("tp_count", "fp_count", "fn_count")
 F1_COUNT = Score("F1_count", count_f1(*COUNT_FIELDS), needs=COUNT_FIELDS)
 _CULANE_FIELDS = ("culane_tp", "culane_fp", "culane_fn")
+CULANE_F1 = Score("CULane_F1", count_f1(*_CULANE_FIELDS), needs=_CULANE_FIELDS)
+# A CULane-scored record's TP at each mF1 IoU threshold 0.50, 0.55, ..., 0.95 (metrics/culane.py MF1_THRESHOLDS;
+# one matching per image); FP and FN there follow from its lane counts. LLAMAS records and older ones lack it.
+CULANE_SWEEP = "culane_tp_sweep"
+_SWEEP_THRESHOLDS = (0.5, 0.55, 0.6, 0.65, 0.7, 0.75, 0.8, 0.85, 0.9, 0.95)
+
+
+def _sweep_parts(record: dict) -> tuple[int, ...]:
+    """(TP, FP, FN) at each mF1 threshold, flattened: FP = predicted - TP, FN = GT - TP."""
+    n_pred, n_gt = record["culane_tp"] + record["culane_fp"], record["culane_tp"] + record["culane_fn"]
+    return tuple(v for tp in record[CULANE_SWEEP] for v in (tp, n_pred - tp, n_gt - tp))
+
+
+def culane_sweep_f1(at: float | None):
+    """An aggregate: CULane F1 (%) at IoU threshold `at` (one of the mF1 thresholds), or mF1 (the mean of the ten
+    F1 values) for None, from the records' summed counts; NaN for no records; bootstrapped through its totals."""
+
+    def combine(totals: np.ndarray) -> np.ndarray:
+        f1 = _count_f1_totals(totals.reshape(*totals.shape[:-1], len(_SWEEP_THRESHOLDS), 3))
+        return f1.mean(axis=-1) if at is None else f1[..., _SWEEP_THRESHOLDS.index(at)]
+
+    def aggregate(records: Sequence[dict]) -> float:
+        if not records:
+            return NAN
+        return float(combine(np.sum([_sweep_parts(r) for r in records], axis=0, dtype=np.float64)))
+
+    aggregate.__name__ = "culane_mf1" if at is None else f"culane_f1_at_{at}"
+    aggregate.additive = Additive(_sweep_parts, combine)
+    return aggregate
+
+
+CULANE_F1_75 = Score("CULane_F1@75", culane_sweep_f1(0.75), needs=_CULANE_FIELDS + (CULANE_SWEEP,))
+CULANE_MF1 = Score("CULane_mF1", culane_sweep_f1(None), needs=_CULANE_FIELDS + (CULANE_SWEEP,))
 
 # One record per scored image. Ranges of the official TuSimple per-image scores: accuracy and FN can exceed 1
 # with more than 4 GT lanes (with n > 4 lanes the worst lane / one miss is dropped but the sum is divided by 4:
@@ -77,7 +110,7 @@ LANE_SPEC = RecordSpec(
     scores=(ACCURACY, TUSIMPLE_F1, F1_COUNT),
     summary=(ACCURACY, Score("FP", mean_of("fp"), higher_is_better=False),
              Score("FN", mean_of("fn"), higher_is_better=False), TUSIMPLE_F1, F1_COUNT,
-             Score("CULane_F1", count_f1(*_CULANE_FIELDS), needs=_CULANE_FIELDS)),
+             CULANE_F1, CULANE_F1_75, CULANE_MF1),
 )
 
 

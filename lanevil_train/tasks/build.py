@@ -20,18 +20,22 @@ def build(cfg: DictConfig) -> None:
     if cfg.data.name == "clips":
         return build_clips(cfg, names, kind)
     root = Path(task.out_dir) if task.out_dir else output_dir(cfg) / "illusion_set"
+    metric = None  # the photos' CULane-style procedure (datasets.py culane_metric), which scores the set too
     if cfg.data.name == "synthetic":
         if task.cases < 1:
             raise ValueError(f"task.cases: building from simulated scenes needs task.cases >= 1, got {task.cases}")
         cases = synthetic_cases(task.cases, cfg.data.test.first_seed, task.frames)
         size = tuple(cfg.data.test.size)
     else:
-        records = build_split(cfg, "test").records  # an empty test split is refused here, naming its files
+        test = build_split(cfg, "test")  # an empty test split is refused here, naming its files
+        records, metric = test.records, getattr(test, "culane_metric", None)
         cases = dataset_cases(records[: task.cases] if task.cases else records)
         size = (720, 1280)  # unused for photos
+    # CULane labels keep each lane's points (CurveLanes' curves too); TuSimple's, x at fixed rows
+    label_format = "culane" if cfg.data.name in ("culane", "curvelanes") else "tusimple"
     plan = Plan(illusions=names, severities=tuple(task.severities), repeats=task.repeats, size=size,
-                frame_step_m=task.frame_step_m, label_format="culane" if cfg.data.name == "culane" else "tusimple",
-                fallback=task.fallback, kind=kind)
+                frame_step_m=task.frame_step_m, label_format=label_format, fallback=task.fallback, kind=kind,
+                culane_metric=metric)
     summary = build_illusion_set(cases, plan, root, workers=task.workers, progress=cfg.progress)
     print(f"{kind} set: {summary['images']} images in {summary['root']} "
           f"({summary['written']} written now, {summary['skipped']} already there)")

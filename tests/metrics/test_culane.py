@@ -304,5 +304,8 @@ def test_summary_and_metric_equal_function() -> None:
     metric.update([p for p, _ in imgs[:12]], [g for _, g in imgs[:12]])
     metric.update([p for p, _ in imgs[12:]], [g for _, g in imgs[12:]])
     counts = np.sum([culane_image_counts(p, g) for p, g in imgs], axis=0)
-    assert metric.compute() == culane_summary(*counts)
+    out = metric.compute()
+    assert {k: out[k] for k in culane_summary(0, 0, 0)} == culane_summary(*counts) and out["images"] == 30
+    at75 = np.sum([culane_image_counts(p, g, iou_threshold=0.75) for p, g in imgs], axis=0)
+    assert out["F1@50"] == culane_summary(*counts)["F1"] and out["F1@75"] == culane_summary(*at75)["F1"]
     assert isinstance(metric.tp, torch.Tensor) and metric.tp.dtype == torch.long

@@ -56,7 +56,7 @@ def test_cli_prints_json(tree: tuple[Path, Path, Path], capsys: pytest.CaptureFi
     pred, gt, lst = tree
     assert main(["culane", "--pred-dir", str(pred), "--gt-dir", str(gt), "--list", str(lst)]) == 0
     out = json.loads(capsys.readouterr().out)
-    assert set(out) == {"TP", "FP", "FN", "Precision", "Recall", "F1"}
+    assert set(out) == {"TP", "FP", "FN", "Precision", "Recall", "F1", "images", "F1@50", "F1@75", "mF1"}
     assert (out["TP"], out["FP"], out["FN"]) == (1, 1, 2)
     # 1000 px wide lanes overlap heavily: the far-right pred now matches gt lane 2 at IoU > 0.1
     assert main(["culane", "--pred-dir", str(pred), "--gt-dir", str(gt), "--list", str(lst),

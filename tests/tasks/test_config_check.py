@@ -61,7 +61,7 @@ def needs(group: str, option: str, files: Path) -> list[str]:
     """What an option needs from the user by design: a dataset root (???), a checkpoint to score."""
     if group == "experiment" and option.startswith("official_laneatt_"):  # and the repository's anchor counts
         return [f"data.root={files / 'dataset'}", f"model.head.anchor_frequency_file={files / 'model.ckpt'}"]
-    if (group == "data" and option in ("tusimple", "culane", "llamas")) or \
+    if (group == "data" and option in ("tusimple", "culane", "llamas", "curvelanes")) or \
             (group == "experiment" and option.startswith(("paper_", "official_"))):
         return [f"data.root={files / 'dataset'}"]
     if group == "task" and option == "audit_qa":  # the QA file to audit

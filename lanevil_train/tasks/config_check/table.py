@@ -89,6 +89,7 @@ RULES: dict[str, Rule] = {
     "data.num_workers": integer(0),
     "data.augment": boolean(),
     "data.max_lanes": integer(1),
+    "data.decode_topk": integer(1),  # data=curvelanes: the most lanes a capped decoding keeps (LaneATT's nms_topk)
     "data.train_transforms": null_or(target_list()),
     **{f"data.{split}": null_or(target_node()) for split in SPLITS},
     **_for_splits("num_scenes", integer(1)),
@@ -220,6 +221,8 @@ RULES: dict[str, Rule] = {
     "task.kind": one_of(*SUITE_KINDS),
     "task.onnx": null_or(existing_file("ONNX model written by task=export")),
     "task.predictions": boolean(),
+    "task.culane_categories": null_or(any_of(one_of("auto"), existing_dir("folder of the nine CULane category "
+                                                                          "lists (list/test_split/)"))),
     "task.html": boolean(),  # report.html beside report.md (report/page/)
     "task.out": null_or(text()),
     "task.opset": integer(9),
@@ -324,8 +327,8 @@ def _family_list() -> Rule:
             return ""
         unknown = [x for x in value if x not in detector_families()]
         return f"no detector family {', '.join(map(repr, unknown))}" if unknown else None
-    return Rule("all or a list of detector families (laneatt, ufld, bezierlanenet, ganet, scnn, laneformer, clrnet)",
-                test)
+    return Rule("all or a list of detector families (laneatt, ufld, bezierlanenet, ganet, scnn, laneformer, clrnet, "
+                "clrernet)", test)
 
 
 RULES.update({
@@ -344,7 +347,8 @@ TASK_RULES: dict[str, dict[str, Rule | None]] = {
         "data.root": None,
         "task.runs": null_or(integer(1)),
         "model.kind": Rule("detector (task=profile measures lane detectors: model=laneatt, ufld, bezierlanenet, ganet, "
-                           "scnn, laneformer or clrnet, or a detector's ckpt_path=; model=vlm/<backend> is a VLM)",
+                           "scnn, laneformer, clrnet or clrernet, or a detector's ckpt_path=; model=vlm/<backend> is a "
+                           "VLM)",
                            lambda v: ok(v == "detector")),
     },
 }

@@ -17,6 +17,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from lanevil_train.data.suites import IllusionSetDataset, SyntheticIllusionSuite
 from lanevil_train.errors import prefixed
+from lanevil_train.evaluation.culane_categories import category_lists, write_category_table
 from lanevil_train.evaluation.lane_records import RESULTS, read_records
 from lanevil_train.evaluation.prediction_files import write_prediction_files
 from lanevil_train.evaluation.results import log_results, write_results
@@ -112,10 +113,13 @@ def evaluate(cfg: DictConfig) -> float:
     pl.seed_everything(cfg.seed, workers=True)
     model = load_checkpoint(cfg)
     dataset, dataset_name = test_dataset(cfg)
+    categories = category_lists(cfg, dataset)  # CULane's nine lists, checked before any image is scored
     scoring = Scoring.from_config(cfg)
     out = Path(cfg.task.out_dir) if cfg.task.out_dir else output_dir(cfg)
     results = stream_dataset(model, dataset, dataset_name, out, model_label(model, cfg.task.label), scoring)
     value = write_results([results], out, baseline=scoring.baseline, html=scoring.html)
+    if categories is not None:
+        write_category_table(results, out, categories)
     from lanevil_train.tasks.cards import detector_identity, suite_plan, write_evaluation_card
 
     write_evaluation_card(results, out, detector_identity(cfg, model), suite_plan(dataset), scoring.baseline)
