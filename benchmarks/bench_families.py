@@ -32,6 +32,7 @@ FAMILIES = {
     "bezierlanenet": ((288, 800), "resnet18", "213 (BezierLaneNet paper, ResNet-18)"),
     "ganet": ((320, 800), "resnet18", "153 (GANet paper, GANet-S / ResNet-18)"),
     "laneformer": ((320, 800), "resnet18", "none published for ResNet-18 (no official code)"),
+    "clrernet": ((320, 800), "resnet18", "none published (CLRerNet README: DLA-34 only, 18.4 GFLOPs)"),
 }
 
 

@@ -31,6 +31,7 @@ from lanevil_train.checkpoints import (
     what_it_holds,
 )
 from lanevil_train.models.bezierlanenet.official import RELEASE as BEZIERLANENET
+from lanevil_train.models.clrernet.official import RELEASE as CLRERNET
 from lanevil_train.models.clrnet.official import RELEASE as CLRNET
 from lanevil_train.models.ganet.official import RELEASE as GANET
 from lanevil_train.models.laneatt.official import RELEASE as LANEATT
@@ -44,7 +45,7 @@ DDP_PREFIX = "module."
 
 
 def _releases() -> list[Release]:
-    return [BEZIERLANENET, CLRNET, GANET, LANEATT, SCNN, UFLD]
+    return [BEZIERLANENET, CLRERNET, CLRNET, GANET, LANEATT, SCNN, UFLD]
 
 
 def is_ours(obj: object) -> bool:
@@ -103,8 +104,11 @@ def load_official(model, state: dict, where: str) -> str:
     spec = getattr(model, "build_config", None) or {}
     family = str(spec.get("model", {}).get("name", ""))
     if family != release.family:
+        own = next((r for r in _releases() if r.family == family), None)
+        difference = None if own is None else own.difference(state)
+        why = "" if difference is None else f" (not an official {own.name} file: {difference})"
         raise CheckpointError(f"{where}: an official {release.name} checkpoint ({recognised.what}), and this run "
-                              f"builds model={family}; run it with {recognised.config}")
+                              f"builds model={family}{why}; run it with {recognised.config}")
     needed = release.missing_setting(model) or release.check(model, state)
     if needed:
         raise CheckpointError(f"{where}: an official {release.name} checkpoint ({recognised.what}); {needed}")

@@ -50,3 +50,6 @@ class Release:
     # what in the file this network would compute otherwise (e.g. CLRNet's priors, stored as buffers, against the
     # ones the network derives for its input size): a problem in words, or None; (model, official state dict)
     check: Callable[[object, dict], str | None] = lambda model, state: None
+    # what a file of another release differs in from this one's layout (e.g. its first key that is not one of this
+    # release's names), said when a run of this family is given it: a problem in words, or None
+    difference: Callable[[dict], str | None] = lambda state: None

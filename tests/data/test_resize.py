@@ -160,7 +160,7 @@ def test_the_closed_loop_feeds_a_detector_its_own_filter(monkeypatch):
 
 # Each official release's test-time filter (the sources are cited in the experiment configs).
 OFFICIAL = {"ufld": "pil_bilinear", "scnn": "pil_bilinear", "bezierlanenet": "pil_bilinear", "laneatt": "cubic",
-            "clrnet": "cubic", "ganet": "linear", "ganet_large": "linear"}
+            "clrnet": "cubic", "ganet": "linear", "ganet_large": "linear", "clrernet": "linear"}
 
 
 @pytest.mark.parametrize("path", sorted((CONF / "experiment").glob("official_*.yaml")), ids=lambda p: p.stem)

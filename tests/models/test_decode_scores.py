@@ -22,6 +22,7 @@ pytestmark = pytest.mark.usefixtures("hydra_conf")  # tests/conftest.py
 OPTIONS = {
     "laneatt": [{"conf_threshold": 0.0}, {"conf_threshold": 0.0, "lane_points": "official"}],
     "clrnet": [{"conf_threshold": 0.0}, {"conf_threshold": 0.0, "lane_points": "official"}],
+    "clrernet": [{"conf_threshold": 0.0}, {"conf_threshold": 0.0, "lane_points": "official"}],
     "scnn": [{"exist_threshold": 0.0, "prob_threshold": 0.0, "min_points": 2},
              {"exist_threshold": 0.0, "prob_threshold": 0.0, "min_points": 2, "official_writer": "tusimple",
               "blur": 9, "max_lanes": 3},
@@ -67,7 +68,7 @@ def _plausible(family: str, raw: dict[str, torch.Tensor]) -> dict[str, torch.Ten
         head = _model(family).head
         raw["length"] = torch.rand(raw["length"].shape, generator=g) * head.n_offsets
         raw["cls_logits"] = 2 * torch.randn(raw["cls_logits"].shape, generator=g)
-    elif family == "clrnet":
+    elif family in ("clrnet", "clrernet"):
         raw["lines"][..., 3] = 0.2 + 0.8 * torch.rand(raw["lines"].shape[:-1], generator=g)
         raw["cls_logits"] = 2 * torch.randn(raw["cls_logits"].shape, generator=g)
     elif family == "bezierlanenet":

@@ -75,8 +75,8 @@ def test_flops_of_a_known_network_equal_the_hand_count():
 def test_families_all_profiles_every_detector_family(tmp_path):
     run_in_process([*QUICK, "task.families=all", "task.input_size=[32,224]", "task.batch_size=1"], tmp_path)
     rows = _read(tmp_path)["rows"]
-    assert [row["family"] for row in rows] == ["bezierlanenet", "clrnet", "ganet", "laneatt", "laneformer", "scnn",
-                                               "ufld"]
+    assert [row["family"] for row in rows] == ["bezierlanenet", "clrernet", "clrnet", "ganet", "laneatt", "laneformer",
+                                               "scnn", "ufld"]
     assert all(row["input_size"] == [32, 224] and row["flops"] > 0 for row in rows)
     assert {row["label"] for row in rows} >= {"scnn-vgg16_bn", "clrnet-resnet18"}  # their paper's backbones
     table = (tmp_path / "profile.md").read_text()

@@ -93,17 +93,18 @@ def official_rows(start_y: float, length: float, n_strips: int) -> tuple[int, in
     return start, min(start + length_rows - 1, n_strips)
 
 
-def official_kept_rows(xs: np.ndarray, start: int, end: int) -> np.ndarray:
+def official_kept_rows(xs: np.ndarray, start: int, end: int, keep_left: bool = False) -> np.ndarray:
     """Which of a prediction's rows (bottom first) the official decoding turns into the Lane's points
     (clr_head.py:296-301 at 7269e9d), xs its x as fractions of the input width: a row with x >= 0 (any x past
     the right edge kept), not after `end` (the rows from end + 1 to the top dropped, counted from the top as a
     Python slice when end + 1 is negative), and, below `start`, only while it and every row up to the start have
     x in [0, 1] (the lane extended down until it first leaves the image; the test reads the rows as they were
-    before either rule)."""
+    before either rule). `keep_left`: rows with x < 0 kept too, as CLRerNet's decoding keeps every row from the
+    (extended) start to the end (hirotomusiker/CLRerNet libs/models/dense_heads/clrernet_head.py:491-502 at 21761ed)."""
     xs = np.asarray(xs)
     below = (xs[:start] >= 0) & (xs[:start] <= 1)
     extended = np.flip(np.cumprod(np.flip(below))).astype(bool)  # inside, and so is every row up to the start
-    keep = xs >= 0
+    keep = np.ones(xs.shape, dtype=bool) if keep_left else xs >= 0
     keep[end + 1:] = False
     keep[:start] &= extended
     return keep

@@ -120,6 +120,10 @@ class CLRNetHead(LaneHead):
     normalised units (priors.py; length in rows / (S-1)), xs the x at the S rows in input pixels.
     """
 
+    # lane_points=official: whether the official decoding keeps a kept row's points left of the image (x < 0):
+    # CLRNet's drops them (codec.official_kept_rows), CLRerNet's keeps every row from the start to the end
+    OFFICIAL_KEEPS_LEFT = False
+
     # The constructor's parameters with a range, and what a good value of each is: checked by the constructor,
     # and by the config check under model.head.* before any work (one place to say it).
     SETTINGS = {
@@ -259,9 +263,8 @@ class CLRNetHead(LaneHead):
             raise ValueError(f"CLRNetHead.loss: targets['lanes'] must be ({b}, max_lanes, {TARGET_META + s}), "
                              f"got {tuple(t.shape)}")
         t = t[:, None].expand(b, r, *t.shape[1:]).reshape(b * r, *t.shape[1:])
-        parts = clrnet_losses(raw["cls_logits"].reshape(b * r, p, 2), raw["lines"].reshape(b * r, p, 4),
-                              xs.reshape(b * r, p, s), t, self.image_size, self.iou_radius, 1.0 / self.width_scale,
-                              self.focal_alpha, self.focal_gamma, meta=TARGET_META)
+        parts = self._stage_losses(raw["cls_logits"].reshape(b * r, p, 2), raw["lines"].reshape(b * r, p, 4),
+                                   xs.reshape(b * r, p, s), t)
         per_stage = {k: parts[k].reshape(b, r).mean(1) for k in self.weights}  # (B,) each, over the stages
         per_sample = sum(self.weights[k] * v for k, v in per_stage.items())
         out = {"cls_loss": per_stage["cls"].mean(), "xytl_loss": per_stage["xytl"].mean(),
@@ -274,6 +277,13 @@ class CLRNetHead(LaneHead):
             per_sample = per_sample + self.seg_loss_weight * seg
             out["seg_loss"] = seg.mean()
         return {"loss": per_sample.mean(), "per_sample": per_sample, **out}
+
+    def _stage_losses(self, cls_logits: torch.Tensor, lines: torch.Tensor, xs: torch.Tensor,
+                      targets: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The loss terms (N,) of a flat batch of N (image, stage) predictions: CLRNet's assignment and Line IoU
+        (loss.clrnet_losses); CLRerNet swaps both for its LaneIoU."""
+        return clrnet_losses(cls_logits, lines, xs, targets, self.image_size, self.iou_radius, 1.0 / self.width_scale,
+                             self.focal_alpha, self.focal_gamma, meta=TARGET_META)
 
     # ------------------------------------------------------------------ decode
     def decode(self, raw: dict, conf_threshold: float = 0.4, nms_threshold: float = 50.0,
@@ -337,7 +347,7 @@ class CLRNetHead(LaneHead):
         lanes = []
         for k in range(len(fractions)):
             start, end = official_rows(float(lines[k, 0]), float(lines[k, 3]), self.n_strips)
-            kept = official_kept_rows(fractions[k], start, end)
+            kept = official_kept_rows(fractions[k], start, end, keep_left=self.OFFICIAL_KEEPS_LEFT)
             if kept.sum() >= 2:
                 lanes.append((k, as_lane(np.stack([fractions[k][kept].astype(np.float64) * w, ys[kept]], axis=1))))
         return lanes

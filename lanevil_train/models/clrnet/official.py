@@ -124,7 +124,7 @@ _HEAD_RENAMES = (("cls_modules.", "cls_fc."), ("reg_modules.", "reg_fc."), ("cls
                  ("reg_layers.", "reg_layer."), ("seg_decoder.conv.", "seg_decoder.1."))
 
 
-def _backbone(state: dict) -> str | None:
+def backbone_name(state: dict) -> str | None:
     """resnet<depth> or dla34 from the backbone's keys (``backbone.model.``), or None."""
     if any(k.startswith("backbone.model.level5.") for k in state):
         return "dla34" if state.get("backbone.model.base_layer.0.weight", torch.empty(0)).shape[:1] == (16,) else None
@@ -154,7 +154,7 @@ def describe(state: dict) -> Recognised | None:
     if not {"heads.prior_embeddings.weight", "heads.priors", "heads.reg_layers.weight",
             "heads.roi_gather.fc.weight"} <= state.keys():
         return None
-    backbone = _backbone(state)
+    backbone = backbone_name(state)
     settings = _settings(state)
     classes = _num_classes(state)
     dataset = DATASETS.get(classes)
@@ -175,7 +175,7 @@ def describe(state: dict) -> Recognised | None:
     return Recognised(f"{release}, {backbone or 'an unknown backbone'}: {shapes}", " ".join(config))
 
 
-def _unused_projections(state: dict) -> set[str]:
+def unused_projections(state: dict) -> set[str]:
     """The ``project`` keys of the DLA trees of more than one level (built, never used: dla34.py l. 250-277): a
     tree whose ``tree1`` is itself a tree."""
     nodes = {key.split(".project.")[0] for key in state if key.startswith("backbone.model.") and ".project." in key}
@@ -183,7 +183,7 @@ def _unused_projections(state: dict) -> set[str]:
     return {k for k in state for node in deep if k.startswith(node + ".project.")}
 
 
-def _head_name(rest: str) -> str:
+def head_name(rest: str) -> str:
     """A name under ``heads.`` -> ours under ``head.``."""
     match = re.match(r"roi_gather\.(convs|catconv|f_key)\.(?:(\d+)\.)?(conv|bn)\.(.+)", rest)
     if match:
@@ -197,28 +197,38 @@ def _head_name(rest: str) -> str:
     return "head." + rest
 
 
+def backbone_neck_name(key: str) -> str | None:
+    """This project's name of an official backbone or neck key (CLRNet's layout, which CLRerNet keeps: the backbone
+    under ``backbone.model.`` in timm's names, the FPN's ConvModules ``lateral_convs.<i>.conv`` and
+    ``fpn_convs.<i>.conv``), or None for a key of neither. A norm the published FPN has not keeps its name (the
+    strict load reports it)."""
+    if key.startswith("backbone.model."):
+        return "backbone." + key[len("backbone.model."):]
+    if key.startswith(("neck.lateral_convs.", "neck.fpn_convs.")) and key.count(".") >= 4:
+        _, group, index, part, tail = key.split(".", 4)
+        if part != "conv":
+            return key
+        return f"neck.{'lateral' if group == 'lateral_convs' else 'output'}.{index}.{tail}"
+    return None
+
+
 def convert(state: dict) -> dict:
     """Official names -> this project's; the evaluation's priors become the prior embeddings, the derived buffers
     (checked by ``check``), the unused embeddings, ``criterion.weight`` and the unused DLA projections dropped."""
-    dropped = _unused_projections(state)
+    dropped = unused_projections(state)
     out = {}
     for key, value in state.items():
         if key in dropped:
             continue
-        if key.startswith("backbone.model."):
-            out["backbone." + key[len("backbone.model."):]] = value
-        elif key.startswith("neck.lateral_convs.") or key.startswith("neck.fpn_convs."):
-            _, group, index, part, tail = key.split(".", 4)
-            if part != "conv":
-                out[key] = value  # a norm the published FPN has not: reported by the strict load as unexpected
-                continue
-            out[f"neck.{'lateral' if group == 'lateral_convs' else 'output'}.{index}.{tail}"] = value
+        name = backbone_neck_name(key)
+        if name is not None:
+            out[name] = value
         elif key == "heads.priors":
             out["head.prior_embeddings"] = value[:, 2:5].clone()
         elif key == "heads.prior_embeddings.weight" or (key.startswith("heads.") and key[len("heads."):] in DERIVED):
             continue
         elif key.startswith("heads."):
-            out[_head_name(key[len("heads."):])] = value
+            out[head_name(key[len("heads."):])] = value
         else:
             out[key] = value  # reported by the strict load as unexpected
     return out
