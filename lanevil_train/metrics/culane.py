@@ -216,7 +216,7 @@ class LaneCanvases:
 _local = threading.local()
 
 
-def _canvases(height: int, width: int) -> LaneCanvases:
+def thread_canvases(height: int, width: int) -> LaneCanvases:
     """This thread's LaneCanvases for the canvas size (threads never share planes)."""
     c = getattr(_local, "canvases", None)
     if c is None or c.shape != (height, width):
@@ -293,7 +293,7 @@ def culane_matched_ious(
         return []
     if width < 1 or height < 1 or lane_width < 1:
         raise ValueError(f"width, height, lane_width must be positive, got {width}, {height}, {lane_width}")
-    canvases = _canvases(height, width)
+    canvases = thread_canvases(height, width)
     drawn: list[_Mask] = []
     try:  # the planes are reused: whatever happens, zero what was drawn
         masks: list[list[_Mask | None]] = []

@@ -44,13 +44,12 @@ package keeps bottom point first (the labels' order wherever a lane's y decrease
 
 from __future__ import annotations
 
-import threading
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
-from lanevil_train.metrics.culane import LaneCanvases, culane_summary, lane_points
+from lanevil_train.metrics.culane import culane_summary, lane_points, thread_canvases
 
 __all__ = ["CURVELANES_EVAL_WIDTH", "CURVELANES_EVAL_HEIGHT", "CURVELANES_LANE_WIDTH", "CURVELANES_IOU",
            "PRED_ROW_STEP", "kit_samples", "kit_polyline", "curvelanes_image_counts", "evaluate_curvelanes_dirs"]
@@ -126,17 +125,6 @@ def kit_polyline(samples: np.ndarray) -> np.ndarray | None:
     return np.ascontiguousarray(pts)
 
 
-_local = threading.local()
-
-
-def _canvases(height: int, width: int) -> LaneCanvases:
-    """This thread's canvases of the evaluation size (reused from image to image)."""
-    c = getattr(_local, "canvases", None)
-    if c is None or c.shape != (height, width):
-        c = _local.canvases = LaneCanvases(height, width)
-    return c
-
-
 def curvelanes_image_counts(
     pred_lanes: Sequence[object],
     gt_lanes: Sequence[object],
@@ -159,7 +147,7 @@ def curvelanes_image_counts(
     if not preds or not gts:
         return 0, len(preds), len(gts)
     scale = np.array([width / eval_width, height / eval_height])  # the kit's divisors (x_ratio, y_ratio)
-    canvases = _canvases(eval_height, eval_width)
+    canvases = thread_canvases(eval_height, eval_width)
     drawn = []
     try:
         masks = []

@@ -32,7 +32,7 @@ from typing import Sequence
 
 import numpy as np
 
-from lanevil_train.metrics.culane import _canvases, _Mask, lane_points
+from lanevil_train.metrics.culane import _Mask, lane_points, thread_canvases
 
 LLAMAS_HEIGHT, LLAMAS_WIDTH = 717, 1276
 LLAMAS_LANE_WIDTH = 30
@@ -86,7 +86,7 @@ def llamas_image_counts(
         return 0, 0, len(gts)
     if not gts:
         return 0, len(preds), 0
-    canvases = _canvases(LLAMAS_HEIGHT, LLAMAS_WIDTH)
+    canvases = thread_canvases(LLAMAS_HEIGHT, LLAMAS_WIDTH)
     drawn: list[_Mask] = []
     try:
         for lane in [interpolate_prediction(p) for p in preds] + gts:

@@ -224,7 +224,7 @@ def test_planes_are_clean_after_a_bad_lane() -> None:
     g = np.array([[100.0, 589.0], [200.0, 450.0], [260.0, 300.0]])
     with pytest.raises(ValueError, match="pred lane 1"):
         culane_image_counts([g, np.zeros((3, 3))], [g])
-    assert not any(plane.any() for plane in culane._canvases(H, W).planes)
+    assert not any(plane.any() for plane in culane.thread_canvases(H, W).planes)
     assert culane_image_counts([g + [400, 0]], [g]) == (0, 1, 1)
 
 
