@@ -10,6 +10,7 @@ from typing import Sequence
 import numpy as np
 
 from lanevil_train.metrics import tusimple_summary
+from lanevil_train.metrics.culane import MF1_THRESHOLDS
 from lanevil_train.report.records import NAN, Additive, Field, RecordSet, RecordSpec, Score, mean_of, ratio
 
 
@@ -69,7 +70,6 @@ CULANE_F1 = Score("CULane_F1", count_f1(*_CULANE_FIELDS), needs=_CULANE_FIELDS)
 # A CULane-scored record's TP at each mF1 IoU threshold 0.50, 0.55, ..., 0.95 (metrics/culane.py MF1_THRESHOLDS;
 # one matching per image); FP and FN there follow from its lane counts. LLAMAS records and older ones lack it.
 CULANE_SWEEP = "culane_tp_sweep"
-_SWEEP_THRESHOLDS = (0.5, 0.55, 0.6, 0.65, 0.7, 0.75, 0.8, 0.85, 0.9, 0.95)
 
 
 def _sweep_parts(record: dict) -> tuple[int, ...]:
@@ -83,8 +83,8 @@ def culane_sweep_f1(at: float | None):
     F1 values) for None, from the records' summed counts; NaN for no records; bootstrapped through its totals."""
 
     def combine(totals: np.ndarray) -> np.ndarray:
-        f1 = _count_f1_totals(totals.reshape(*totals.shape[:-1], len(_SWEEP_THRESHOLDS), 3))
-        return f1.mean(axis=-1) if at is None else f1[..., _SWEEP_THRESHOLDS.index(at)]
+        f1 = _count_f1_totals(totals.reshape(*totals.shape[:-1], len(MF1_THRESHOLDS), 3))
+        return f1.mean(axis=-1) if at is None else f1[..., MF1_THRESHOLDS.index(at)]
 
     def aggregate(records: Sequence[dict]) -> float:
         if not records:

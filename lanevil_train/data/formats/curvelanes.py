@@ -37,6 +37,7 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 
 from lanevil_train.data.formats.images import image_file_problem
+from lanevil_train.files.jsonl import read_json_label
 from lanevil_train.lanes import as_lane
 
 __all__ = ["CURVELANES_SPLITS", "LABEL_SUFFIX", "read_curvelanes", "read_curvelanes_label", "parse_curvelanes_label",
@@ -100,16 +101,7 @@ def parse_curvelanes_label(obj, path: Path | str = "<label>") -> list[np.ndarray
 def read_curvelanes_label(path: Path | str) -> list[np.ndarray]:
     """One ``.lines.json`` -> its lanes, (N, 2) float64 (x, y) in the file's order. Errors name the file and field."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except FileNotFoundError as e:
-        raise FileNotFoundError(f"CurveLanes label {path} not found") from e
-    except OSError as e:
-        raise FileNotFoundError(f"cannot read CurveLanes label {path}: {e}") from e
-    try:
-        obj = json.loads(text)
-    except json.JSONDecodeError as e:
-        raise ValueError(f"{path}:{e.lineno}: malformed JSON ({e.msg} at column {e.colno})") from e
+    obj = read_json_label(path, "CurveLanes label")
     return parse_curvelanes_label(obj, path)
 
 

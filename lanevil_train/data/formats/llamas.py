@@ -54,6 +54,7 @@ from pathlib import Path
 import numpy as np
 
 from lanevil_train.data.formats.images import image_file_problem
+from lanevil_train.files.jsonl import read_json_label
 from lanevil_train.lanes import as_lane
 
 __all__ = ["LLAMAS_HEIGHT", "LLAMAS_WIDTH", "LLAMAS_LANE_IDS", "LLAMAS_SPLITS", "read_llamas", "read_llamas_label",
@@ -222,16 +223,7 @@ def read_llamas_label(path: Path | str) -> tuple[list[np.ndarray], list[str]]:
     A lane keeps the rows with x >= 0 and needs at least 2 of them. Errors name the file and the key at fault.
     """
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except FileNotFoundError as e:
-        raise FileNotFoundError(f"LLAMAS label {path} not found") from e
-    except OSError as e:
-        raise FileNotFoundError(f"cannot read LLAMAS label {path}: {e}") from e
-    try:
-        obj = json.loads(text)
-    except json.JSONDecodeError as e:
-        raise ValueError(f"{path}:{e.lineno}: malformed JSON ({e.msg} at column {e.colno})") from e
+    obj = read_json_label(path, "LLAMAS label")
     rows = llamas_rows(obj, path)
     ys = np.arange(LLAMAS_HEIGHT, dtype=np.float64)
     lanes, ids = [], []
