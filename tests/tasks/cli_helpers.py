@@ -49,14 +49,24 @@ def run_in_process(args: list[str], run_dir: Path):
     went through the command line: they skip a new interpreter's start and imports (10-15 s a run here)."""
     from hydra import compose, initialize_config_module
     from hydra.core.global_hydra import GlobalHydra
+    from hydra.core.hydra_config import HydraConfig
+    from omegaconf import open_dict
 
     from lanevil_train.tasks import run_task
 
     GlobalHydra.instance().clear()
     try:
         with initialize_config_module(config_module="lanevil_train.conf", version_base="1.3"):
-            return run_task(compose(config_name="config", overrides=[*args, f"output_dir={run_dir}"]))
+            cfg = compose(config_name="config", overrides=[*args, f"output_dir={run_dir}"], return_hydra_config=True)
+            # what the command line's run sees too: HydraConfig holds its overrides (task=compare passes them on
+            # to each run), without output_dir, which the command line sets through hydra.run.dir instead
+            cfg.hydra.overrides.task = [o for o in cfg.hydra.overrides.task if not o.startswith("output_dir=")]
+            HydraConfig.instance().set_config(cfg)
+            with open_dict(cfg):
+                del cfg["hydra"]
+            return run_task(cfg)
     finally:
+        HydraConfig.instance().cfg = None
         GlobalHydra.instance().clear()
 
 

@@ -349,9 +349,14 @@ def test_the_globals_are_read_from_either_format_and_any_protocol(tmp_path):
 
 # ------------------------------------------------------------------------------------ release archives and layouts
 
-def _official_ufld(tmp_path):
+# the official TuSimple network with 4 grid cells instead of 100: the same keys and layout at a tenth of the 185 MB
+# (its classifier's last layer has 101 x 56 x 4 outputs), which each archive test saves several times and reads back
+SMALL_UFLD = ["model.head.num_cells=4"]
+
+
+def _official_ufld(tmp_path, overrides=SMALL_UFLD):
     """The official names of the official_ufld_tusimple network's weights (models/ufld/official.py, inverted)."""
-    cfg = composed(["experiment=official_ufld_tusimple", "backbone=resnet18"])
+    cfg = composed(["experiment=official_ufld_tusimple", "backbone=resnet18", *overrides])
     model = build_model(model_config(cfg))
     return {("model." + k[len("backbone."):] if k.startswith("backbone.") else k[len("head."):]): v
             for k, v in model.state_dict().items()}, model
@@ -378,7 +383,7 @@ def _loaded(tmp_path, ckpt_path: str):
     from lanevil_train.tasks.builders import checkpoint_model
 
     return checkpoint_model(composed(["task=evaluate", "experiment=official_ufld_tusimple", "backbone=resnet18",
-                                      f"data.root={tmp_path}", f"ckpt_path={ckpt_path}"]))
+                                      *SMALL_UFLD, f"data.root={tmp_path}", f"ckpt_path={ckpt_path}"]))
 
 
 def test_a_release_archive_is_read_at_its_last_epoch_or_the_named_member(tmp_path, caplog):
@@ -451,7 +456,7 @@ def test_an_official_file_that_does_not_fit_the_run_it_names_says_a_setting_on_t
     changes the network: the message says so, rather than only advising the command already run."""
     from lanevil_train.tasks.builders import checkpoint_model
 
-    weights, _ = _official_ufld(tmp_path)
+    weights, _ = _official_ufld(tmp_path, overrides=[])  # the release's own shapes
     path = tmp_path / "tusimple_18.pth"
     torch.save({"model": weights}, path)
     with pytest.raises(CheckpointError) as caught:

@@ -14,7 +14,7 @@ from lanevil_train.evaluation.lane_records import read_records
 from lanevil_train.tasks.compare import check_defenses, compare, compose_run, run_overrides
 from lanevil_train.tasks.finished_runs import records_from_runs
 from tests.report.test_defenses import RECORDS
-from tests.tasks.cli_helpers import TINY, run_cli
+from tests.tasks.cli_helpers import TINY, run_cli, run_in_process
 
 COMPARE = ["task=compare", "task.defenses=[none,aam++]", *TINY, "trainer.max_steps=2", "trainer.limit_val_batches=0",
            "task.cases=1", "task.illusions=[rail_shadow]", "task.severities=[3]"]
@@ -26,7 +26,7 @@ def _mtimes(run_dir) -> dict[str, int]:
     return {str(p.relative_to(run_dir)): p.stat().st_mtime_ns for p in files}
 
 
-def test_compare_trains_each_defense_reports_gains_and_resumes(tmp_path):
+def test_compare_trains_each_defense_reports_gains_and_resumes(tmp_path, capsys, caplog):
     out = tmp_path / "compare"
     proc = run_cli(COMPARE, out)
     for defense, label in (("none", "laneatt-resnet18"), ("aam++", "laneatt-resnet18+aam++")):
@@ -51,14 +51,20 @@ def test_compare_trains_each_defense_reports_gains_and_resumes(tmp_path):
 
     # the same command again: both runs are finished, nothing is trained or scored
     before = {d: _mtimes(out / "runs" / d) for d in ("none", "aam++")}
-    proc = run_cli(COMPARE, out)
-    assert proc.stdout.count("already done") + proc.stderr.count("already done") == 2
+    capsys.readouterr()
+    caplog.clear()
+    with caplog.at_level("INFO"):
+        run_in_process(COMPARE, out)  # the later runs in this process (the first went through the command line)
+    logs = "".join(capsys.readouterr()) + caplog.text
+    assert logs.count("already done") == 2
     assert {d: _mtimes(out / "runs" / d) for d in ("none", "aam++")} == before
 
     # interrupted while scoring aam++: only its robustness part is redone, from its checkpoint
     shutil.rmtree(out / "runs" / "aam++" / "robustness")
-    proc = run_cli(COMPARE, out)
-    logs = proc.stdout + proc.stderr
+    caplog.clear()
+    with caplog.at_level("INFO"):
+        run_in_process(COMPARE, out)
+    logs = "".join(capsys.readouterr()) + caplog.text
     assert "defense=none already done" in logs and "defense=aam++ resuming from" in logs
     assert _mtimes(out / "runs" / "none") == before["none"]
     assert {k: v for k, v in _mtimes(out / "runs" / "aam++").items() if k.startswith("checkpoints")} == \
@@ -224,7 +230,7 @@ def test_seeds_change_the_training_but_not_the_suite(tmp_path):
     args = ["task=compare", "task.defenses=[none,hsv]", "task.seeds=[0,1]", *TINY, "trainer.max_steps=2",
             "trainer.limit_val_batches=0", "task.cases=1", "task.illusions=[rail_shadow,vehicle]",
             "task.severities=[3]", "task.test_after_fit=false", "task.bootstrap=200"]
-    run_cli(args, out)
+    run_in_process(args, out)
     runs = {(d, s): out / "runs" / d / f"seed{s}" for d in ("none", "hsv") for s in (0, 1)}
     for (defense, seed), run in runs.items():
         config = OmegaConf.load(run / "config.yaml")

@@ -9,13 +9,13 @@ import onnx
 import pytest
 
 from lanevil_train.evaluation.lane_records import read_records
-from tests.tasks.cli_helpers import TINY, run_cli, run_in_process
+from tests.tasks.cli_helpers import TINY, run_in_process
 
 
 def test_export_then_evaluate_the_onnx_model_gives_the_checkpoints_scores(tmp_path):
     train_dir = tmp_path / "train"
-    run_cli([*TINY, "model=scnn", "trainer.max_steps=3", "trainer.limit_val_batches=1", "trainer.max_epochs=10",
-             "logger=none"], train_dir)
+    run_in_process([*TINY, "model=scnn", "trainer.max_steps=3", "trainer.limit_val_batches=1", "trainer.max_epochs=10",
+                    "logger=none"], train_dir)
     last = train_dir / "checkpoints" / "last.ckpt"
     out = tmp_path / "export" / "model.onnx"
     worst = run_in_process(["task=export", f"ckpt_path={last}", f"task.out={out}"], tmp_path / "export_run")

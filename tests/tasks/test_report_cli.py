@@ -35,7 +35,7 @@ def test_evaluate_on_the_synthetic_illusion_suite_resumes_in_place(tmp_path):
     out = tmp_path / "eval"
     args = ["task=evaluate", f"ckpt_path={ckpt}", *TINY, "task.suite=synthetic", "task.cases=2",
             "task.illusions=[fence_shadow,pedestrian]", "task.severities=[2,4]", f"task.out_dir={out}"]
-    run_cli(args, tmp_path / "run1")
+    run_in_process(args, tmp_path / "run1")
     records = read_records(out / "per_image.jsonl")
     assert len(records) == 2 * (1 + 2 * 2)
     assert (out / "report.md").is_file()

@@ -5,13 +5,13 @@ from __future__ import annotations
 import json
 
 from lanevil_train.evaluation.lane_records import read_records
-from tests.tasks.cli_helpers import TINY, run_cli, run_in_process
+from tests.tasks.cli_helpers import TINY, run_in_process
 
 
 def test_train_scores_the_combined_suite_and_evaluate_the_corruption_suite(tmp_path):
     train_dir = tmp_path / "train"
-    run_cli([*TINY, "trainer.max_steps=1", "trainer.limit_val_batches=0", "task.test_after_fit=false",
-             "task.suite=combined", "task.cases=1", "task.severities=[3]"], train_dir)
+    run_in_process([*TINY, "trainer.max_steps=1", "trainer.limit_val_batches=0", "task.test_after_fit=false",
+                    "task.suite=combined", "task.cases=1", "task.severities=[3]"], train_dir)
     records = read_records(train_dir / "robustness" / "per_image.jsonl")
     assert {r["dataset"] for r in records} == {"synthetic-combined"}
     pairs = [r for r in records if "+" in (r["illusion"] or "")]

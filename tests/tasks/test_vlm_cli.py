@@ -64,7 +64,7 @@ def test_a_saved_hf_model_is_evaluated_on_synthetic_clips_and_resumes(tiny_model
 
 def test_a_server_model_is_evaluated_on_a_built_suite_judged_and_reported_with_the_hf_run(tiny_model, tmp_path):
     suite = tmp_path / "suite"
-    run_cli(["task=build", f"task.out_dir={suite}", "task.workers=0", *CLIPS], tmp_path / "build")
+    run_in_process(["task=build", f"task.out_dir={suite}", "task.workers=0", *CLIPS], tmp_path / "build")
     clips, qas = read_drivelm(suite / "drivelm.json")  # the suite in DriveLM's layout too
     assert len(clips) == 3 * 2 and sorted(qas, key=lambda q: q["qa_id"]) == sorted(
         ResultsLog(suite / "qa.jsonl", "qa_id").records(), key=lambda q: q["qa_id"])

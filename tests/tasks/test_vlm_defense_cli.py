@@ -123,8 +123,8 @@ def test_every_vlm_defense_config_runs_a_step(defense, tiny_model, tmp_path):
 
 def test_self_reminder_trains_nothing_and_tests_the_reminded_model(tiny_model, tmp_path):
     run = tmp_path / "reminder"
-    run_cli(["task=train", "model=vlm/hf", f"model.path={tiny_model}", "model.max_new_tokens=4", *TINY_CLIPS,
-             "defense=self_reminder"], run)
+    run_in_process(["task=train", "model=vlm/hf", f"model.path={tiny_model}", "model.max_new_tokens=4", *TINY_CLIPS,
+                    "defense=self_reminder"], run)
     tested = ResultsLog(run / "test" / "per_answer.jsonl").records()
     assert len(tested) == ANSWERS and {r["model"] for r in tested} == {"tiny-qwen2-vl+self_reminder"}
     assert not (run / "checkpoints").exists() and not (run / "model").exists()

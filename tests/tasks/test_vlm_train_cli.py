@@ -38,19 +38,19 @@ def test_lora_fine_tuning_saves_an_adapter_tests_it_and_evaluates_it_again(tiny_
     tested = ResultsLog(run / "test" / "per_answer.jsonl").records()
     assert len(tested) == ANSWERS and json.loads((run / "test" / "main.json").read_text())
     # the same model from its adapter folder and from the checkpoint answers the same questions the same way
-    for name, source, run_task in (("adapter", [f"model.adapter={adapter}"], run_cli),
-                                   ("ckpt", [f"ckpt_path={run / 'checkpoints' / 'last.ckpt'}"], run_in_process)):
+    for name, source in (("adapter", [f"model.adapter={adapter}"]),
+                         ("ckpt", [f"ckpt_path={run / 'checkpoints' / 'last.ckpt'}"])):
         out = tmp_path / name
-        run_task(["task=evaluate", "model=vlm/hf", f"model.path={tiny_model}", "model.max_new_tokens=4",
-                  "task.suite=synthetic", f"task.out_dir={out}", *source, *TINY_CLIPS], tmp_path / f"eval-{name}")
+        run_in_process(["task=evaluate", "model=vlm/hf", f"model.path={tiny_model}", "model.max_new_tokens=4",
+                        "task.suite=synthetic", f"task.out_dir={out}", *source, *TINY_CLIPS], tmp_path / f"eval-{name}")
         answers = {r["key"]: r["answer"] for r in ResultsLog(out / "per_answer.jsonl").records()}
         assert answers == {r["key"]: r["answer"] for r in tested}
 
 
 def test_the_embedded_vlm_is_built_from_the_training_qa_trained_and_saved(tmp_path):
     run = tmp_path / "train"
-    run_cli(["task=train", "model=vlm/embedded", "model.embedded.frame_size=[32,48]", "model.max_new_tokens=4",
-             *TINY_PRETRAINING, *TINY_CLIPS], run)
+    run_in_process(["task=train", "model=vlm/embedded", "model.embedded.frame_size=[32,48]", "model.max_new_tokens=4",
+                    *TINY_PRETRAINING, *TINY_CLIPS], run)  # the quickstart's test below goes through the command line
     assert (run / "init" / "config.json").is_file() and (run / "model" / "config.json").is_file()
     assert len(ResultsLog(run / "test" / "per_answer.jsonl").records()) == ANSWERS
 
