@@ -19,6 +19,7 @@ import numpy as np
 
 from lanevil_train.illusions import draw
 from lanevil_train.illusions.context import IllusionContext
+from lanevil_train.illusions.parameters import introduced, level_params
 
 LEVELS: dict[str, list[dict]] = {
     # The sun low ahead: a glitter path on the asphalt around the mirror point of the sun.
@@ -56,6 +57,9 @@ LEVELS: dict[str, list[dict]] = {
              distance_far_m=45.0),
     ],
 }
+
+# the LEVELS keys that are whole numbers (int parameters of Illusion.parameters(); the others are floats)
+INTEGER_KEYS = frozenset({"count", "both_sides"})
 
 _WHITE_LAMP = np.array([1.0, 0.97, 0.90], np.float32)
 _SODIUM_LAMP = np.array([1.0, 0.70, 0.30], np.float32)
@@ -203,13 +207,13 @@ def _bump(t_peak: float, sigma: float, floor: float, t_range: tuple[float, float
 
 
 # ---------------------------------------------------------------------------------- illusions
-def render_sunlight_reflection(image: np.ndarray, ctx: IllusionContext, severity: int,
+def render_sunlight_reflection(image: np.ndarray, ctx: IllusionContext, level: dict | int,
                                rng: np.random.Generator) -> np.ndarray:
     """Sun glare: a low sun ahead mirrored in the wet road as a bright glitter path that washes out
     the markings around the mirror point (distance camera_height / tan(elevation)). The path points
     towards the scene's own sun when that is low and ahead (sunset), else to a random azimuth."""
     _check(image, ctx)
-    p = LEVELS["sunlight_reflection"][severity - 1]
+    p = level_params(LEVELS["sunlight_reflection"], level)
     u = rng.uniform(-1.0, 1.0)
     az_max = p["azimuth_max_deg"]
     sx, sy, sz = (float(v) for v in ctx.sun_direction)
@@ -238,12 +242,12 @@ def render_sunlight_reflection(image: np.ndarray, ctx: IllusionContext, severity
     return _finish(image, ctx, streaks, boxes, None, [], blur_px=0.012 * w, rng=rng, glitter=0.25)
 
 
-def render_streetlight_reflection(image: np.ndarray, ctx: IllusionContext, severity: int,
+def render_streetlight_reflection(image: np.ndarray, ctx: IllusionContext, level: dict | int,
                                   rng: np.random.Generator) -> np.ndarray:
     """Street-lamp streaks: lamps on arms over the road edge (white or sodium yellow), each mirrored
     as a long narrow streak running from under the lamp towards the camera, like a lane line."""
     _check(image, ctx)
-    p = LEVELS["streetlight_reflection"][severity - 1]
+    p = level_params(LEVELS["streetlight_reflection"], level)
     sodium = rng.random() < 0.5
     phase = rng.uniform(0.0, 1.0)
     arm = rng.uniform(0.8, 1.8, size=_MAX_LIGHTS)
@@ -280,12 +284,12 @@ def render_streetlight_reflection(image: np.ndarray, ctx: IllusionContext, sever
     return _finish(image, ctx, streaks, boxes, glows, glow_boxes, blur_px=0.004 * w, rng=rng, glitter=0.3)
 
 
-def render_vehicle_reflection(image: np.ndarray, ctx: IllusionContext, severity: int,
+def render_vehicle_reflection(image: np.ndarray, ctx: IllusionContext, level: dict | int,
                               rng: np.random.Generator) -> np.ndarray:
     """Vehicle reflections: vehicles ahead mirrored in the wet road as a faint body-coloured patch
     and bright vertical streaks under their lights (red tail lights; white headlights if oncoming)."""
     _check(image, ctx)
-    p = LEVELS["vehicle_reflection"][severity - 1]
+    p = level_params(LEVELS["vehicle_reflection"], level)
     offsets = np.sort(np.asarray(ctx.lane_offsets, np.float64))
     centres = 0.5 * (offsets[1:] + offsets[:-1]) if len(offsets) >= 2 else np.array([0.0])
     # vehicles drive in the (up to) three lanes nearest the camera, which are in view
@@ -304,8 +308,7 @@ def render_vehicle_reflection(image: np.ndarray, ctx: IllusionContext, severity:
     boxes, glow_boxes = [], []
     # vehicles in random lanes and distances (they may overlap); far ones first, near ones drawn over.
     # A vehicle keeps the distance range of the level that introduced it: the first one is near.
-    levels = LEVELS["vehicle_reflection"]
-    far = [next(lv for lv in levels if lv["count"] > i)["distance_far_m"] for i in range(p["count"])]
+    far = [introduced(LEVELS["vehicle_reflection"], "count", i, "distance_far_m", p) for i in range(p["count"])]
     dist = [DIST_NEAR_M + (f - DIST_NEAR_M) * u for f, u in zip(far, u_dist)]
     order = sorted(range(p["count"]), key=lambda i: -dist[i])
     for i in order:

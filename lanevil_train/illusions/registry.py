@@ -1,12 +1,17 @@
 """The 14 illusions by name, each bound to its renderer and levels (names and categories: lanevil_train.taxonomy).
 
 Each category module (road_damage, traffic, shadow, reflection) exposes RENDERERS (name ->
-render(image, ctx, severity, rng)) and LEVELS (name -> five parameter dicts, severity 1..5).
+render(image, ctx, level, rng), `level` a parameter dict), LEVELS (name -> five parameter dicts, severity 1..5) and
+INTEGER_KEYS (the parameters that are whole numbers). An illusion renders a severity (`illusion(image, ctx, 3)`)
+or any point of its parameter space (`illusion.render_point(image, ctx, point)`, `illusion.parameters()`:
+illusions/parameters.py).
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from functools import cached_property
 from types import MappingProxyType
 from typing import Callable
 
@@ -14,6 +19,7 @@ import numpy as np
 
 from lanevil_train.illusions import reflection, road_damage, shadow, traffic
 from lanevil_train.illusions.context import IllusionContext
+from lanevil_train.illusions.parameters import ParameterSpace, check_severity, parameter_space
 from lanevil_train.taxonomy import CATEGORIES, SEVERITIES
 
 _MODULES = {"road_damage": road_damage, "traffic_obstruction": traffic, "shadow": shadow, "reflection": reflection}
@@ -21,19 +27,40 @@ _MODULES = {"road_damage": road_damage, "traffic_obstruction": traffic, "shadow"
 
 @dataclass(frozen=True)
 class Illusion:
-    """One illusion type: its name, category, renderer and per-severity parameters."""
+    """One illusion type: its name, category, renderer, per-severity parameters and which of them are whole numbers."""
 
     name: str
     category: str
-    render: Callable[[np.ndarray, IllusionContext, int, np.random.Generator], np.ndarray] = field(repr=False)
+    render: Callable[[np.ndarray, IllusionContext, Mapping, np.random.Generator], np.ndarray] = field(repr=False)
     levels: tuple[dict, ...] = field(repr=False)
+    integer_keys: frozenset[str] = field(default=frozenset(), repr=False)
 
     def __call__(self, image: np.ndarray, ctx: IllusionContext, severity: int, seed: int = 0) -> np.ndarray:
         """Render this illusion at `severity` (1..5) on an image whose geometry `ctx` describes."""
-        check_severity(severity)
-        seed = check_seed(seed)
-        # one stream per seed, shared by all severities: a case's variants differ in degree, not layout
-        return self.render(image, ctx, severity, np.random.default_rng(seed))
+        level = self.levels[check_severity(severity) - 1]
+        return self._draw(image, ctx, level, seed)
+
+    def render_point(self, image: np.ndarray, ctx: IllusionContext, point: Mapping, seed: int = 0) -> np.ndarray:
+        """Render this illusion at a point of its parameter space (a dict of values, see `parameters()`); a value
+        outside its bounds is a ValueError naming the parameter, the value and the range. A severity's point
+        (`point(severity)`) renders exactly as that severity."""
+        return self._draw(image, ctx, self.parameters().check(point), seed)
+
+    def parameters(self) -> ParameterSpace:
+        """The illusion's physical parameters, typed and bounded by the range its five severity levels span."""
+        return self._space
+
+    def point(self, severity: int) -> dict:
+        """The point of a severity 1..5: a copy of its parameters, to render as it is or to change and render."""
+        return dict(self.levels[check_severity(severity) - 1])
+
+    @cached_property
+    def _space(self) -> ParameterSpace:
+        return parameter_space(self.name, self.levels, self.integer_keys)
+
+    def _draw(self, image: np.ndarray, ctx: IllusionContext, level: Mapping, seed: int) -> np.ndarray:
+        # one stream per seed, shared by all severities and points: a case's variants differ in degree, not layout
+        return self.render(image, ctx, level, np.random.default_rng(check_seed(seed)))
 
 
 def _build() -> dict[str, Illusion]:
@@ -44,18 +71,11 @@ def _build() -> dict[str, Illusion]:
             levels = tuple(module.LEVELS[name])
             if len(levels) != len(SEVERITIES):
                 raise RuntimeError(f"illusion {name}: expected {len(SEVERITIES)} severity levels, got {len(levels)}")
-            table[name] = Illusion(name, category, module.RENDERERS[name], levels)
+            table[name] = Illusion(name, category, module.RENDERERS[name], levels, module.INTEGER_KEYS)
     return table
 
 
 ILLUSIONS = MappingProxyType(_build())
-
-
-def check_severity(severity) -> int:
-    """Severity as an int in 1..5, or a ValueError saying what was expected."""
-    if isinstance(severity, bool) or not isinstance(severity, (int, np.integer)) or severity not in SEVERITIES:
-        raise ValueError(f"severity must be an integer from 1 (subtle) to 5 (severe), got {severity!r}")
-    return int(severity)
 
 
 def check_seed(seed) -> int:

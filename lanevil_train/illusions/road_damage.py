@@ -4,9 +4,10 @@ Everything is placed in road coordinates (d lateral, z forward metres) or as 3D 
 projected with the scene camera, so damage foreshortens like the road. Surface damage darkens the
 asphalt multiplicatively (it keeps the road's own texture and lighting, by day and by night) and is
 clipped to the road mask; the guard rail is an opaque 3D object drawn far to near.
-Randomness: each render draws the layout for the most severe level and keeps the first `count`
-items, so a higher severity contains the damage of a lower one (same seed); an item is placed by the
-rules of the level that introduced it (level 1's few cracks, patch and skid pair lie near the camera)
+Randomness: each render draws the layout for the most severe level (the upper bounds of the
+illusion's parameters) and keeps the first `count` items, so a higher severity contains the damage of a
+lower one (same seed); an item is placed by the rules of the level that introduced it (level 1's few
+cracks, patch and skid pair lie near the camera; a point's own z_far caps them: parameters.introduced)
 and keeps its place while higher levels enlarge it. Each item draws several candidate places and takes
 the first one in view and lit (`draw.RoadLight.pick`): by day the plain random place, at night one in
 the headlights or under a lamp, where a darkening of the asphalt can be seen at all.
@@ -21,6 +22,7 @@ import numpy as np
 
 from lanevil_train.illusions import draw
 from lanevil_train.illusions.context import IllusionContext
+from lanevil_train.illusions.parameters import introduced, level_params
 
 Z_NEAR = 3.0    # metres: surface damage starts here
 Z_FAR = 45.0    # and ends here (beyond it, it is sub-pixel)
@@ -80,6 +82,8 @@ LEVELS: dict[str, list[dict]] = {
     ],
 }
 
+# the LEVELS keys that are whole numbers (int parameters of Illusion.parameters(); the others are floats)
+INTEGER_KEYS = frozenset({"crack_count", "alligator_patches", "strip_count", "patch_count", "pair_count", "sides"})
 
 # ---------------------------------------------------------------------------------------- helpers
 def _noise(shape: tuple[int, int], rng: np.random.Generator, cell_px: float) -> np.ndarray:
@@ -118,12 +122,6 @@ def _darken_road(image: np.ndarray, ctx: IllusionContext, layers: list[tuple[np.
         gain *= 1.0 + np.clip(m, 0.0, 1.0) * (float(factor) - 1.0)
     out[crop] = np.clip(image[crop].astype(np.float32) * gain[..., None] + 0.5, 0, 255).astype(np.uint8)
     return out
-
-
-def _first_level(levels: list[dict], count_key: str, i: int) -> dict:
-    """The lowest level that has item i (levels[k][count_key] > i): an item is placed by the rules of
-    the level that introduced it, so it stays put while higher levels enlarge it and add more."""
-    return next((lv for lv in levels if lv[count_key] > i), levels[-1])
 
 
 def _walk(rng: np.random.Generator, start: np.ndarray, heading: float, length: float,
@@ -183,17 +181,17 @@ def _road_span(ctx: IllusionContext, margin: float = 0.3) -> tuple[float, float]
 
 
 # ---------------------------------------------------------------------------------------- illusions
-def render_road_crack(image: np.ndarray, ctx: IllusionContext, severity: int,
+def render_road_crack(image: np.ndarray, ctx: IllusionContext, level: dict | int,
                       rng: np.random.Generator) -> np.ndarray:
     """Dark, thin, slightly blurred crack network: hairline cracks (1) to alligator cracking (5)."""
-    p = LEVELS["road_crack"][severity - 1]
+    p = level_params(LEVELS["road_crack"], level)
     top = LEVELS["road_crack"][-1]
     lo, hi = _road_span(ctx)
     lines: list[np.ndarray] = []
     light = draw.RoadLight(image, ctx)
     crack_rngs = [np.random.default_rng(s) for s in rng.integers(0, 2**63, top["crack_count"])]
     for i, crng in enumerate(crack_rngs[:p["crack_count"]]):
-        z_far = _first_level(LEVELS["road_crack"], "crack_count", i)["z_far_m"]
+        z_far = introduced(LEVELS["road_crack"], "crack_count", i, "z_far_m", p)
         ds, zs = crng.uniform(lo, hi, CANDIDATES), Z_NEAR + (z_far - Z_NEAR) * crng.random(CANDIDATES) ** 1.5
         k = light.pick(ds, zs)
         start = np.array([ds[k], zs[k]])
@@ -235,10 +233,10 @@ def _alligator(rng: np.random.Generator, lo: float, hi: float, light: draw.RoadL
     return lines
 
 
-def render_road_repair(image: np.ndarray, ctx: IllusionContext, severity: int,
+def render_road_repair(image: np.ndarray, ctx: IllusionContext, level: dict | int,
                        rng: np.random.Generator) -> np.ndarray:
     """Sealed repairs: glossy dark tar strips (lane-like, parallel to the lanes) and transverse patches."""
-    p = LEVELS["road_repair"][severity - 1]
+    p = level_params(LEVELS["road_repair"], level)
     top = LEVELS["road_repair"][-1]
     h, w = ctx.image_size
     lo, hi = _road_span(ctx)
@@ -263,7 +261,7 @@ def render_road_repair(image: np.ndarray, ctx: IllusionContext, severity: int,
     patch_rngs = [np.random.default_rng(s) for s in rng.integers(0, 2**63, top["patch_count"])]
     for i, prng in enumerate(patch_rngs[:p["patch_count"]]):
         width = prng.uniform(1.5, 3.5)
-        z_far = _first_level(LEVELS["road_repair"], "patch_count", i)["patch_z_far_m"]
+        z_far = introduced(LEVELS["road_repair"], "patch_count", i, "patch_z_far_m", p)
         z0s = prng.uniform(Z_NEAR + 1.0, z_far, CANDIDATES)
         # centred within the view ahead (|lateral| < 0.8 z from the camera), on the asphalt
         d0s = np.clip(d_cam + prng.uniform(-0.8, 0.8, CANDIDATES) * z0s - width / 2, lo, max(lo, hi - width))
@@ -288,10 +286,10 @@ def render_road_repair(image: np.ndarray, ctx: IllusionContext, severity: int,
     return _darken_road(image, ctx, layers, rng) if layers else image.copy()
 
 
-def render_tire_marks(image: np.ndarray, ctx: IllusionContext, severity: int,
+def render_tire_marks(image: np.ndarray, ctx: IllusionContext, level: dict | int,
                       rng: np.random.Generator) -> np.ndarray:
     """Skid-mark pairs: two parallel dark rubber arcs a track width apart, sweeping across lanes."""
-    p = LEVELS["tire_marks"][severity - 1]
+    p = level_params(LEVELS["tire_marks"], level)
     top = LEVELS["tire_marks"][-1]
     h, w = ctx.image_size
     lo, hi = _road_span(ctx)
@@ -305,7 +303,7 @@ def render_tire_marks(image: np.ndarray, ctx: IllusionContext, severity: int,
         reach = top["lateral_sweep_m"] * 1.2  # placement fits the widest sweep: same start at every level
         d0s = np.clip(prng.uniform(lo + 1.0, hi - 1.0, CANDIDATES), lo + reach * (direction < 0),
                       hi - reach * (direction > 0))
-        z_far = _first_level(LEVELS["tire_marks"], "pair_count", i)["start_z_far_m"]
+        z_far = introduced(LEVELS["tire_marks"], "pair_count", i, "start_z_far_m", p)
         z0s = Z_NEAR + 1.0 + (z_far - Z_NEAR - 1.0) * prng.random(CANDIDATES)
         k = light.pick(d0s, z0s + 3.0)
         d0, z0 = float(d0s[k]), float(z0s[k])
@@ -331,12 +329,12 @@ def render_tire_marks(image: np.ndarray, ctx: IllusionContext, severity: int,
 
 
 # ---------------------------------------------------------------------------------------- guard rail
-def render_guard_rail(image: np.ndarray, ctx: IllusionContext, severity: int,
+def render_guard_rail(image: np.ndarray, ctx: IllusionContext, level: dict | int,
                       rng: np.random.Generator) -> np.ndarray:
     """A 3D W-beam guard rail on posts along the road edge, nearer to the lane at higher severity."""
-    p = LEVELS["guard_rail"][severity - 1]
+    p = level_params(LEVELS["guard_rail"], level)
     out = image.copy()
-    rails = rail_offsets(ctx, severity, rng)
+    rails = rail_offsets(ctx, p, rng)
     grime = rng.uniform(0.9, 1.05, 256)
     light = _rail_light(image, ctx)
     for d_rail, sign in rails:
@@ -344,14 +342,15 @@ def render_guard_rail(image: np.ndarray, ctx: IllusionContext, severity: int,
     return out
 
 
-def rail_offsets(ctx: IllusionContext, severity: int, rng: np.random.Generator) -> list[tuple[float, float]]:
-    """(d of the posts, side sign +1 right / -1 left) of each guard rail; draws one number from rng.
+def rail_offsets(ctx: IllusionContext, level: dict | int, rng: np.random.Generator) -> list[tuple[float, float]]:
+    """(d of the posts, side sign +1 right / -1 left) of each guard rail at `level` (a point, or a severity 1..5);
+    draws one number from rng.
 
     A rail stands offset_from_edge_line_m outside the road's outermost boundary on its side (a marked
     edge line, or an unmarked road edge beyond the camera's lane). With one rail, its side is drawn
     per seed but swapped when only the other side is in view near the camera (same side at every level).
     """
-    p = LEVELS["guard_rail"][severity - 1]
+    p = level_params(LEVELS["guard_rail"], level)
     edges = [b.d for b in ctx.road.boundaries] or list(ctx.lane_offsets) or [-1.8, 1.8]
     left, right = min(edges), max(edges)
 

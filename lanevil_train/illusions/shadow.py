@@ -29,6 +29,7 @@ import numpy as np
 
 from lanevil_train.illusions import draw
 from lanevil_train.illusions.context import IllusionContext
+from lanevil_train.illusions.parameters import level_params
 
 Z_FAR = 150.0      # metres: objects beyond this are not drawn (sub-pixel near the horizon anyway)
 Z_BEHIND = -30.0   # metres: objects behind the camera still cast shadows forward into view
@@ -100,6 +101,8 @@ LEVELS: dict[str, list[dict]] = {
     ],
 }
 
+# the LEVELS keys that are whole numbers (int parameters of Illusion.parameters(); the others are floats)
+INTEGER_KEYS = frozenset({"bar_count", "along_wire_count", "cross_wire_count"})
 
 # ---------------------------------------------------------------------------------------- geometry
 def shadow_offset(elevation_deg: float, azimuth_deg: float, side: int) -> np.ndarray:
@@ -285,10 +288,10 @@ _SHAPES = {"streetlight_shadow": _streetlight_quads, "fence_shadow": _fence_quad
 
 
 # ---------------------------------------------------------------------------------------- rendering
-def _geometry(name: str, ctx: IllusionContext, severity: int,
+def _geometry(name: str, ctx: IllusionContext, level: dict | int,
               rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """Shadow coverage mask (0..1, exactly 0 off the footprint) and the light-pool polygons."""
-    lv = LEVELS[name][severity - 1]
+    lv = level_params(LEVELS[name], level)
     quads, lit = _SHAPES[name](ctx, lv, rng)
     scale = ctx.image_size[1] / 1280.0
     mask = draw.soften(_fill_quads(ctx, quads), lv["penumbra_px"] * scale) * _ground_band(ctx)
@@ -303,23 +306,24 @@ def _pool(ctx: IllusionContext, lit: np.ndarray) -> np.ndarray:
     return np.clip(pool * reach[:, None].astype(np.float32), 0.0, 1.0)
 
 
-def shadow_mask(name: str, ctx: IllusionContext, severity: int, rng: np.random.Generator) -> np.ndarray:
-    """The float32 shadow coverage (0..1) of illusion `name` at `severity`: exactly 0 off its footprint.
+def shadow_mask(name: str, ctx: IllusionContext, level: dict | int, rng: np.random.Generator) -> np.ndarray:
+    """The float32 shadow coverage (0..1) of illusion `name` at `level` (a point, or a severity 1..5): exactly 0
+    off its footprint.
 
     Consumes `rng` exactly as the render function does, so the same seed gives the same mask.
     """
-    return _geometry(name, ctx, severity, rng)[0]
+    return _geometry(name, ctx, level, rng)[0]
 
 
-def light_pool(name: str, ctx: IllusionContext, severity: int, rng: np.random.Generator) -> np.ndarray:
+def light_pool(name: str, ctx: IllusionContext, level: dict | int, rng: np.random.Generator) -> np.ndarray:
     """The soft ground pool (0..1) the level's own light covers around its shadow (used at night)."""
-    return _pool(ctx, _geometry(name, ctx, severity, rng)[1])
+    return _pool(ctx, _geometry(name, ctx, level, rng)[1])
 
 
-def _render(name: str, image: np.ndarray, ctx: IllusionContext, severity: int,
+def _render(name: str, image: np.ndarray, ctx: IllusionContext, level: dict | int,
             rng: np.random.Generator) -> np.ndarray:
-    level = LEVELS[name][severity - 1]
-    mask, lit = _geometry(name, ctx, severity, rng)
+    level = level_params(LEVELS[name], level)
+    mask, lit = _geometry(name, ctx, level, rng)
     out = draw.shade(image, mask, [(1.0 - level["opacity"]) * c for c in SKY_TINT])
     if not (ctx.night or draw.RoadLight(image, ctx).road_is_dark()):
         return out
@@ -331,28 +335,28 @@ def _render(name: str, image: np.ndarray, ctx: IllusionContext, severity: int,
     return np.clip(out.astype(np.float32) + light + 0.5, 0, 255).astype(np.uint8)
 
 
-def render_streetlight_shadow(image: np.ndarray, ctx: IllusionContext, severity: int,
+def render_streetlight_shadow(image: np.ndarray, ctx: IllusionContext, level: dict | int,
                               rng: np.random.Generator) -> np.ndarray:
     """Shadows of lamp poles with arms beside the road, long and slanting at low sun."""
-    return _render("streetlight_shadow", image, ctx, severity, rng)
+    return _render("streetlight_shadow", image, ctx, level, rng)
 
 
-def render_fence_shadow(image: np.ndarray, ctx: IllusionContext, severity: int,
+def render_fence_shadow(image: np.ndarray, ctx: IllusionContext, level: dict | int,
                         rng: np.random.Generator) -> np.ndarray:
     """A comb of slat shadows from a roadside fence reaching across the lanes."""
-    return _render("fence_shadow", image, ctx, severity, rng)
+    return _render("fence_shadow", image, ctx, level, rng)
 
 
-def render_rail_shadow(image: np.ndarray, ctx: IllusionContext, severity: int,
+def render_rail_shadow(image: np.ndarray, ctx: IllusionContext, level: dict | int,
                        rng: np.random.Generator) -> np.ndarray:
     """Railing-bar shadows at low side sun: dark and bright lines parallel to the lanes."""
-    return _render("rail_shadow", image, ctx, severity, rng)
+    return _render("rail_shadow", image, ctx, level, rng)
 
 
-def render_wire_shadow(image: np.ndarray, ctx: IllusionContext, severity: int,
+def render_wire_shadow(image: np.ndarray, ctx: IllusionContext, level: dict | int,
                        rng: np.random.Generator) -> np.ndarray:
     """Thin shadows of overhead wires running along and across the road."""
-    return _render("wire_shadow", image, ctx, severity, rng)
+    return _render("wire_shadow", image, ctx, level, rng)
 
 
 RENDERERS: dict[str, Callable] = {

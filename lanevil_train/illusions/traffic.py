@@ -18,6 +18,7 @@ import numpy as np
 
 from lanevil_train.illusions import draw
 from lanevil_train.illusions.context import IllusionContext
+from lanevil_train.illusions.parameters import level_params
 
 # Per severity: count of participants, forward-distance range (m) they are placed in, and the
 # largest lateral offset (m) of a participant's centre from the lane line it stands on. Level 1's
@@ -45,6 +46,9 @@ LEVELS: dict[str, list[dict]] = {
         {"count": 6, "z_near_m": 5.0, "z_far_m": 13.0, "line_offset_max_m": 0.4},
     ],
 }
+
+# the LEVELS keys that are whole numbers (int parameters of Illusion.parameters(); the others are floats)
+INTEGER_KEYS = frozenset({"count"})
 
 _CAR_COLOURS = np.array([[200, 200, 205], [30, 32, 36], [150, 20, 25], [40, 70, 140], [120, 124, 128],
                          [235, 235, 230], [90, 95, 60], [180, 140, 40]], np.float64)
@@ -152,13 +156,15 @@ _BUILDERS: dict[str, Callable[[np.random.Generator, dict], list[Prim]]] = {
 }
 
 
-def layout(name: str, ctx: IllusionContext, severity: int, rng: np.random.Generator) -> list[Participant]:
-    """Place LEVELS[name][severity-1]['count'] participants on lane lines, one per depth stratum.
+def layout(name: str, ctx: IllusionContext, level: dict | int, rng: np.random.Generator) -> list[Participant]:
+    """Place level['count'] participants on lane lines, one per depth stratum (`level`: a point, or a severity
+    1..5 for LEVELS[name][severity-1]).
 
-    The random draws per slot are made the same way at every severity (a fixed number of them), so
-    for one rng seed a higher severity keeps the same participants, nearer, and adds more.
+    The random draws per slot are made the same way at every severity (a fixed number of them, for the most
+    participants any level places), so for one rng seed a higher severity keeps the same participants, nearer,
+    and adds more.
     """
-    lv = LEVELS[name][severity - 1]
+    lv = level_params(LEVELS[name], level)
     offsets = np.asarray(ctx.lane_offsets if ctx.lane_offsets else (0.0,), np.float64)
     d_cam = float(ctx.road.lateral(0.0, 0.0))
     # lines nearest the camera first (they are in view); shuffle among equally near ones
@@ -380,11 +386,11 @@ def footprint_boxes(ctx: IllusionContext, parts: list[Participant]) -> list[tupl
     return boxes
 
 
-def _renderer(name: str) -> Callable[[np.ndarray, IllusionContext, int, np.random.Generator], np.ndarray]:
-    def render(image: np.ndarray, ctx: IllusionContext, severity: int, rng: np.random.Generator) -> np.ndarray:
-        return render_participants(image, ctx, layout(name, ctx, severity, rng))
+def _renderer(name: str) -> Callable[[np.ndarray, IllusionContext, dict | int, np.random.Generator], np.ndarray]:
+    def render(image: np.ndarray, ctx: IllusionContext, level: dict | int, rng: np.random.Generator) -> np.ndarray:
+        return render_participants(image, ctx, layout(name, ctx, level, rng))
     render.__name__ = f"render_{name}"
-    render.__doc__ = f"Draw LEVELS['{name}'][severity-1] {name}s standing on the lane lines, with shadows."
+    render.__doc__ = f"Draw level['count'] {name}s on the lane lines, with shadows (level: a point or a severity)."
     return render
 
 
