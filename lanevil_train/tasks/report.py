@@ -8,6 +8,7 @@ from omegaconf import DictConfig
 
 from lanevil_train.evaluation.lane_records import RESULTS
 from lanevil_train.evaluation.results import log_results, write_results
+from lanevil_train.report.agreement import CLOSED_LOOP_RUNS
 from lanevil_train.tasks.builders import build_logger, output_dir
 from lanevil_train.tasks.seed_report import relabels, seed_runs, write_seed_report
 from lanevil_train.vlm.answer_scoring.evaluation import PER_ANSWER
@@ -25,10 +26,17 @@ def results_files(runs: list[str]) -> list[Path]:
         if not run.is_dir():
             raise FileNotFoundError(f"task.runs: {run} is not a directory")
         found = sorted((path for name in RESULT_FILES for path in run.rglob(name)), key=path_order)
-        if not found:
-            raise FileNotFoundError(f"task.runs: no {' or '.join(RESULT_FILES)} in {run} or its subdirectories")
+        if not found and not closed_loop_files([run]):
+            raise FileNotFoundError(f"task.runs: no {' or '.join(RESULT_FILES)} (nor closed-loop {CLOSED_LOOP_RUNS}) "
+                                    f"in {run} or its subdirectories")
         files.update(dict.fromkeys(path.resolve() for path in found))
     return list(files)
+
+
+def closed_loop_files(runs: list[str]) -> list[Path]:
+    """Every closed-loop runs.jsonl (task=closed_loop's) under the run directories, each once, in path order."""
+    files = (path.resolve() for run in map(Path, runs) for path in sorted(run.rglob(CLOSED_LOOP_RUNS), key=path_order))
+    return list(dict.fromkeys(files))
 
 
 def path_order(path: Path) -> tuple:
@@ -42,18 +50,24 @@ def report(cfg: DictConfig) -> float:
     if not cfg.task.runs:
         raise ValueError("task=report needs task.runs=[run_dir, ...] (directories holding per_image.jsonl or "
                          "per_answer.jsonl)")
-    value = write_run_reports(results_files(list(cfg.task.runs)), output_dir(cfg), baseline=cfg.task.baseline,
+    files = results_files(list(cfg.task.runs))
+    if not files:
+        raise FileNotFoundError(f"task.runs: closed-loop runs only; task=report needs evaluate runs "
+                                f"({' or '.join(RESULT_FILES)}) too, to compare them with")
+    value = write_run_reports(files, output_dir(cfg), baseline=cfg.task.baseline,
                               replicates=int(cfg.task.get("bootstrap", 1000)),
                               confidence=float(cfg.task.get("confidence", 0.95)), seed=int(cfg.seed),
-                              html=bool(cfg.task.get("html", True)))
+                              html=bool(cfg.task.get("html", True)), closed_loop=closed_loop_files(list(cfg.task.runs)))
     log_results(build_logger(cfg), output_dir(cfg))
     return value
 
 
 def write_run_reports(files: list[Path], out: Path, baseline: str | None = None, replicates: int = 1000,
-                      confidence: float = 0.95, seed: int = 0, html: bool = True) -> float:
+                      confidence: float = 0.95, seed: int = 0, html: bool = True,
+                      closed_loop: list[Path] | None = None) -> float:
     """The report of several runs' results (write_results), each seed run of a repeated label as its own row, and
-    seeds.md when labels repeat, and with `html` report.html (its tables, seeds and gallery: report/page/);
+    seeds.md when labels repeat, with `html` report.html (its tables, seeds and gallery: report/page/), and with
+    closed-loop runs.jsonl files agreement.md (open- vs closed-loop rank correlations: report/agreement.py);
     returns write_results' headline value."""
     groups = seed_runs(files)
     labels = relabels(groups)
@@ -69,6 +83,11 @@ def write_run_reports(files: list[Path], out: Path, baseline: str | None = None,
     path = write_seed_report(files, out, baseline, replicates, confidence, seed)
     if path is not None:
         print(f"Seeds: {path} (mean ± std over seeds; gains with {confidence:.0%} intervals)")
+    if closed_loop:
+        from lanevil_train.report.agreement import write_agreement
+
+        path = write_agreement(files, closed_loop, out, labels, replicates, confidence, seed)
+        print(f"Open- vs closed-loop agreement: {path}")
     if html and (out / "report.md").is_file():  # a report of perturbed results (write_report wrote one)
         from lanevil_train.report.page import write_robustness_page
 
