@@ -1,4 +1,5 @@
-"""task=evaluate on CULane: F1@50, F1@75 and mF1 per official category (list/test_split/), cross as its FP count.
+"""task=evaluate (and task=train's test after fit) on CULane: F1@50, F1@75 and mF1 per official category
+(list/test_split/), cross as its FP count.
 
 The nine lists are found and checked before any image is scored (``category_lists``: ``task.culane_categories``,
 ``auto`` by default: ``<data.root>/list/test_split/`` when data=culane scores the official ``list/test.txt`` and
@@ -27,15 +28,18 @@ TABLE = "culane_categories"
 OFFICIAL_TEST_LIST = "list/test.txt"
 
 
-def category_lists(cfg: DictConfig, dataset) -> dict[str, list[str]] | None:
+def category_lists(cfg: DictConfig, dataset, suite_replaces_test: bool = True) -> dict[str, list[str]] | None:
     """The nine category lists as image keys (read_category_lists), checked against the images of `dataset` (its
-    item_key: CULane's list path); None when ``task.culane_categories`` is null, or ``auto`` finds no folder."""
+    item_key: CULane's list path); None when ``task.culane_categories`` is null, or ``auto`` finds no folder.
+
+    `suite_replaces_test`: task.suite is what the task scores instead of data.test (task=evaluate), so ``auto``
+    finds no lists then; task=train scores data.test after fitting whatever the suite (False)."""
     setting = cfg.task.get("culane_categories", "auto")
     if setting is None:
         return None
     if setting == "auto":
         test = cfg.data.get("test") or {}
-        if cfg.task.get("suite") is not None or cfg.data.name != "culane" or \
+        if (suite_replaces_test and cfg.task.get("suite") is not None) or cfg.data.name != "culane" or \
                 str(test.get("list_file", "")).lstrip("./") != OFFICIAL_TEST_LIST:
             return None
         folder = Path(cfg.data.root) / "list" / "test_split"

@@ -19,6 +19,7 @@ from lanevil_train.checkpoints import (
 )
 from lanevil_train.data.normalization import spec_normalization
 from lanevil_train.data.resize import spec_resize
+from lanevil_train.evaluation.culane_categories import category_lists, write_category_table
 from lanevil_train.evaluation.lane_records import RESULTS, PerImageWriter
 from lanevil_train.evaluation.results import score_test_set, write_results
 from lanevil_train.models.official import load_detector_weights, official_state_dict
@@ -82,10 +83,15 @@ def train(cfg: DictConfig) -> float | None:
     crop_top = model.build_config.get("crop_top", 0.0)
     choose_anchors(model.head, datamodule.sets["train"], crop_top=crop_top, cache_dir=out)
     suite = test_dataset(cfg) if cfg.task.get("suite") is not None else None  # read and checked before training
+    # CULane's nine category lists (task.culane_categories), checked against the test split before training
+    categories = category_lists(cfg, datamodule.sets["test"], suite_replaces_test=False) \
+        if cfg.task.test_after_fit else None
     trainer.fit(model, datamodule=datamodule, ckpt_path=cfg.ckpt_path)
     result = None
     if cfg.task.test_after_fit:
         result = score_test_set(trainer, model, datamodule, writer)
+        if categories is not None and trainer.is_global_zero:
+            write_category_table(writer.path, out, categories)
     if suite is not None and trainer.is_global_zero:
         result = score_robustness(cfg, model, suite, out / "robustness")
     return result
