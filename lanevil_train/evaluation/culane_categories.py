@@ -18,7 +18,13 @@ from omegaconf import DictConfig
 
 from lanevil_train.evaluation.lane_records import read_records
 from lanevil_train.files.atomic import atomic_write_text
-from lanevil_train.metrics.culane_files import CATEGORIES, FP_ONLY, image_key, read_category_lists
+from lanevil_train.metrics.culane_files import (
+    CATEGORIES,
+    FP_ONLY,
+    category_markdown,
+    image_key,
+    read_category_lists,
+)
 from lanevil_train.report.specs import CULANE_F1, CULANE_F1_75, CULANE_MF1, CULANE_SWEEP
 
 log = logging.getLogger(__name__)
@@ -67,17 +73,6 @@ def category_rows(records: list[dict], lists: dict[str, list[str]]) -> list[dict
     return rows
 
 
-def markdown(rows: list[dict]) -> str:
-    """The rows as a markdown table (a cross row's F1 cells as '-')."""
-    columns = list(rows[0])
-    lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
-    for row in rows:
-        cells = ["-" if row[c] is None else f"{row[c]:.2f}" if isinstance(row[c], float) else str(row[c])
-                 for c in columns]
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines)
-
-
 def write_category_table(results: Path, out_dir: Path, lists: dict[str, list[str]]) -> Path:
     """Write culane_categories.json and .md in `out_dir` from the per-image results file; print the table."""
     records = read_records(results, keep_lanes=False)
@@ -86,7 +81,7 @@ def write_category_table(results: Path, out_dir: Path, lists: dict[str, list[str
         raise ValueError(f"{results}: {len(lacking)} record(s) lack {CULANE_SWEEP} (written before mF1 was counted?), "
                          f"first {lacking[0]!r}; score again with a new task.out_dir")
     rows = category_rows(records, lists)
-    text = markdown(rows)
+    text = category_markdown(rows)
     atomic_write_text(out_dir / f"{TABLE}.json", json.dumps(rows, indent=2) + "\n")
     atomic_write_text(out_dir / f"{TABLE}.md", f"CULane per category (%; cross: FP count), lists "
                                                f"{', '.join(f for _, f in CATEGORIES)}\n\n{text}\n")

@@ -222,18 +222,23 @@ def category_scores(rows: np.ndarray, names: Sequence[str], categories: dict[str
 def category_table(result: dict) -> str:
     """Markdown of an evaluate_culane_dirs result: F1@50, F1@75 and mF1 (%) of the scored list and, when it has
     them, of each category (cross: its FP count only) and their total (IoU 0.5 for the FP column)."""
-    def pct(value: float) -> str:
-        return f"{100 * value:.2f}"
-
-    rows = result.get("categories") or {"total": result}
-    lines = ["| list | images | F1@50 | F1@75 | mF1 | FP |", "|---|---|---|---|---|---|"]
-    for name, row in rows.items():
+    rows = []
+    for name, row in (result.get("categories") or {"total": result}).items():
         fp = row["FP"] if "categories" in result else ""  # without categories, FP is at --iou: left out
-        if name == FP_ONLY:
-            lines.append(f"| {name} | {row['images']} | - | - | - | {fp} |")
-        else:
-            lines.append(f"| {name} | {row['images']} | {pct(row['F1@50'])} | {pct(row['F1@75'])} | "
-                         f"{pct(row['mF1'])} | {fp} |")
+        scores = {key: None if name == FP_ONLY else 100 * row[key] for key in ("F1@50", "F1@75", "mF1")}
+        rows.append({"list": name, "images": row["images"], **scores, "FP": fp})
+    return category_markdown(rows)
+
+
+def category_markdown(rows: list[dict]) -> str:
+    """Rows of {list, images, F1@50, F1@75, mF1 (%), FP} as a markdown table: a score that is None (cross's) as '-',
+    a float to two decimals."""
+    columns = list(rows[0])
+    lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+    for row in rows:
+        cells = ["-" if row[c] is None else f"{row[c]:.2f}" if isinstance(row[c], float) else str(row[c])
+                 for c in columns]
+        lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
