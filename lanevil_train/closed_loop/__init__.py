@@ -2,7 +2,8 @@
 
 sim.vehicle moves the car (kinematic bicycle); episode.drive renders each step from the car's pose and runs the
 policy (policies: a lane detector or the ground truth through a lane keeper: ground lanes, a tracker, a controller;
-a VLM); run_scores gives the paper's attack success rule and the deviation and departure scores; protocol.Protocol
+a VLM); run_scores gives the paper's attack success rule and the deviation and departure scores, time_scores the
+time-resolved ones (time to line crossing, recovery, false lane lock); protocol.Protocol
 plans the grid of cases, illusions, severities and repeats, which tasks/closed_loop.py drives, resumable, and
 report/closed_loop.py writes its tables and plots.
 """

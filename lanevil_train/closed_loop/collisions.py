@@ -34,7 +34,7 @@ steps, and bisects the first contact to its time.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -42,6 +42,7 @@ import numpy as np
 from lanevil_train.closed_loop.run_scores import HALF_CAR_WIDTH_M
 from lanevil_train.illusions.context import context_from_scene
 from lanevil_train.illusions.footprint import STANDING
+from lanevil_train.illusions.parameters import level_params
 from lanevil_train.illusions.road_damage import LEVELS, RAIL_Z_FAR, rail_offsets
 from lanevil_train.illusions.traffic import layout, participant_points
 from lanevil_train.sim import Scene
@@ -76,16 +77,17 @@ class Obstacle:
                 "d_left": round(self.d_left, 4), "d_right": round(self.d_right, 4)}
 
 
-def obstacles(scene: Scene, illusion: str, severity: int, seed: int) -> list[Obstacle]:
-    """The objects a standing illusion at `severity` (drawn with `seed`) puts on the road of `scene`'s reference
-    view, nearest first (by s_near); [] for an illusion that stands on nothing (see the module docstring)."""
+def obstacles(scene: Scene, illusion: str, severity: int | Mapping, seed: int) -> list[Obstacle]:
+    """The objects a standing illusion at `severity` (or at a point of its parameters, a dict: task=search; drawn with
+    `seed`) puts on the road of `scene`'s reference view, nearest first (by s_near); [] for an illusion that stands
+    on nothing (see the module docstring) or severity 0."""
     if illusion not in STANDING or not severity:
         return []
     ctx = context_from_scene(scene)
     rng = np.random.default_rng(seed)  # as the illusion's registry entry seeds its renderer
     out = []
     if illusion == "guard_rail":
-        z_start = LEVELS["guard_rail"][severity - 1]["z_start_m"]
+        z_start = level_params(LEVELS["guard_rail"], severity)["z_start_m"]
         near, far = (float(v) for v in scene.road.arc_length(np.array([z_start, RAIL_Z_FAR])))
         for d_rail, sign in rail_offsets(ctx, severity, rng):
             inner, outer = d_rail - sign * RAIL_BEAM_OFFSET_M, d_rail + sign * RAIL_POST_HALF_M

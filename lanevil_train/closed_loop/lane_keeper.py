@@ -6,6 +6,11 @@ to the tracked centre line with its controller (closed_loop/lateral_controllers.
 The motion is what the car knows of itself: its speed and its front-wheel angle give the distance and the yaw
 (v tan(steer) / L per second). With no centre line (nothing seen, or the tracker lost the lane), the last steering
 angle is held: the car keeps its arc, as a driver assist keeps its last plan for a moment.
+
+The trace keeps where the tracker puts the ego lane's boundaries: `left_boundary_m` and `right_boundary_m`, the
+tracked centre line's x(z) -/+ width / 2 at z = BOUNDARY_AHEAD_M ahead of the rear axle, in the car's frame (m,
++ right; None with no centre line). 10 m is where the default pure pursuit aims at 45 mph (0.5 s x 20.1 m/s):
+where the tracked lane steers the car. closed_loop/time_scores.py maps them onto the road (its false lane lock).
 """
 
 from __future__ import annotations
@@ -17,12 +22,13 @@ import numpy as np
 
 from lanevil_train.closed_loop.ground import MAX_WIDTH_M, MIN_WIDTH_M, ground_lanes
 from lanevil_train.closed_loop.lateral_controllers import CONTROLLERS, Limits, PurePursuit
-from lanevil_train.closed_loop.tracker import TRACKERS, FrameTracker, Motion
+from lanevil_train.closed_loop.tracker import TRACKERS, CentreLine, FrameTracker, Motion
 from lanevil_train.rules import check_group, check_settings, number
 from lanevil_train.sim import Camera
 
-__all__ = ["KEEPER_SETTINGS", "LaneKeeper", "PurePursuit", "lane_keeper"]
+__all__ = ["BOUNDARY_AHEAD_M", "KEEPER_SETTINGS", "LaneKeeper", "PurePursuit", "lane_keeper"]
 
+BOUNDARY_AHEAD_M = 10.0  # where the trace records the tracked boundaries (m ahead of the rear axle)
 KEEPER_SETTINGS = {"max_range_m": number(1), "lane_width_m": number(MIN_WIDTH_M, MAX_WIDTH_M)}
 
 
@@ -36,6 +42,7 @@ class LaneKeeper:
     period_s: float = 0.1
     last_steer: float = field(default=0.0, init=False)
     last_t: float | None = field(default=None, init=False)
+    line: CentreLine | None = field(default=None, init=False)  # the last tracked centre line (the ACC's corridor)
 
     def __post_init__(self) -> None:
         check_settings({"max_range_m": KEEPER_SETTINGS["max_range_m"]}, {"max_range_m": self.max_range_m}, "task")
@@ -43,7 +50,7 @@ class LaneKeeper:
     def reset(self) -> None:
         """A new run: forget the track, the last steering angle and time."""
         self.tracker.reset()
-        self.last_steer, self.last_t = 0.0, None
+        self.last_steer, self.last_t, self.line = 0.0, None, None
 
     def steer(self, lanes_px: list[np.ndarray], camera: Camera, speed_mps: float, t: float = 0.0,
               steer_rad: float = 0.0) -> tuple[float, dict]:
@@ -55,7 +62,8 @@ class LaneKeeper:
         motion = Motion(speed_mps * dt, speed_mps * math.tan(steer_rad) / wheelbase * dt, dt)
         lanes = ground_lanes(lanes_px, camera, self.max_range_m)
         line, info = self.tracker.update(lanes, motion)
-        info = {"lanes": len(lanes_px), "ground_lanes": len(lanes), **info}
+        self.line = line
+        info = {"lanes": len(lanes_px), "ground_lanes": len(lanes), **info, **tracked_boundaries(line)}
         if line is None:
             info["target"] = None
             return self.last_steer, info
@@ -63,6 +71,15 @@ class LaneKeeper:
         info.update(control)
         info["centre_offset_m"] = round(float(line.offset_m), 4)
         return self.last_steer, info
+
+
+def tracked_boundaries(line: CentreLine | None, ahead_m: float = BOUNDARY_AHEAD_M) -> dict:
+    """{left_boundary_m, right_boundary_m}: the tracked lane's boundaries ahead_m ahead of the rear axle, in the car's
+    frame (x(z) -/+ width / 2, m, + right), rounded to 0.1 mm; both None without a centre line."""
+    if line is None:
+        return {"left_boundary_m": None, "right_boundary_m": None}
+    centre, half = float(line.x(ahead_m)), line.width_m / 2
+    return {"left_boundary_m": round(centre - half, 4), "right_boundary_m": round(centre + half, 4)}
 
 
 def lane_keeper(tracker: str = "kalman", controller: str = "pure_pursuit", limits: Limits = Limits(),

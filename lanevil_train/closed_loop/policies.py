@@ -1,7 +1,9 @@
 """Driving policies for the closed loop: camera image -> front-wheel steering angle.
 
 A policy is anything with `name`, `reset()` (a new run) and `act(observation) -> (steer_rad, info)`, where info is
-a small JSON-able dict kept in the run's trace (`lanes`: how many lanes it saw, where that applies). Three ship:
+a small JSON-able dict kept in the run's trace (`lanes`: how many lanes it saw, where that applies), and optionally
+`corridor() -> CentreLine | None`: the ego lane as it perceives it after its last `act` (the car's frame), where
+the longitudinal control's radar looks for objects (closed_loop/longitudinal.py; None: straight ahead). Three ship:
 
 * DetectorPolicy: a lane detector (a trained LaneDetector, any family) + a LaneKeeper (tracker and controller,
   closed_loop/lane_keeper.py) on its lanes;
@@ -22,6 +24,7 @@ from typing import Protocol
 import numpy as np
 
 from lanevil_train.closed_loop.lane_keeper import LaneKeeper
+from lanevil_train.closed_loop.tracker import CentreLine
 from lanevil_train.rules import check_settings, integer, number, text
 from lanevil_train.sim import Camera, Scene
 
@@ -71,6 +74,10 @@ class TruthPolicy:
         return self.controller.steer(lanes, observation.camera, observation.speed_mps, observation.t,
                                      observation.steer_rad)
 
+    def corridor(self) -> CentreLine | None:
+        """The lane keeper's tracked lane (on the true lanes: the true lane, as tracked)."""
+        return self.controller.line
+
 
 class DetectorPolicy:
     """A lane detector's lanes, through a LaneKeeper. `model` is a LaneDetector (eval mode, on its device)."""
@@ -93,6 +100,10 @@ class DetectorPolicy:
     def act(self, observation: Observation) -> tuple[float, dict]:
         return self.controller.steer(self.lanes(observation.image), observation.camera, observation.speed_mps,
                                      observation.t, observation.steer_rad)
+
+    def corridor(self) -> CentreLine | None:
+        """The lane keeper's tracked lane, from the detector's lanes."""
+        return self.controller.line
 
 
 _WORDS = re.compile(r"\b(left|right|straight|keep|stay|maintain|continue)\b")
@@ -144,3 +155,7 @@ class VLMPolicy:
         direction = parse_direction(answer)
         sign = {"left": -1.0, "right": 1.0}.get(direction, 0.0)
         return sign * math.radians(self.steer_deg), {"answer": answer[:200], "direction": direction}
+
+    def corridor(self) -> None:
+        """No tracked lane: the radar looks straight ahead (closed_loop/longitudinal.py)."""
+        return None

@@ -50,9 +50,14 @@ def attack_fired_at(trace: Sequence[dict], entry_s: float | None, threshold_m: f
     elif len(deviations) != len(trace):
         raise ValueError(f"attack_fired_at: {len(deviations)} deviations for {len(trace)} steps")
     for step, deviation in zip(trace, deviations):
-        if entry_s - 1e-9 <= step["t"] <= entry_s + window_s + 1e-9 and abs(deviation) > threshold_m:
+        if in_window(step["t"], entry_s, window_s) and abs(deviation) > threshold_m:
             return float(step["t"])
     return None
+
+
+def in_window(t: float, entry_s: float, window_s: float = ASR_WINDOW_S) -> bool:
+    """Whether time t (s) lies in the attack window [entry, entry + window], both ends included (to 1 ns)."""
+    return entry_s - 1e-9 <= t <= entry_s + window_s + 1e-9
 
 
 def departures(trace: Sequence[dict], lane_width_m: float, half_width_m: float = HALF_CAR_WIDTH_M) -> list[float]:
@@ -96,11 +101,14 @@ def twin_deviation(trace: Sequence[dict], twin_trace: Sequence[dict]) -> list[fl
 
     The twin's d is interpolated linearly over its s; a step before the twin's first s or beyond its last one takes
     the twin's d at that end (its first or last step), so a run that drives on after its twin stopped is compared
-    with where the twin last was. The twin's s must increase from step to step (the car drives forward)."""
+    with where the twin last was. The twin's s must not decrease (the car drives forward); where it stood still
+    (equal s, a car braked to a stop), the last of those steps counts."""
     if not twin_trace:
         raise ValueError("twin_deviation: an empty twin trace")
     twin_s = np.array([step["s"] for step in twin_trace], np.float64)
     twin_d = np.array([step["d"] for step in twin_trace], np.float64)
+    last = np.append(np.diff(twin_s) != 0, True)  # the last step of each run of equal s
+    twin_s, twin_d = twin_s[last], twin_d[last]
     if np.any(np.diff(twin_s) <= 0):
         raise ValueError("twin_deviation: the twin's arc length s must increase from step to step")
     at = np.interp([step["s"] for step in trace], twin_s, twin_d)

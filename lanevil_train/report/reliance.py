@@ -36,12 +36,12 @@ def _scene_weights(scenes: list, replicates: int, seed: int) -> np.ndarray:
 
 
 def _difference_interval(first: np.ndarray, second: np.ndarray, weights: np.ndarray,
-                         confidence: float) -> tuple[float, float]:
-    """The interval of accuracy(first) - accuracy(second) (x 100) over the weights' replicates; each table holds
-    (correct, asked) per scene."""
+                         confidence: float, scale: float = 100.0) -> tuple[float, float]:
+    """The interval of accuracy(first) - accuracy(second) (x scale: 100, in %) over the weights' replicates; each
+    table holds (correct, asked) per scene (or any (sum, count): a difference of means)."""
     alpha = (1 - confidence) / 2
     with np.errstate(invalid="ignore", divide="ignore"):
-        diff = 100.0 * ((weights @ first[:, 0]) / (weights @ first[:, 1])
+        diff = scale * ((weights @ first[:, 0]) / (weights @ first[:, 1])
                         - (weights @ second[:, 0]) / (weights @ second[:, 1]))
     diff = diff[np.isfinite(diff)]
     low, high = np.quantile(diff, [alpha, 1 - alpha]) if len(diff) else (math.nan, math.nan)

@@ -2,12 +2,14 @@
 
 For every case (a scene seed), every illusion of task.illusions and every repeat, the car starts 5-10 m
 (task.start_before_m, random per repeat and seed) before the illusion region and drives once with the illusion at
-each severity and once clean (the twin): closed_loop/episode.py. Each model (ckpt_path, or several in task.models,
-label: checkpoint) drives every run. Finished runs are appended to <out>/runs.jsonl with their scores, after their
-traces (one JSON line per control step) were written whole to <out>/traces/<model>/; a rerun with the same out_dir
-skips them, and a model added to task.models later drives only its own runs (the settings must be the same). The
-report (closed_loop.md, asr_by_*.{md,csv,json}, asr.png, deviation.png, worst_run.gif) is built from runs.jsonl and
-the traces alone.
+each severity and once clean (the twin): closed_loop/episode.py. With task.longitudinal=acc (the default) an ACC and
+emergency brake slow the car for the objects a radar sees in the lane the policy perceives
+(closed_loop/longitudinal.py); task.longitudinal=none keeps the paper's constant speed. Each model (ckpt_path, or
+several in task.models, label: checkpoint) drives every run. Finished runs are appended to <out>/runs.jsonl with
+their scores, after their traces (one JSON line per control step) were written whole to <out>/traces/<model>/; a
+rerun with the same out_dir skips them, and a model added to task.models later drives only its own runs (the
+settings must be the same). The report (closed_loop.md, asr_by_*.{md,csv,json}, asr.png, deviation.png,
+worst_run.gif) is built from runs.jsonl and the traces alone.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ from lanevil_train.closed_loop.episode import (
 )
 from lanevil_train.closed_loop.lane_keeper import LaneKeeper, lane_keeper
 from lanevil_train.closed_loop.lateral_controllers import Limits
+from lanevil_train.closed_loop.longitudinal import AccSettings
 from lanevil_train.closed_loop.policies import DetectorPolicy, TruthPolicy, VLMPolicy
 from lanevil_train.closed_loop.protocol import Protocol
 from lanevil_train.closed_loop.run_scores import run_scores, twin_scores
@@ -67,12 +70,16 @@ class ClosedLoopSettings:
 
     @classmethod
     def from_config(cls, task: DictConfig) -> ClosedLoopSettings:
+        acc = AccSettings.from_settings(OmegaConf.to_container(task.acc, resolve=True) if task.get("acc") else {},
+                                        task.lane_width_m)
         loop = LoopSettings(size=tuple(task.size), control_hz=task.control_hz, window_s=task.window_s,
-                            after_s=task.after_s, vehicle=VehicleParams.from_settings(task.vehicle))
+                            after_s=task.after_s, vehicle=VehicleParams.from_settings(task.vehicle),
+                            longitudinal=task.get("longitudinal", "acc"), acc=acc)
         illusions = ILLUSION_NAMES if task.illusions == "all" else tuple(task.illusions)
         protocol = Protocol(cases=task.cases, first_seed=task.first_seed, illusions=illusions,
                             severities=tuple(task.severities), repeats=task.repeats,
-                            start_before_m=tuple(task.start_before_m), threshold_m=task.threshold_m)
+                            start_before_m=tuple(task.start_before_m), threshold_m=task.threshold_m,
+                            run_up_m=loop.run_up_m())
         named = {name: OmegaConf.to_container(task[name], resolve=True) for name in (task.tracker, task.controller)
                  if name in task and task[name] is not None}
         keeper = partial(lane_keeper, task.tracker, task.controller, Limits.of(loop.vehicle), task.max_range_m,
@@ -153,15 +160,20 @@ def plan_groups(runs: list[Run]) -> list[list[Run]]:
 
 def score_run(run: Run, trace: list[dict], twin_trace: list[dict] | None, settings: ClosedLoopSettings) -> dict:
     """A run's scores: the paper's rule from the lane centre, the same rule from the clean twin's path (a perturbed
-    run), a collision with a standing illusion."""
+    run), a collision with a standing illusion, the time-resolved scores (TLC, recovery, false lane lock)."""
+    from lanevil_train.closed_loop.time_scores import illusion_edges, time_scores
+
     loop, threshold = settings.loop, settings.protocol.threshold_m
-    _, lane_width = ego_lane(case_scene(run.seed, loop.size)[0])
+    scene = case_scene(run.seed, loop.size)[0]
+    _, lane_width = ego_lane(scene)
     scores = run_scores(trace, run.region[0], lane_width, threshold, loop.window_s)
+    scores.update(time_scores(trace, run.region[0], lane_width, loop.vehicle.speed_mps, scene.road,
+                              illusion_edges(run.seed, run.illusion, loop.size), threshold, loop.window_s))
     if twin_trace is not None and run.severity:
         scores.update(twin_scores(trace, twin_trace, run.region[0], threshold, loop.window_s))
     blockers = run_obstacles(run.seed, run.illusion, run.severity, loop.size)
     scores.update(collision(trace, list(blockers), loop.vehicle.wheelbase_m, scores["entry_s"]))
-    return {**scores, "lane_width_m": lane_width}
+    return {**scores, "lane_width_m": lane_width, "image_size": list(loop.size)}
 
 
 def drive_group(policy, group: list[Run], settings: ClosedLoopSettings, out: Path, done: frozenset) -> list[dict]:
@@ -259,7 +271,8 @@ def write_report(cfg: DictConfig, out: Path, settings: ClosedLoopSettings) -> fl
     protocol, loop = settings.protocol, settings.loop
     shown = {"cases": protocol.cases, "repeats": protocol.repeats, "severities": list(protocol.severities),
              "control_hz": loop.control_hz, "window_s": loop.window_s, "threshold_m": protocol.threshold_m,
-             "speed_mph": loop.vehicle.settings()["speed_mph"]}
+             "speed_mph": loop.vehicle.settings()["speed_mph"],
+             "longitudinal": loop.longitudinal}  # collisions are counted with this longitudinal control
     path = write_closed_loop_report(records, lambda record: read_trace(out / record["trace"]), out, shown)
     rows = asr_rows(records, "category")
     print_table(rows, f"Closed loop: ASR (%) per illusion category ({path})", digits=1)

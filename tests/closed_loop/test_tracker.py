@@ -11,6 +11,7 @@ import pytest
 from lanevil_train.closed_loop import LoopSettings, Run, TruthPolicy, drive, lane_keeper
 from lanevil_train.closed_loop.episode import case_scene, illusion_region
 from lanevil_train.closed_loop.ground import GroundLane
+from lanevil_train.closed_loop.lane_keeper import tracked_boundaries
 from lanevil_train.closed_loop.lateral_controllers import LinearMPC, PurePursuit, Stanley
 from lanevil_train.closed_loop.tracker import CentreLine, KalmanLaneTracker, Motion
 
@@ -101,6 +102,16 @@ def test_a_lost_lane_decays_confidence_then_the_last_plan_is_held():
     keeper.last_steer, keeper.last_t = 0.0123, 0.0
     held, info = keeper.steer([], camera, 20.0, 0.1, 0.0)
     assert held == 0.0123 and info["target"] is None
+    assert info["left_boundary_m"] is None and info["right_boundary_m"] is None  # no tracked lane to record
+
+
+def test_the_trace_records_the_tracked_boundaries_10m_ahead_in_the_cars_frame():
+    line = CentreLine(offset_m=0.2, slope=0.01, curvature=0.002, width_m=3.5, range_m=40.0)
+    # x(10) = 0.2 + 0.01 * 10 + 0.002 / 2 * 100 = 0.4; the boundaries -/+ 1.75 from it
+    assert tracked_boundaries(line) == {"left_boundary_m": pytest.approx(-1.35),
+                                        "right_boundary_m": pytest.approx(2.15)}
+    assert tracked_boundaries(line, ahead_m=0.0) == {"left_boundary_m": pytest.approx(-1.55),
+                                                     "right_boundary_m": pytest.approx(1.95)}
 
 
 def test_the_controllers_steer_towards_the_centre_line():

@@ -28,9 +28,12 @@ def test_twin_deviation_interpolates_the_twin_over_its_arc_length_and_holds_its_
 
 
 def test_twin_deviation_refuses_a_twin_whose_arc_length_does_not_increase():
-    twin = [{"t": 0.0, "s": 0.0, "d": 0.0}, {"t": 0.1, "s": 0.0, "d": 0.1}]
+    twin = [{"t": 0.0, "s": 1.0, "d": 0.0}, {"t": 0.1, "s": 0.5, "d": 0.1}]  # driving backwards
     with pytest.raises(ValueError, match="increase"):
         twin_deviation(_trace([0.0]), twin)
+    # a twin that stood still (equal s: braked to a stop) is read at the last of those steps
+    stopped = [{"t": 0.0, "s": 0.0, "d": 0.0}, {"t": 0.1, "s": 2.0, "d": 0.1}, {"t": 0.2, "s": 2.0, "d": 0.3}]
+    assert twin_deviation([{"s": 1.0, "d": 0.0}, {"s": 2.0, "d": 0.0}], stopped) == pytest.approx([-0.15, -0.3])
     with pytest.raises(ValueError, match="empty"):
         twin_deviation(_trace([0.0]), [])
 

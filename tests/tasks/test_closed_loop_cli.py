@@ -13,7 +13,7 @@ from lanevil_train.results_log import ResultsLog
 from lanevil_train.tasks import run_task
 from lanevil_train.tasks.builders import build_model, model_config
 from lanevil_train.tasks.config_check import ConfigError, check_config
-from tests.tasks.cli_helpers import TINY, composed, run_cli, run_in_process
+from tests.tasks.cli_helpers import TINY, composed, run_in_process
 
 SMALL = ["task.cases=1", "task.repeats=1", "task.size=[90,160]", "progress=none"]
 
@@ -29,8 +29,8 @@ def _tiny_checkpoint(path):
 def test_a_detector_checkpoint_drives_clean_and_perturbed_runs_and_the_report_is_written(tmp_path):
     ckpt = _tiny_checkpoint(tmp_path / "tiny.ckpt")
     out = tmp_path / "loop"
-    run_cli(["task=closed_loop", f"ckpt_path={ckpt}", *SMALL, "task.illusions=[rail_shadow]", "task.severities=[2,5]",
-             f"task.out_dir={out}"], tmp_path / "run")
+    run_in_process(["task=closed_loop", f"ckpt_path={ckpt}", *SMALL, "task.illusions=[rail_shadow]",
+                    "task.severities=[2,5]", f"task.out_dir={out}"], tmp_path / "run")
     records = ResultsLog(out / "runs.jsonl").records()
     assert [(r["model"], r["illusion"], r["severity"]) for r in records] == \
         [("laneatt-resnet18", "rail_shadow", s) for s in (0, 2, 5)]
@@ -84,6 +84,11 @@ def test_an_interrupted_closed_loop_resumes_driving_only_the_unfinished_runs(tmp
     (["task.policy=truth", "task.start_before_m=[10,5]"], "task.start_before_m"),
     (["task.policy=truth", "task.illusions=[fog]"], "task.illusions"),
     (["task.policy=truth", "task.vehicle.speed_mph=0"], "task.vehicle.speed_mph"),
+    (["task.policy=truth", "task.vehicle.max_decel_mps2=0"], "task.vehicle.max_decel_mps2"),
+    (["task.policy=truth", "task.longitudinal=idm"], "task.longitudinal: expected one of acc, none"),
+    (["task.policy=truth", "task.acc.ttc_s=0"], "task.acc.ttc_s"),
+    (["task.policy=truth", "+task.acc.ttc=1"], "task.acc.ttc: not a setting of task.acc"),
+    (["task.policy=truth", "task.acc.decel_mps2=9"], "task.acc.decel_mps2: expected at most task.vehicle.max_decel"),
     (["task.models={none: /no/such.ckpt}"], "task.models"),
     (["task.policy=vlm"], "task.policy: vlm needs a VLM"),
     (["task.policy=truth", "task.controller=lqr"], "task.controller: expected one of pure_pursuit, stanley, mpc"),
@@ -166,6 +171,8 @@ def test_a_model_added_later_drives_only_its_own_runs_beside_the_finished_ones(t
     assert compared[0]["first ASR (%)"] == compared[0]["second ASR (%)"] == "0.0 [0.0, 79.3]"
     with pytest.raises(ValueError, match="holds results of another evaluation"):  # other settings: refused
         run_in_process([*args, "task.label=third", "task.window_s=2.0"], tmp_path / "run")
+    with pytest.raises(ValueError, match="holds results of another evaluation"):  # the constant-speed car: refused
+        run_in_process([*args, "task.label=third", "task.longitudinal=none"], tmp_path / "run")
 
 
 def test_two_workers_drive_the_same_runs_as_one(tmp_path):

@@ -66,7 +66,7 @@ def needs(group: str, option: str, files: Path) -> list[str]:
         return [f"data.root={files / 'dataset'}"]
     if group == "task" and option == "audit_qa":  # the QA file to audit
         return ["task.suite=synthetic"]
-    if group == "task" and option in ("evaluate", "cross_domain", "closed_loop"):
+    if group == "task" and option in ("evaluate", "cross_domain", "closed_loop", "search"):
         return [f"ckpt_path={files / 'model.ckpt'}"]
     if group == "backbone" and option == "dla34":  # its trees add maps that a size of no multiple of 32 misaligns:
         return ["data.input_size=[192,320]"]      # the default data's [180, 320] is refused (a size it takes named)

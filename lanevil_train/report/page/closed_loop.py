@@ -83,5 +83,5 @@ def write_closed_loop_page(out_dir: str | Path, settings: dict | None = None) ->
             page.add_section(title, (note if name == "asr_by_category" else "")
                              + table_html(fold_text_intervals(rows, CLOSED_LOOP_INTERVALS), f"table-{name}",
                                           gap_columns=lambda c: False), name)
-    add_plots(page, out_dir, ["asr.png", "deviation.png", "worst_run.gif"])
+    add_plots(page, out_dir, ["asr.png", "deviation.png", "closed_loop_tracking.png", "worst_run.gif"])
     return page.write(out_dir)

@@ -12,6 +12,7 @@ from lanevil_train.models.head import decode_option_problems
 from lanevil_train.perturbations import SUITE_KINDS, suite_names
 from lanevil_train.rules import (
     is_int,
+    is_number,
     problem,
     unknown_settings,
 )
@@ -178,12 +179,12 @@ def check_checkpoint_given(cfg: DictConfig) -> list[str]:
             and _get(cfg, "task.onnx") in (None, _ABSENT):
         return [f"ckpt_path: task={task} scores a checkpoint; expected the path of a Lightning checkpoint file "
                 f"(or task.onnx=model.onnx), got null"]
-    if task == "closed_loop":
+    if task in ("closed_loop", "search"):
         policy = _get(cfg, "task.policy")
         if policy == "vlm":
             return ["task.policy: vlm needs a VLM: model=vlm/<backend> (e.g. model=vlm/embedded ckpt_path=...)"]
         if policy in (None, "detector") and _get(cfg, "ckpt_path") is None and not _get(cfg, "task.models"):
-            return ["ckpt_path: task=closed_loop drives a trained detector; expected ckpt_path=<checkpoint>, "
+            return [f"ckpt_path: task={task} drives a trained detector; expected ckpt_path=<checkpoint>, "
                     "task.models={label: checkpoint, ...}, or task.policy=truth (the simulator's own lanes)"]
     return []
 
@@ -192,6 +193,15 @@ def check_training_ends(cfg: DictConfig) -> list[str]:
     if _get(cfg, "trainer.max_steps") == -1 and _get(cfg, "trainer.max_epochs") == -1:
         return ["trainer.max_epochs: -1 together with trainer.max_steps=-1 trains forever; set one of them, "
                 "e.g. trainer.max_steps=1000"]
+    return []
+
+
+def check_acc_brakes(cfg: DictConfig) -> list[str]:
+    """task.acc.decel_mps2 (the ACC's own braking) is at most task.vehicle.max_decel_mps2 (the brakes' limit)."""
+    acc, brakes = _get(cfg, "task.acc.decel_mps2"), _get(cfg, "task.vehicle.max_decel_mps2")
+    if is_number(acc) and is_number(brakes) and 0 < brakes < acc:  # a bad limit itself is its own rule's
+        return [problem("task.acc.decel_mps2", f"at most task.vehicle.max_decel_mps2 ({brakes}, the brakes' limit)",
+                        acc)]
     return []
 
 
@@ -208,4 +218,4 @@ def check_settings_groups(cfg: DictConfig) -> list[str]:
 
 CROSS_CHECKS = (check_settings_groups, check_feature_map, check_decode_options, check_backbone_weights, check_cases,
                 check_checkpoint_given, check_training_ends, check_task_kind, check_vlm_task, check_split_seeds,
-                check_suite_names)
+                check_suite_names, check_acc_brakes)

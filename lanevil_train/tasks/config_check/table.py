@@ -12,6 +12,7 @@ from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
 from lanevil_train.closed_loop.episode import LoopSettings
 from lanevil_train.closed_loop.lane_keeper import KEEPER_SETTINGS
 from lanevil_train.closed_loop.lateral_controllers import CONTROLLERS
+from lanevil_train.closed_loop.longitudinal import AccSettings
 from lanevil_train.closed_loop.policies import VLMPolicy
 from lanevil_train.closed_loop.protocol import Protocol
 from lanevil_train.closed_loop.tracker import TRACKERS
@@ -69,6 +70,7 @@ from lanevil_train.tasks.config_check.config_rules import (
     timm_model_name,
 )
 from lanevil_train.tasks.config_check.keys import SPLITS
+from lanevil_train.tasks.search_settings import SearchSettings
 from lanevil_train.vlm.clips.qa_data import PAIRING_SETTINGS
 from lanevil_train.vlm.defenses.settings import SETTINGS as PROMPT_SETTINGS
 from lanevil_train.vlm.training.finetune import FINE_TUNE_SETTINGS, LORA_SETTINGS
@@ -241,6 +243,7 @@ RULES: dict[str, Rule] = {
     **{f"task.{key}": rule for key, rule in LoopSettings.SETTINGS.items()},  # the loop's own rules
     "task.animate": boolean(),
     **{f"task.vehicle.{key}": rule for key, rule in VehicleParams.SETTINGS.items()},  # the vehicle's own rules
+    **{f"task.acc.{key}": rule for key, rule in AccSettings.SETTINGS.items()},  # the ACC and emergency brake's
     "task.tracker": one_of(*TRACKERS),
     "task.controller": one_of(*CONTROLLERS),
     **{f"task.{key}": rule for key, rule in KEEPER_SETTINGS.items()},  # the lane keeper's own rules
@@ -269,6 +272,7 @@ RULES: dict[str, Rule] = {
 # named by its dotted path with the nearest setting: cross.check_settings_groups); their values' rules are above.
 SETTINGS_GROUPS: dict[str, Collection[str]] = {
     "task.vehicle": VehicleParams.SETTINGS,
+    "task.acc": AccSettings.SETTINGS,
     "task.vlm": VLMPolicy.SETTINGS,
     **{f"task.{name}": owner.SETTINGS for name, owner in {**TRACKERS, **CONTROLLERS}.items()
        if getattr(owner, "SETTINGS", None)},
@@ -386,6 +390,10 @@ RULES.update({
     **{f"task.{name}": rule for name, rule in IllusionSettings.SETTINGS.items()},  # their owner's ranges
 })
 TASK_RULES["predict"] = {"data.root": None}
+
+# task=search (tasks/search.py): its own keys' rules are SearchSettings' (task.illusion must name one); the rest are
+# task=closed_loop's, whose settings it reads
+TASK_RULES["search"] = {f"task.{key}": rule for key, rule in SearchSettings.SETTINGS.items()}
 
 # task=leaderboard (tasks/leaderboard.py): its keys' rules are report/leaderboard.py's own
 RULES.update({f"task.{key}": rule for key, rule in LEADERBOARD_SETTINGS.items()})
