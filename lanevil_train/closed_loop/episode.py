@@ -122,11 +122,17 @@ def ego_lane(scene: Scene) -> tuple[float, float]:
     return (bounds[ego] + bounds[ego + 1]) / 2.0, bounds[ego + 1] - bounds[ego]
 
 
+@lru_cache(maxsize=8)
+def region_render(seed: int, illusion: str, size: tuple[int, int]) -> tuple[Scene, np.ndarray, np.ndarray]:
+    """The case's scene, its clean reference image and that image with the illusion at REGION_SEVERITY: where the
+    illusion region (illusion_region) and its footprint edges (time_scores.illusion_edges) are read."""
+    scene, clean = case_scene(seed, size)
+    return scene, clean, get_illusion(illusion)(clean, context_from_scene(scene), REGION_SEVERITY, seed)
+
+
 def illusion_region(seed: int, illusion: str, size: tuple[int, int]) -> tuple[float, float]:
     """(near, far) arc lengths (m) of the illusion's footprint on the road of the case's reference view."""
-    scene, clean = case_scene(seed, size)
-    perturbed = get_illusion(illusion)(clean, context_from_scene(scene), REGION_SEVERITY, seed)
-    area = footprint(scene, clean, perturbed, standing=illusion in STANDING)
+    area = footprint(*region_render(seed, illusion, size), standing=illusion in STANDING)
     return area.near_m, area.far_m
 
 

@@ -137,14 +137,11 @@ class FootprintEdges:
 @lru_cache(maxsize=16)
 def illusion_edges(seed: int, illusion: str, size: tuple[int, int]) -> FootprintEdges:
     """The footprint edges of an illusion in a case's reference view at REGION_SEVERITY (module docstring)."""
-    from lanevil_train.closed_loop.episode import REGION_SEVERITY, case_scene
-    from lanevil_train.illusions.context import context_from_scene
+    from lanevil_train.closed_loop.episode import region_render
     from lanevil_train.illusions.footprint import STANDING, changed_road_points
-    from lanevil_train.illusions.registry import get_illusion
 
-    scene, clean = case_scene(seed, size)
-    perturbed = get_illusion(illusion)(clean, context_from_scene(scene), REGION_SEVERITY, seed)
-    return FootprintEdges.from_points(*changed_road_points(scene, clean, perturbed, illusion in STANDING))
+    return FootprintEdges.from_points(*changed_road_points(*region_render(seed, illusion, size),
+                                                           illusion in STANDING))
 
 
 # ----------------------------------------------------------------------------------------------- false lane lock
