@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from lanevil_train.models.clrernet.laneiou import LaneIoU, assign
+from lanevil_train.models.clrernet.laneiou import LaneIoU
 from lanevil_train.models.clrnet.loss import dynamic_topk
 
 from ._head_overfit import head_only_fit
@@ -90,24 +90,6 @@ def test_dynamic_topk_on_a_constructed_cost_matrix():
 
 
 @pytest.mark.usefixtures("one_thread")
-def test_the_cost_over_the_lanes_rows_tells_priors_apart_while_their_lengths_are_zero():
-    """A network's first predictions have length ~0 (its reg output starts at N(0, 1e-3)): over their own rows the
-    cost's LaneIoU is 0 for every pair and the assignment follows the focal cost alone (the lower index on a tie);
-    with cost_rows=target (own_rows False) the prior on the lane is taken."""
-    lane = torch.full((S,), 120.0)
-    targets = torch.cat([torch.tensor([1.0, 0, 0, 0, 0]), lane])[None, None]  # (1, 1, 5 + S): one valid lane
-    xs = torch.stack([torch.full((S,), 20.0), lane + 1.0])[None]  # prior 0 far from the lane, prior 1 on it
-    lines = torch.zeros(1, 2, 4)  # start 0, length 0: no row of their own
-    logits = torch.zeros(1, 2, 2)  # the same score
-    kwargs = dict(cost_width=15.0, topk_width=7.5, max_topk=4, min_topk=1)
-    own, own_lane = assign(logits, lines, xs, targets, GEOMETRY, **kwargs)
-    lanes_rows, _ = assign(logits, lines, xs, targets, GEOMETRY, own_rows=False, **kwargs)
-    assert own.tolist() == [[True, False]] and own_lane.tolist() == [[0, 0]]  # a tie: the lower index
-    assert lanes_rows.tolist() == [[False, True]]
-    lines[..., 3] = 1.0  # once the lengths have grown both ways agree
-    assert assign(logits, lines, xs, targets, GEOMETRY, **kwargs)[0].tolist() == [[False, True]]
-
-
 def test_head_only_overfit_reaches_its_accuracy():
     """The FPN and CLRerNet head alone on 3 simulated scenes (a frozen random ResNet-18), AdamW 1e-2 for 100 steps,
     32 priors for speed (tests/models/_head_overfit.py). Over the weights' seeds 0-4 (deterministic, one thread):

@@ -5,9 +5,8 @@ What differs from CLRNetHead (the facts, with the official file and line, in mod
 
 - the loss's IoU term is 1 - LaneIoU (half width ``iou_width``, 7.5 px at 800) instead of 1 - Line IoU;
 - the assignment's cost is the focal cost minus ``cost_iou_weight`` x the normalised LaneIoU over the prediction's own
-  rows (half width ``cost_iou_width``, 30 px at 800; ``cost_rows: target``: over the lane's rows, a difference from
-  the official for short runs from scratch, whose zero initial lengths leave the cost to the focal term); each
-  lane's k is the sum of its ``max_topk`` largest LaneIoUs at ``topk_iou_width`` (7.5 px), at least ``min_topk``;
+  rows (half width ``cost_iou_width``, 30 px at 800); each lane's k is the sum of its ``max_topk`` largest LaneIoUs at
+  ``topk_iou_width`` (7.5 px), at least ``min_topk``;
 - the lane's angle is measured in ``angle_size`` (height, width) of the evaluation's image region (CULane: the
   1640 x 320 crop), not in the input's pixels (null);
 - the ROI features are laid out bottom row first and sampled at the mirrored rows (the official's
@@ -24,7 +23,7 @@ from lanevil_train.models.clrernet.laneiou import LaneIoU, assign
 from lanevil_train.models.clrnet.codec import TARGET_META
 from lanevil_train.models.clrnet.head import CLRNetHead
 from lanevil_train.models.clrnet.loss import clrnet_losses
-from lanevil_train.rules import Rule, check_settings, integer, is_list, is_number, null_or, number, ok, one_of
+from lanevil_train.rules import Rule, check_settings, integer, is_list, is_number, null_or, number, ok
 
 
 def _size_pair() -> Rule:
@@ -52,8 +51,7 @@ class CLRerNetHead(CLRNetHead):
                 "angle_size": null_or(_size_pair()),
                 "cost_iou_weight": number(0),
                 "max_topk": integer(1),
-                "min_topk": integer(1),
-                "cost_rows": one_of("prediction", "target")}
+                "min_topk": integer(1)}
     OFFICIAL_KEEPS_LEFT = True
 
     def __init__(self, in_channels: list[int], in_strides: list[int], image_size: tuple[int, int],
@@ -61,8 +59,7 @@ class CLRerNetHead(CLRNetHead):
                  fc_hidden_dim: int = 64, num_fc: int = 2, max_lanes: int = 4, reference_width: float = 800.0,
                  iou_width: float = 7.5, cost_iou_width: float = 30.0, topk_iou_width: float = 7.5,
                  angle_size: tuple[float, float] | None = (320.0, 1640.0), cost_iou_weight: float = 3.0,
-                 max_topk: int = 4, min_topk: int = 1, cost_rows: str = "prediction", cls_loss_weight: float = 2.0,
-                 xyt_loss_weight: float = 0.2,
+                 max_topk: int = 4, min_topk: int = 1, cls_loss_weight: float = 2.0, xyt_loss_weight: float = 0.2,
                  iou_loss_weight: float = 4.0, focal_alpha: float = 0.25, focal_gamma: float = 2.0,
                  seg_loss_weight: float = 0.0, seg_background_weight: float = 0.4, seg_lane_width: float = 16.0,
                  seg_reference_width: float = 1640.0, seg_lanes: int | None = None,
@@ -83,7 +80,6 @@ class CLRerNetHead(CLRNetHead):
         self.cost_iou_width = cost_iou_width * self.width_scale
         self.topk_iou_width = topk_iou_width * self.width_scale
         self.cost_iou_weight, self.max_topk, self.min_topk = float(cost_iou_weight), int(max_topk), int(min_topk)
-        self.cost_rows = cost_rows
         size = None if angle_size is None else (float(angle_size[0]), float(angle_size[1]))
         self.laneiou = LaneIoU.of_input(self.image_size, self.row_span, self.n_strips, size)
         index, grid_y = official_sampling(num_points, sample_points)
@@ -94,7 +90,7 @@ class CLRerNetHead(CLRNetHead):
         """CLRNet's loss terms with CLRerNet's assignment (laneiou.assign) and 1 - LaneIoU as the IoU term."""
         def assignment(c, li, x, t):
             return assign(c, li, x, t, self.laneiou, self.cost_iou_width, self.topk_iou_width, self.cost_iou_weight,
-                          self.max_topk, self.min_topk, meta=TARGET_META, own_rows=self.cost_rows == "prediction")
+                          self.max_topk, self.min_topk, meta=TARGET_META)
 
         def lane_iou(pred, target):
             return self.laneiou(pred, target, self.iou_width)

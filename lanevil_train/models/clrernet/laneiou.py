@@ -94,7 +94,7 @@ def prediction_rows(lines: torch.Tensor, n_points: int) -> torch.Tensor:
 @torch.no_grad()
 def assign(cls_logits: torch.Tensor, lines: torch.Tensor, xs: torch.Tensor, targets: torch.Tensor, geometry: LaneIoU,
            cost_width: float, topk_width: float, cost_weight: float = 3.0, max_topk: int = 4, min_topk: int = 1,
-           meta: int = 5, own_rows: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+           meta: int = 5) -> tuple[torch.Tensor, torch.Tensor]:
     """CLRerNet's assignment: a positive mask (N, P) and each positive's lane index (N, P).
 
     cls_logits (N, P, 2); lines (N, P, 4); xs (N, P, S) px; targets (N, L, meta + S) as CLRNet's codec encodes them
@@ -102,15 +102,11 @@ def assign(cls_logits: torch.Tensor, lines: torch.Tensor, xs: torch.Tensor, targ
     cost_weight x (1 - (1 - IoU) / max(1 - IoU) + 0.01), IoU the LaneIoU at half width `cost_width` over the
     prediction's own rows (the max over the image's valid pairs); each lane takes its k lowest-cost predictions,
     k = max(min_topk, int(sum of its max_topk largest LaneIoUs at `topk_width` over the lane's rows)), a prediction
-    taken by several lanes keeping the one of lowest cost (clrnet.loss.dynamic_topk).
-
-    `own_rows` False: the cost's LaneIoU over the lane's rows instead (as the loss's), not the prediction's own; a
-    prediction's length starts near 0 (its reg output), so over its own rows every cost IoU is 0 at first and the
-    cost is the focal term alone (CLRerNetHead's ``cost_rows``)."""
+    taken by several lanes keeping the one of lowest cost (clrnet.loss.dynamic_topk)."""
     valid = targets[..., 0] > 0  # (N, L)
     pred = xs[:, :, None, :]
     target = targets[..., meta:][:, None, :, :]
-    rows = prediction_rows(lines, xs.shape[-1])[:, :, None, :] if own_rows else None
+    rows = prediction_rows(lines, xs.shape[-1])[:, :, None, :]
     cost_iou = geometry(pred, target, cost_width, pred_rows=rows)  # (N, P, L)
     pair_ok = valid[:, None, :].expand_as(cost_iou)
     cost = -normalised_score(1.0 - cost_iou, pair_ok) * cost_weight + focal_cost(cls_logits)[..., None]
