@@ -333,7 +333,8 @@ def write_trials(path: Path, trials: list[dict], illusion: Illusion) -> None:
 
 def plot_search(path: Path, trials: list[dict], compare: dict, settings: SearchSettings) -> None:
     """search.png: the value of every trial, the best so far, and the compared severities as lines."""
-    plt = _pyplot()
+    from lanevil_train.report.plots import plt, save_figure
+
     numbers = [record["trial"] for record in trials]
     values = [record["value"] for record in trials]
     fig, ax = plt.subplots(figsize=(7, 4))
@@ -346,14 +347,14 @@ def plot_search(path: Path, trials: list[dict], compare: dict, settings: SearchS
     ax.set_title(f"task=search: {settings.illusion}, {settings.scenes} held-out scene(s)")
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def write_worst_render(path: Path, illusion: Illusion, best: dict, seed: int, size: tuple[int, int],
                        value: float, severity_3: float | None) -> None:
     """worst_illusion.png: the best point's render beside severity 3 on the first search scene."""
-    plt = _pyplot()
+    from lanevil_train.report.plots import plt, save_figure
+
     scene, clean = case_scene(seed, size)
     ctx = context_from_scene(scene)
     panels = [(illusion.render_point(clean, ctx, best, seed), f"worst point ({value:.4g})"),
@@ -364,15 +365,4 @@ def write_worst_render(path: Path, illusion: Illusion, best: dict, seed: int, si
         ax.set_title(f"{illusion.name}: {title}", fontsize=9)
         ax.axis("off")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-
-
-def _pyplot():
-    """matplotlib.pyplot drawing to files (no display)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
+    save_figure(fig, path)
