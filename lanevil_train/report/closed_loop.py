@@ -280,13 +280,18 @@ def tracking_plot(run: dict, trace: list[dict], path: str | Path) -> Path | None
     return save_figure(fig, path)
 
 
+def _setting(value) -> str:
+    """A setting as the report's first line shows it: floats short (45 mph from m/s is 45.00000000000001)."""
+    return f"{value:.10g}" if isinstance(value, float) else str(value)
+
+
 def write_closed_loop_report(records: Sequence[dict], trace_of: Callable[[dict], list[dict]], out: str | Path,
                              settings: dict) -> Path:
     """Tables (asr_by_category/illusion/severity, asr_compare with several models), plots and closed_loop.md."""
     out = Path(out)
     if not records:
         raise ValueError(f"{out}: no finished closed-loop runs to report")
-    sections = [f"# Closed loop\n\nSettings: {', '.join(f'{k}={v}' for k, v in settings.items())}.\n",
+    sections = [f"# Closed loop\n\nSettings: {', '.join(f'{k}={_setting(v)}' for k, v in settings.items())}.\n",
                 f"A run is an attack success when the car deviates more than {ASR_THRESHOLD_M} m from its lane's "
                 f"centre within {ASR_WINDOW_S} s of entering the illusion region (the paper, after Sato et al. "
                 f"2021). Clean: the same starts without the illusion. ASR vs twin: the same rule on the deviation from "

@@ -76,3 +76,9 @@ def test_the_tracking_plot_draws_a_run_with_tracked_boundaries(tmp_path):
     assert tracking_plot(run, trace, tmp_path / "closed_loop_tracking.png").is_file()
     assert tracking_plot(RECORDS[0], trace, tmp_path / "none.png") is None  # no image size: an older record
     assert tracking_plot(run, TRACE, tmp_path / "none.png") is None  # no tracker in the trace
+
+
+def test_the_settings_line_shows_floats_short(tmp_path):
+    speed_mph = 20.1168 / 0.44704  # 45 mph back from m/s: 45.00000000000001
+    path = write_closed_loop_report(RECORDS, lambda record: TRACE, tmp_path, {"cases": 2, "speed_mph": speed_mph})
+    assert "Settings: cases=2, speed_mph=45.\n" in path.read_text()  # the sentence ends after 45
