@@ -117,11 +117,28 @@ def shade(image: np.ndarray, mask: np.ndarray, factor) -> np.ndarray:
     """Multiply the image by `factor` (scalar or RGB) where mask is 1, blending by mask in between.
 
     factor < 1 darkens (shadows), > 1 brightens (glare); the result is clipped to uint8.
+    Only the mask's bounding box is computed: outside it the factor is 1 and the image is returned as it is (the
+    same bytes as computing it everywhere: uint8 * 1.0 + 0.5 truncates back to itself), a few ms a frame less.
     """
     f = np.asarray(factor, dtype=np.float32).reshape(1, 1, -1)
-    m = mask[..., None].astype(np.float32)
-    out = image.astype(np.float32) * (1.0 + m * (f - 1.0))
-    return np.clip(out + 0.5, 0, 255).astype(np.uint8)
+    whole = image.dtype != np.uint8  # a float image is rounded everywhere
+    box = (slice(None), slice(None)) if whole else nonzero_box(mask)
+    out = np.empty(image.shape, np.uint8) if whole else image.copy()
+    if box is None:
+        return out
+    m = mask[box][..., None].astype(np.float32)
+    shaded = image[box].astype(np.float32) * (1.0 + m * (f - 1.0))
+    out[box] = np.clip(shaded + 0.5, 0, 255).astype(np.uint8)
+    return out
+
+
+def nonzero_box(mask: np.ndarray) -> tuple[slice, slice] | None:
+    """(rows, columns) slices of the smallest box holding every non-zero pixel of a 2-D mask; None when all are 0."""
+    rows = np.flatnonzero(mask.any(axis=1))
+    if rows.size == 0:
+        return None
+    cols = np.flatnonzero(mask[rows[0]:rows[-1] + 1].any(axis=0))
+    return slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1)
 
 
 def overlay(image: np.ndarray, mask: np.ndarray, color, alpha: float = 1.0) -> np.ndarray:

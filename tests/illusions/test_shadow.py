@@ -159,3 +159,32 @@ def test_rail_shadow_lines_run_parallel_to_the_lanes() -> None:
     along = np.median(samples.std(axis=1))     # variation along the road at fixed d: posts only
     assert across > 0.3
     assert along < 0.5 * across
+
+
+@pytest.mark.parametrize("factor", [0.35, [0.2, 0.5, 0.9], 1.6])
+def test_shade_computes_the_masks_box_only_and_gives_the_same_bytes(factor):
+    """draw.shade works on the mask's bounding box; the bytes must be those of the formula over the whole image."""
+    from lanevil_train.illusions import draw
+
+    rng = np.random.default_rng(3)
+    image = rng.integers(0, 256, (40, 60, 3), dtype=np.uint8)
+    f = np.asarray(factor, np.float32).reshape(1, 1, -1)
+
+    def everywhere(mask):
+        out = image.astype(np.float32) * (1.0 + mask[..., None].astype(np.float32) * (f - 1.0))
+        return np.clip(out + 0.5, 0, 255).astype(np.uint8)
+
+    corner = np.zeros((40, 60), np.float32)
+    corner[30:, 50:] = rng.random((10, 10))  # touches the image's last row and column
+    middle = np.zeros((40, 60), np.float32)
+    middle[5:9, 20:41] = 1.0
+    middle[12, 3] = 0.5
+    for mask in (corner, middle, np.zeros((40, 60), np.float32), rng.random((40, 60)).astype(np.float32)):
+        got = draw.shade(image, mask, factor)
+        assert got.dtype == np.uint8 and np.array_equal(got, everywhere(mask))
+        assert got is not image
+    assert draw.nonzero_box(middle) == (slice(5, 13), slice(3, 41))
+    assert draw.nonzero_box(np.zeros((4, 4))) is None
+    floats = image.astype(np.float32) + 0.4  # a float image is rounded everywhere, as before
+    expected = np.clip(floats * (1.0 + middle[..., None] * (f - 1.0)) + 0.5, 0, 255).astype(np.uint8)
+    assert np.array_equal(draw.shade(floats, middle, factor), expected)
