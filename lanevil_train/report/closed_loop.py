@@ -78,14 +78,17 @@ def _score(record: dict, score) -> float | None:
     return None if value is None else float(value)
 
 
-def paired_difference(perturbed: Sequence[dict], clean: Sequence[dict], score, scale: float = 1.0,
-                      replicates: int = REPLICATES, seed: int = 0) -> tuple[float, float, float] | None:
-    """(mean difference perturbed - twin x scale, its 95 % interval) over the pairs of a perturbed run and its
-    clean twin (twin_key) where both have the score (a record key or a function of the record; None: none); a
-    paired bootstrap drawing the twins with replacement, each with all its perturbed runs. None without a pair."""
-    twins = {twin_key(r): r for r in clean}
-    pairs = [(r, twins.get(twin_key(r))) for r in perturbed]
-    pairs = [(_score(r, score), _score(t, score), twin_key(r)) for r, t in pairs if t is not None]
+def paired_difference(perturbed: Sequence[dict], reference: Sequence[dict], score, scale: float = 1.0,
+                      replicates: int = REPLICATES, seed: int = 0, pair: Callable[[dict], tuple] = twin_key,
+                      unit: Callable[[dict], tuple] | None = None) -> tuple[float, float, float] | None:
+    """(mean difference perturbed - reference x scale, its 95 % interval) over the pairs of a run and the reference
+    run of the same `pair` key (default: its clean twin, twin_key) where both have the score (a record key or a
+    function of the record; None: none); a paired bootstrap drawing the `unit`s (default: the pair keys) with
+    replacement, each with all its pairs. None without a pair."""
+    unit = unit or pair
+    references = {pair(r): r for r in reference}
+    pairs = [(r, references.get(pair(r))) for r in perturbed]
+    pairs = [(_score(r, score), _score(t, score), unit(r)) for r, t in pairs if t is not None]
     pairs = [(a, b, key) for a, b, key in pairs if a is not None and b is not None]
     if not pairs:
         return None
@@ -314,6 +317,16 @@ def write_closed_loop_report(records: Sequence[dict], trace_of: Callable[[dict],
         rows = compare_rows(records)
         write_table(rows, out, "asr_compare")
         sections.append(f"## Models compared\n\n{markdown_table(rows)}\n")
+    from lanevil_train.report.closed_loop_groups import group_difference_rows  # it builds on this module
+
+    rows = group_difference_rows(records)
+    if rows:
+        write_table(rows, out, "group_difference")
+        sections.append("## Groups compared (models labelled <group>@<seed>)\n\nEach group against the "
+                        f"reference ({rows[0]['vs']}): the mean difference over the pairs of perturbed runs of one "
+                        "seed, case, illusion, severity and repeat, with a paired-bootstrap 95 % interval over the "
+                        "(seed, case, illusion, repeat) units; the ASR columns: mean ± std over the seeds "
+                        f"(report/closed_loop_groups.py).\n\n{markdown_table(rows)}\n")
     asr_plot(records, out / "asr.png")
     sections.append("![ASR per category](asr.png)\n")
     pairs = worst_pairs(records)
