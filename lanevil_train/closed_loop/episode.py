@@ -35,7 +35,7 @@ from lanevil_train.illusions.footprint import STANDING, footprint
 from lanevil_train.illusions.registry import get_illusion
 from lanevil_train.rules import check_settings, int_pair, number, one_of
 from lanevil_train.sim import Scene, build_scene, sample_scene_params, shade_scene
-from lanevil_train.sim.sequence import scene_at
+from lanevil_train.sim.sequence import MAX_VIEW_HEADING_DEG, scene_at
 from lanevil_train.sim.vehicle import VehicleParams, VehicleState, step
 from lanevil_train.taxonomy import ILLUSION_CATEGORY
 
@@ -171,6 +171,11 @@ def drive(run: Run, policy: Policy, settings: LoopSettings, objects: Sequence[Ob
     policy.reset()
     trace, entered_at, stopped_at = [], None, None
     while True:
+        if abs(state.heading) >= math.radians(MAX_VIEW_HEADING_DEG):
+            # one period turned the car past what a view can show (from under MAX_HEADING_DEG): it has left the
+            # road's direction; the pose ends the trace, with no image, no policy and the last steering held
+            trace.append({**_pose(state, centre), "command_deg": trace[-1]["command_deg"], "off_road": True})
+            return trace
         image, posed = render_view(run, state, settings.size)
         speed = state.speed_mps(vehicle)
         command, info = policy.act(Observation(image, scene.camera, speed, state.t, posed, state.steer))
@@ -179,10 +184,7 @@ def drive(run: Run, policy: Policy, settings: LoopSettings, objects: Sequence[Ob
             accel, radar = longitudinal.command(speed, _radar(state, posed, objects, policy, settings))
             motion = {"speed_mps": round(speed, 6), **radar}
         deviation = state.d - centre
-        trace.append({"t": round(state.t, 6), "s": round(state.s, 6), "d": round(state.d, 6),
-                      "deviation": round(deviation, 6), "heading": round(state.heading, 8),
-                      "steer_deg": round(math.degrees(state.steer), 5),
-                      "command_deg": round(math.degrees(command), 5), **motion, **info})
+        trace.append({**_pose(state, centre), "command_deg": round(math.degrees(command), 5), **motion, **info})
         if entered_at is None and state.s >= run.region[0]:
             entered_at = state.t
         if speed > 0.0:
@@ -199,6 +201,13 @@ def drive(run: Run, policy: Policy, settings: LoopSettings, objects: Sequence[Ob
                 trace[-1]["stopped"] = True
             return trace
         state = step(state, command, dt, scene.road, vehicle, accel)
+
+
+def _pose(state: VehicleState, centre: float) -> dict:
+    """A trace step's pose: time, arc length, offset, deviation from the lane centre, heading, wheel angle."""
+    return {"t": round(state.t, 6), "s": round(state.s, 6), "d": round(state.d, 6),
+            "deviation": round(state.d - centre, 6), "heading": round(state.heading, 8),
+            "steer_deg": round(math.degrees(state.steer), 5)}
 
 
 def _radar(state: VehicleState, posed: Scene, objects: Sequence[Obstacle], policy: Policy,

@@ -31,6 +31,8 @@ from lanevil_train.sim.camera import Camera
 from lanevil_train.sim.road import RoadGeometry
 from lanevil_train.sim.scene import Scene
 
+MAX_VIEW_HEADING_DEG = 40.0  # scene_at renders a car turned at most this far from the road
+
 
 def road_at(road: RoadGeometry, s0: float) -> RoadGeometry:
     """The road geometry seen from the camera pose s0 metres further along the centre line."""
@@ -64,8 +66,9 @@ def scene_at(scene: Scene, s0: float, lateral: float | None = None, heading: flo
             raise ValueError(f"lateral: expected a finite offset from the centre line in metres, got {lateral!r}")
         road = replace(road, x0=-float(lateral))
     if heading:
-        if not math.isfinite(heading) or abs(heading) >= math.radians(40.0):
-            raise ValueError(f"heading: expected an angle to the road under 40 degrees (in radians), got {heading!r}")
+        if not math.isfinite(heading) or abs(heading) >= math.radians(MAX_VIEW_HEADING_DEG):
+            raise ValueError(f"heading: expected an angle to the road under {MAX_VIEW_HEADING_DEG:g} degrees (in "
+                             f"radians), got {heading!r}")
         camera = replace(camera, yaw_deg=camera.yaw_deg + math.degrees(heading))
     return replace(scene, params=params, road=road, camera=camera)
 

@@ -239,3 +239,33 @@ def test_the_protocol_vehicle_and_vlm_policy_refuse_bad_values_by_their_task_key
         VLMPolicy(_ScriptedVLM("x"), steer_deg=30)
     with pytest.raises(ValueError, match="task.vlm.question: expected a non-empty string"):
         VLMPolicy(_ScriptedVLM("x"), question="  ")
+
+
+class _HardRight:
+    """A policy that always asks for the steering limit to the right."""
+
+    name = "hard-right"
+
+    def reset(self) -> None:
+        pass
+
+    def act(self, observation: Observation) -> tuple[float, dict]:
+        return math.radians(30.0), {}
+
+
+def test_a_car_turned_past_what_a_view_can_show_in_one_step_ends_its_run_off_road():
+    """At 45 mph and 30 degrees of wheel angle the heading grows about 25 degrees a period: from under the off-road
+    limit (35) one step takes it past 40, where no view can be rendered. The run ends there, off the road, with the
+    pose as its last step (no image, the last command held), instead of failing."""
+    from lanevil_train.closed_loop.episode import MAX_HEADING_DEG
+    from lanevil_train.sim.sequence import MAX_VIEW_HEADING_DEG
+
+    trace = drive(_run(ROADS["straight"]), _HardRight(), LoopSettings(size=SIZE, longitudinal="none"))
+    last, before = trace[-1], trace[-2]
+    assert abs(before["heading"]) < math.radians(MAX_HEADING_DEG)
+    assert abs(last["heading"]) >= math.radians(MAX_VIEW_HEADING_DEG) and last["off_road"]
+    assert last["command_deg"] == before["command_deg"] == pytest.approx(30.0)
+    assert last["t"] == pytest.approx(before["t"] + 0.1) and last["s"] > before["s"]
+    assert not any(step.get("off_road") for step in trace[:-1])
+    scores = run_scores(trace, _run(ROADS["straight"]).region[0], 3.5)
+    assert scores["max_deviation_m"] == pytest.approx(max(abs(step["deviation"]) for step in trace), abs=1e-4)
