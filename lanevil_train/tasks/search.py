@@ -160,11 +160,15 @@ class Study:
                 self.study.add_trial(optuna.trial.create_trial(params=record["params"], distributions=distributions,
                                                                value=record["value"]))
 
-    def run(self, score: Callable[[dict], float], trials: int) -> None:
-        """Run the trials still missing of `trials`, each kept as it finishes, one line printed each."""
+    def run(self, score: Callable[[dict], float], trials: int, start: str = "severities") -> None:
+        """Run the trials still missing of `trials`, each kept as it finishes, one line printed each; with `start`
+        "severities" the severity points (5 down to 1) not yet tried come first (search_settings.STARTS)."""
         missing = trials - len(self.trials)
         if missing <= 0:
             return
+        if start == "severities":
+            for params in self.severity_points()[:missing]:
+                self.study.enqueue_trial(params)
 
         def objective(trial) -> float:
             point = suggest(trial, self.illusion)
@@ -177,6 +181,13 @@ class Study:
             return value
 
         self.study.optimize(objective, n_trials=missing)
+
+    def severity_points(self) -> list[dict]:
+        """The searched parameters of severities 5, 4, ..., 1 that no finished trial has tried yet."""
+        searched = [parameter.name for parameter in self.illusion.parameters().searched]
+        tried = [record["params"] for record in self.trials]
+        points = [{name: self.illusion.point(severity)[name] for name in searched} for severity in range(5, 0, -1)]
+        return [point for i, point in enumerate(points) if point not in tried and point not in points[:i]]
 
     @property
     def best(self) -> dict:
@@ -232,7 +243,7 @@ def search(cfg: DictConfig) -> float:
     held_out = replace(protocol, cases=settings.scenes, first_seed=settings.search_seed)
     score = scorer(settings, policy, loop_settings.loop, held_out, cfg.seed)
     study = Study(out, illusion, settings.sampler_seed, _identity(cfg, identity))
-    study.run(score, settings.trials)
+    study.run(score, settings.trials, settings.start)
     compare = comparisons(study, "search", score, protocol.severities)
     write_results(out, study, settings, compare, held_out, loop_settings.loop.size)
     test_score = scorer(settings, policy, loop_settings.loop, protocol, cfg.seed)

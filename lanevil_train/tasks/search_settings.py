@@ -14,6 +14,10 @@ from lanevil_train.illusions.registry import ILLUSIONS
 from lanevil_train.rules import check_settings, integer, one_of
 
 # task.objective: what a trial's value measures (the search maximises it)
+# how a study begins: severities: its first trials are the illusion's severity points, 5 down to 1 (so the search
+# starts from what the fixed levels give and its best is never below severity 5's on the search scenes); random: the
+# TPE sampler's own random start
+STARTS = ("severities", "random")
 OBJECTIVES = {"closed_loop": "peak |deviation| in the attack window (m)", "open_loop": "F1 drop from clean (points)"}
 
 
@@ -22,7 +26,8 @@ class SearchSettings:
     """task=search's own settings, checked before any work (the closed-loop ones are ClosedLoopSettings')."""
 
     SETTINGS = {"illusion": one_of(*ILLUSIONS), "trials": integer(1), "objective": one_of(*OBJECTIVES),
-                "scenes": integer(1), "search_seed": integer(0), "sampler_seed": integer(0)}  # task.<name>
+                "scenes": integer(1), "search_seed": integer(0), "sampler_seed": integer(0),
+                "start": one_of(*STARTS)}  # task.<name>
 
     illusion: str
     trials: int
@@ -30,6 +35,7 @@ class SearchSettings:
     scenes: int
     search_seed: int
     sampler_seed: int
+    start: str = "severities"
 
     def __post_init__(self) -> None:
         check_settings(self.SETTINGS, {name: getattr(self, name) for name in self.SETTINGS}, "task")

@@ -78,6 +78,7 @@ def test_a_search_writes_its_results_and_a_rerun_runs_only_the_missing_trials(tm
     ("task.trials=0", "task.trials: expected an integer >= 1, got 0"),
     ("task.objective=f1", "task.objective: expected one of closed_loop, open_loop, got 'f1'"),
     ("task.scenes=0", "task.scenes: expected an integer >= 1"),
+    ("task.start=best", "task.start: expected one of severities, random, got 'best'"),
 ])
 def test_bad_settings_are_refused_naming_the_key(override, message):
     with pytest.raises(ConfigError, match=message):
@@ -144,3 +145,27 @@ def test_the_radar_sees_a_points_objects_as_a_severitys(name):
             == at_severity
     fewer = {**ILLUSIONS[name].point(5), ("count" if name == "vehicle" else "sides"): 1}
     assert len(obstacles(scene, name, fewer, 7)) == 1
+
+
+def test_a_study_starts_at_the_severity_points_and_a_resumed_one_does_not_try_them_again(tmp_path):
+    """task.start=severities (the default): the first trials are severities 5, 4, 3... so the best is never below
+    severity 5's on the search scenes; a rerun with more trials goes on from there; random: TPE's own start."""
+    out = tmp_path / "search"
+    args = [*SMALL, f"task.out_dir={out}"]
+    space = ILLUSIONS["rail_shadow"].parameters()
+
+    def searched(severity):
+        return {p.name: ILLUSIONS["rail_shadow"].point(severity)[p.name] for p in space.searched}
+
+    run_in_process([*args, "task.trials=2"], tmp_path / "run")
+    trials, best, _, study = _read(out)
+    params = [r["params"] for r in study if r["key"].startswith("trial/")]
+    assert params == [searched(5), searched(4)]
+    assert best["value"] >= best["severity_5"] and float(trials[0]["value"]) == best["severity_5"]
+    run_in_process([*args, "task.trials=4"], tmp_path / "run")
+    params = [r["params"] for r in _read(out)[3] if r["key"].startswith("trial/")]
+    assert params == [searched(5), searched(4), searched(3), searched(2)]
+    random_out = tmp_path / "random"
+    run_in_process([*SMALL, f"task.out_dir={random_out}", "task.trials=1", "task.start=random"], tmp_path / "run")
+    first = [r["params"] for r in _read(random_out)[3] if r["key"].startswith("trial/")][0]
+    assert first not in [searched(s) for s in range(1, 6)]
