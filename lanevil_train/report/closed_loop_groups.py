@@ -83,6 +83,8 @@ def group_difference_rows(records: Sequence[dict], replicates: int | None = None
         return []
     reference = reference_group(groups)
     kwargs = {} if replicates is None else {"replicates": replicates}
+    perturbed = [r for r in records if r["perturbed"]]
+    categories = ordered({r["category"] for r in perturbed}, tuple(CATEGORIES))
     rows = []
     for name, models in groups.items():
         if name == reference:
@@ -90,8 +92,6 @@ def group_difference_rows(records: Sequence[dict], replicates: int | None = None
         seeds = sorted(set(models) & set(groups[reference]))
         mine = {models[s] for s in seeds}
         theirs = {groups[reference][s] for s in seeds}
-        perturbed = [r for r in records if r["perturbed"]]
-        categories = ordered({r["category"] for r in perturbed}, tuple(CATEGORIES))
         for category in [*categories, ALL]:
             def keep(r, labels):
                 return r["model"] in labels and (category == ALL or r["category"] == category)
