@@ -18,6 +18,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from lanevil_train.report.closed_loop import ALL, MISSING, paired_difference
+from lanevil_train.report.intervals import REPLICATES
 from lanevil_train.report.records import ordered
 from lanevil_train.taxonomy import CATEGORIES
 
@@ -68,7 +69,7 @@ def _unit(record: dict) -> tuple:
 
 def _seed_asr(records: Sequence[dict], seeds: Sequence[int]) -> str:
     """The ASR (%) of each seed's runs, as mean ± std over the seeds (ddof 1)."""
-    by_seed = [[r for r in records if _pair(r)[0] == seed] for seed in seeds]
+    by_seed = [[r for r in records if group_of(r["model"])[1] == seed] for seed in seeds]
     values = [100.0 * np.mean([bool(r.get("success")) for r in runs]) for runs in by_seed if runs]
     if not values:
         return MISSING
@@ -76,13 +77,12 @@ def _seed_asr(records: Sequence[dict], seeds: Sequence[int]) -> str:
     return f"{np.mean(values):.1f} ± {spread:.1f}"
 
 
-def group_difference_rows(records: Sequence[dict], replicates: int | None = None, seed: int = 0) -> list[dict]:
+def group_difference_rows(records: Sequence[dict], replicates: int = REPLICATES, seed: int = 0) -> list[dict]:
     """One row per compared group and category (then `all`): see the module docstring. [] without groups."""
     groups = groups_of(records)
     if groups is None:
         return []
     reference = reference_group(groups)
-    kwargs = {} if replicates is None else {"replicates": replicates}
     perturbed = [r for r in records if r["perturbed"]]
     categories = ordered({r["category"] for r in perturbed}, tuple(CATEGORIES))
     rows = []
@@ -100,8 +100,8 @@ def group_difference_rows(records: Sequence[dict], replicates: int | None = None
             row = {"group": name, "vs": reference, "category": category, "seeds": len(seeds), "runs": len(ours),
                    f"{reference} ASR (%)": _seed_asr(reference_runs, seeds), f"{name} ASR (%)": _seed_asr(ours, seeds)}
             for column, score, scale, digits in DIFFERENCES:
-                difference = paired_difference(ours, reference_runs, score, scale, seed=seed, pair=_pair,
-                                               unit=_unit, **kwargs)
+                difference = paired_difference(ours, reference_runs, score, scale, replicates, seed, _pair,
+                                               _unit)
                 row[column] = MISSING if difference is None else (
                     f"{difference[0]:+.{digits}f} [{difference[1]:+.{digits}f}, {difference[2]:+.{digits}f}]")
                 if column.startswith("ASR"):
